@@ -1,0 +1,23 @@
+"""CREStereo++ and Lite-CREStereo++ in plain PyTorch.
+
+Disparity is positive everywhere, in pixels of the left image (the right match is at x - d).
+
+    from model import load_model
+    predictor = load_model("lite")                  # bundled weights if present
+    disparity, uncertainty = predictor.predict(left_rgb, right_rgb)
+"""
+
+from .config import ModelConfig
+from .inference import Prediction, StereoPredictor, load_model
+from .loss import sequence_loss
+from .network import CREStereoPP, NetworkOutput
+
+__all__ = [
+    "CREStereoPP",
+    "ModelConfig",
+    "NetworkOutput",
+    "Prediction",
+    "StereoPredictor",
+    "load_model",
+    "sequence_loss",
+]

@@ -1,0 +1,175 @@
+"""Inference API: ``load_model`` and ``StereoPredictor.predict`` on images of any size."""
+
+from __future__ import annotations
+
+import hashlib
+import warnings
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+import torch
+from torch import Tensor
+from torch.nn import functional as F
+
+from .config import ModelConfig
+from .network import INPUT_MULTIPLE, CREStereoPP
+from .upsample import resize_disparity
+
+WEIGHTS_DIR = Path(__file__).parent / "weights"
+"""Bundled weights: ``WEIGHTS_DIR / f"{name}.pt"``."""
+
+Iterations = int | tuple[int, int, int] | None
+"""None: the config's iterations; int: iterations of the finest (1/4) stage; or (n16, n8, n4)."""
+
+
+class Prediction(NamedTuple):
+    """Disparity (positive, pixels of the left image) and uncertainty (in [0, 1]) maps, float32:
+    numpy HxW for a single image pair given as arrays, torch (B, H, W) for batched tensors."""
+
+    disparity: np.ndarray | Tensor
+    uncertainty: np.ndarray | Tensor
+
+
+def file_sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with path.open("rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def load_model(name: str = "lite", weights: str | Path | None = None, device: str | torch.device = "cpu") -> StereoPredictor:
+    """Build the ``name`` network (``lite`` | ``full``) and load its weights.
+
+    ``weights``: a weights file or training checkpoint (a dict with ``"model"`` = state_dict and
+    ``"config"``); None loads the bundled ``model/weights/{name}.pt`` if present, else the network is
+    randomly initialised (seed 0, so every process gets the same one) with a warning.
+    """
+    config = ModelConfig.preset(name)
+    path = Path(weights) if weights is not None else WEIGHTS_DIR / f"{name}.pt"
+    if weights is not None and not path.is_file():
+        raise FileNotFoundError(f"weights file not found: {path}")
+    if not path.is_file():
+        warnings.warn(
+            f"no weights at {path}: the {name!r} model is randomly initialised and its predictions are meaningless",
+            RuntimeWarning,
+            stacklevel=2,
+        )
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(0)
+            network = CREStereoPP(config)
+        return StereoPredictor(network, name, None, device)
+
+    checkpoint = torch.load(path, map_location="cpu", weights_only=True)
+    if not isinstance(checkpoint, dict) or "model" not in checkpoint:
+        raise ValueError(f"{path} is not a weights file: expected a dict with a 'model' state_dict")
+    if "config" in checkpoint:
+        config = ModelConfig.from_dict(dict(checkpoint["config"]))
+    network = CREStereoPP(config)
+    network.load_state_dict({k: v.float() for k, v in checkpoint["model"].items()})
+    return StereoPredictor(network, name, file_sha256(path), device)
+
+
+def as_image_batch(image: np.ndarray | Tensor, device: torch.device) -> Tensor:
+    """An image as (B, 3, H, W) float32 in [0, 255] on ``device``.
+
+    Arrays: HxWx3 RGB, HxWx4 (alpha dropped), HxW or HxWx1 grayscale (replicated to RGB);
+    uint8 as is, uint16 scaled to [0, 255], floats taken as [0, 255]. Tensors: (B, 3|1, H, W).
+    """
+    if isinstance(image, np.ndarray):
+        array = image[..., None] if image.ndim == 2 else image
+        if array.ndim != 3 or array.shape[2] not in (1, 3, 4):
+            raise ValueError(f"expected an HxW, HxWx1, HxWx3 or HxWx4 image, got shape {image.shape}")
+        scale = 255.0 / 65535.0 if array.dtype == np.uint16 else 1.0
+        batch = torch.from_numpy(np.ascontiguousarray(array[..., :3])).to(device).permute(2, 0, 1)[None]
+        batch = batch.float() * scale
+    elif isinstance(image, Tensor):
+        if image.ndim != 4 or image.shape[1] not in (1, 3):
+            raise ValueError(f"expected a (B, 3, H, W) or (B, 1, H, W) tensor, got {tuple(image.shape)}")
+        batch = image.to(device=device, dtype=torch.float32)
+    else:
+        raise TypeError(f"expected a numpy array or a torch tensor, got {type(image).__name__}")
+    return batch.expand(-1, 3, -1, -1) if batch.shape[1] == 1 else batch
+
+
+def pad_to_multiple(x: Tensor, multiple: int = INPUT_MULTIPLE) -> Tensor:
+    """Replicate-pad (B, C, H, W) on the bottom and right to multiples of ``multiple``."""
+    height, width = x.shape[-2:]
+    return F.pad(x, (0, -width % multiple, 0, -height % multiple), mode="replicate")
+
+
+class StereoPredictor:
+    """A network ready for inference (eval mode, on ``device``, no gradients)."""
+
+    def __init__(self, network: CREStereoPP, name: str, weights_sha256: str | None, device: str | torch.device) -> None:
+        self.device = torch.device(device)
+        self.network = network.to(self.device).eval()
+        self.name = name
+        self.weights_sha256 = weights_sha256
+
+    @property
+    def config(self) -> ModelConfig:
+        return self.network.config
+
+    @property
+    def num_parameters(self) -> int:
+        return sum(p.numel() for p in self.network.parameters())
+
+    def iterations(self, iters: Iterations) -> tuple[int, int, int]:
+        if iters is None:
+            return self.config.iters
+        if isinstance(iters, int):
+            return (*self.config.iters[:2], iters)
+        if len(iters) != 3:
+            raise ValueError(f"iters must be an int or three counts (1/16, 1/8, 1/4), got {iters}")
+        return tuple(iters)  # type: ignore[return-value]
+
+    @torch.inference_mode()
+    def predict(
+        self,
+        left: np.ndarray | Tensor,
+        right: np.ndarray | Tensor,
+        *,
+        iters: Iterations = None,
+        init_disparity: np.ndarray | Tensor | None = None,
+        two_pass: bool = False,
+    ) -> Prediction:
+        """Disparity and uncertainty of a rectified pair of any size (see ``as_image_batch``).
+
+        init_disparity: warm start (e.g. the previous video frame's result), HxW array or
+            (B, H, W) tensor, positive pixels; refinement then runs at 1/4 only.
+        two_pass: first a pass at half resolution, then refinement at full resolution from it
+            (better for large images and large disparities). Ignored when init_disparity is given.
+        """
+        is_array = isinstance(left, np.ndarray)
+        left_batch, right_batch = as_image_batch(left, self.device), as_image_batch(right, self.device)
+        if left_batch.shape != right_batch.shape:
+            raise ValueError(f"left and right differ in size: {tuple(left_batch.shape)} vs {tuple(right_batch.shape)}")
+        counts = self.iterations(iters)
+        init: Tensor | None = None
+        if init_disparity is not None:
+            init = torch.as_tensor(init_disparity, dtype=torch.float32, device=self.device)
+            init = init.reshape(left_batch.shape[0], 1, *left_batch.shape[-2:])
+        elif two_pass:
+            half = F.interpolate(left_batch, scale_factor=0.5, mode="bilinear", antialias=True, align_corners=False)
+            half_right = F.interpolate(right_batch, scale_factor=0.5, mode="bilinear", antialias=True, align_corners=False)
+            coarse, _ = self.run(half, half_right, counts, None)
+            init = resize_disparity(coarse, *left_batch.shape[-2:])
+        disparity, uncertainty = self.run(left_batch, right_batch, counts, init)
+        if is_array:
+            return Prediction(disparity[0, 0].cpu().numpy(), uncertainty[0, 0].cpu().numpy())
+        return Prediction(disparity[:, 0], uncertainty[:, 0])
+
+    def run(self, left: Tensor, right: Tensor, iters: tuple[int, int, int], init: Tensor | None) -> tuple[Tensor, Tensor]:
+        """Pad (B,3,H,W) inputs to multiples of 32, run the network, crop back.
+        Returns disparity (clipped at 0) and uncertainty, each (B, 1, H, W)."""
+        height, width = left.shape[-2:]
+        out = self.network(
+            pad_to_multiple(left),
+            pad_to_multiple(right),
+            iters=iters,
+            init_disparity=None if init is None else pad_to_multiple(init),
+        )
+        disparity = out.disparity[..., :height, :width].clamp(min=0.0)
+        return disparity, out.uncertainty[..., :height, :width]

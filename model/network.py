@@ -1,0 +1,113 @@
+"""CREStereo++: FEM + one adaptive recurrent module (ARM) run coarse to fine (paper sec. 3.1)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor, nn
+from torch.nn import functional as F
+
+from .config import ModelConfig
+from .feature_extractor import FeatureExtractor, feature_pyramid, split_hidden_context
+from .ugac import UGAC
+from .update import UpdateBlock
+from .upsample import convex_upsample, resize_disparity
+
+SCALES = (16, 8, 4)
+"""Downsampling factor of each ARM stage, coarse to fine."""
+
+INPUT_MULTIPLE = 32
+"""Input height and width must be multiples of this (``model.inference`` pads to it)."""
+
+
+@dataclass
+class NetworkOutput:
+    """What one forward pass returns. Disparities are positive, in pixels of the input.
+
+    Attributes:
+        disparity: (B, 1, H, W) final prediction.
+        uncertainty: (B, 1, H, W) U of the last iteration in [0, 1], bilinearly upsampled.
+        predictions: per stage, per iteration, (B, 1, H, W) full-resolution disparities for the
+            loss (paper eq. 6); empty unless the network is in training mode.
+    """
+
+    disparity: Tensor
+    uncertainty: Tensor
+    predictions: list[list[Tensor]] = field(default_factory=list)
+
+
+class CREStereoPP(nn.Module):
+    """CREStereo++ / Lite-CREStereo++ depending on ``config``.
+
+    One FEM shared by both views (run as one batch); one ARM (UGAC + update block) whose SAME
+    parameters serve 1/16, 1/8 and 1/4. The last disparity of a stage, upsampled x2 and scaled
+    x2, initialises the next; the final 1/4 disparity is convex-upsampled to full resolution.
+    """
+
+    def __init__(self, config: ModelConfig) -> None:
+        super().__init__()
+        self.config = config
+        self.fem = FeatureExtractor(config.fem_channels, config.feature_dim)
+        self.ugac = UGAC(config)
+        self.update = UpdateBlock(config)
+
+    def forward(
+        self,
+        left: Tensor,
+        right: Tensor,
+        iters: tuple[int, int, int] | None = None,
+        init_disparity: Tensor | None = None,
+    ) -> NetworkOutput:
+        """
+        Args:
+            left, right: (B, 3, H, W) RGB in [0, 255]; H and W multiples of 32.
+            iters: iterations at 1/16, 1/8, 1/4 (default ``config.iters``).
+            init_disparity: optional (B, 1, H, W) warm start in pixels of the input; when given,
+                the coarse stages are skipped and refinement starts at 1/4 from it.
+        """
+        height, width = left.shape[-2:]
+        if height % INPUT_MULTIPLE or width % INPUT_MULTIPLE:
+            raise ValueError(f"input {height}x{width} is not a multiple of {INPUT_MULTIPLE}; pad it first")
+        iters = iters or self.config.iters
+        images = torch.cat((left, right), dim=0) * (2.0 / 255.0) - 1.0
+        left_features, right_features = self.fem(images).chunk(2, dim=0)
+        pyramid = list(zip(feature_pyramid(left_features), feature_pyramid(right_features)))
+
+        if init_disparity is None:
+            first_stage = 0
+            f_left = pyramid[0][0]
+            disparity = f_left.new_zeros(f_left.shape[0], 1, *f_left.shape[-2:])
+        else:
+            first_stage = len(SCALES) - 1
+            disparity = F.avg_pool2d(init_disparity, SCALES[-1]) / SCALES[-1]
+
+        predictions: list[list[Tensor]] = []
+        for stage in range(first_stage, len(SCALES)):
+            if stage > first_stage:
+                disparity = resize_disparity(disparity, *pyramid[stage][0].shape[-2:])
+            f_left, f_right = pyramid[stage]
+            hidden, context = split_hidden_context(f_left)
+            uncertainty: Tensor | None = None  # U = 1 at the start of every stage
+            stage_predictions: list[Tensor] = []
+            for n in range(iters[stage]):
+                disparity = disparity.detach()
+                volume, next_uncertainty = self.ugac(f_left, f_right, disparity, uncertainty, n)
+                hidden, delta = self.update(hidden, context, volume, disparity)
+                disparity = disparity + delta
+                uncertainty = next_uncertainty
+                if self.training:
+                    stage_predictions.append(self.full_resolution(disparity, hidden, height, width))
+            predictions.append(stage_predictions)
+
+        assert uncertainty is not None  # every stage runs at least one iteration
+        final = predictions[-1][-1] if self.training else self.full_resolution(disparity, hidden, height, width)
+        full_uncertainty = F.interpolate(uncertainty, size=(height, width), mode="bilinear", align_corners=False)
+        return NetworkOutput(final, full_uncertainty, predictions if self.training else [])
+
+    def full_resolution(self, disparity: Tensor, hidden: Tensor, height: int, width: int) -> Tensor:
+        """Convex-upsample a stage's disparity x4, then (coarse stages) resize bilinearly to H x W."""
+        fine = convex_upsample(disparity, self.update.upsample_mask(hidden))
+        if fine.shape[-1] == width:
+            return fine
+        return resize_disparity(fine, height, width)
