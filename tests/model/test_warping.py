@@ -77,7 +77,7 @@ def test_bilinear_warp_by_integer_disparity_shifts_the_right_map():
     right = torch.arange(2 * 3 * 8, dtype=torch.float32).view(1, 2, 3, 8)
     warped = bilinear_warp(right, torch.full((1, 1, 3, 8), 2.0))
     assert torch.allclose(warped[..., 2:], right[..., :-2], atol=1e-4)  # left x matches right x - 2
-    assert torch.equal(warped[..., :2], torch.zeros(1, 2, 3, 2))  # matches outside the map
+    assert warped[..., :2].abs().max() < 1e-4  # matches outside the map read zeros
 
 
 def identity_weights(c: int, taps: list[int]) -> torch.Tensor:
