@@ -1,0 +1,136 @@
+"""The inference API users and the service build on: load_model(...).predict(left, right)."""
+
+import warnings
+
+import numpy as np
+import pytest
+import torch
+
+from model import ModelConfig, load_model
+from model.inference import file_sha256
+
+
+@pytest.fixture(scope="module")
+def lite():
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return load_model("lite", weights=None)
+
+
+def random_pair(height, width, seed=0, channels=3):
+    rng = np.random.default_rng(seed)
+    shape = (height, width, channels) if channels else (height, width)
+    return rng.integers(0, 256, shape, dtype=np.uint8), rng.integers(0, 256, shape, dtype=np.uint8)
+
+
+@pytest.mark.parametrize(("height", "width"), [(40, 60), (33, 77), (375, 1242), (65, 31)])
+def test_output_has_the_input_size_for_any_size(lite, height, width):
+    left, right = random_pair(height, width)
+    disparity, uncertainty = lite.predict(left, right, iters=(1, 1, 1))
+    assert disparity.shape == uncertainty.shape == (height, width)
+    assert disparity.dtype == uncertainty.dtype == np.float32
+    assert (disparity >= 0).all() and ((uncertainty >= 0) & (uncertainty <= 1)).all()
+
+
+def test_a_batch_of_two_pairs_equals_the_two_pairs_run_alone(lite):
+    pairs = [random_pair(48, 80, seed) for seed in (1, 2)]
+    batch_left = torch.from_numpy(np.stack([p[0] for p in pairs])).permute(0, 3, 1, 2)
+    batch_right = torch.from_numpy(np.stack([p[1] for p in pairs])).permute(0, 3, 1, 2)
+    batched = lite.predict(batch_left, batch_right)
+    assert batched.disparity.shape == (2, 48, 80)
+    for i, (left, right) in enumerate(pairs):
+        alone = lite.predict(left, right)
+        np.testing.assert_allclose(batched.disparity[i].numpy(), alone.disparity, atol=1e-4)
+        np.testing.assert_allclose(batched.uncertainty[i].numpy(), alone.uncertainty, atol=1e-5)
+
+
+def test_the_same_input_twice_gives_the_same_output(lite):
+    left, right = random_pair(50, 70, seed=3)
+    first, second = lite.predict(left, right), lite.predict(left, right)
+    assert np.array_equal(first.disparity, second.disparity)
+    assert np.array_equal(first.uncertainty, second.uncertainty)
+
+
+def test_grayscale_inputs_equal_their_rgb_replication(lite):
+    left, right = random_pair(40, 64, seed=4, channels=0)
+    gray = lite.predict(left, right)
+    gray1 = lite.predict(left[..., None], right[..., None])
+    rgb = lite.predict(np.repeat(left[..., None], 3, 2), np.repeat(right[..., None], 3, 2))
+    assert np.array_equal(gray.disparity, rgb.disparity) and np.array_equal(gray1.disparity, rgb.disparity)
+
+
+def test_sixteen_bit_images_are_scaled_to_the_eight_bit_range(lite):
+    left, right = random_pair(32, 64, seed=5)
+    wide = lite.predict(left.astype(np.uint16) * 257, right.astype(np.uint16) * 257)
+    np.testing.assert_allclose(wide.disparity, lite.predict(left, right).disparity, atol=1e-3)
+
+
+def test_warm_start_and_two_pass_give_maps_of_the_input_size(lite):
+    left, right = random_pair(70, 100, seed=6)
+    warm = lite.predict(left, right, init_disparity=np.full((70, 100), 3.0, np.float32))
+    two_pass = lite.predict(left, right, two_pass=True)
+    assert warm.disparity.shape == two_pass.disparity.shape == (70, 100)
+    assert not np.array_equal(warm.disparity, lite.predict(left, right).disparity)
+
+
+def test_warm_start_runs_only_the_finest_stage(lite):
+    net = lite.network
+    calls = []
+    hook = net.update.register_forward_hook(lambda module, args, out: calls.append(args[0].shape[-1]))
+    try:
+        with torch.inference_mode():
+            net(torch.zeros(1, 3, 64, 64), torch.zeros(1, 3, 64, 64), init_disparity=torch.ones(1, 1, 64, 64))
+    finally:
+        hook.remove()
+    assert calls == [16] * 6  # six iterations at 1/4 of 64
+
+
+def test_mismatched_or_malformed_inputs_are_refused_with_a_clear_error(lite):
+    left, _ = random_pair(40, 60)
+    with pytest.raises(ValueError, match="differ in size"):
+        lite.predict(left, left[:, :50])
+    with pytest.raises(ValueError, match="HxWx3"):
+        lite.predict(left[..., :2], left[..., :2])
+    with pytest.raises(TypeError, match="numpy array or a torch tensor"):
+        lite.predict(left.tolist(), left.tolist())
+
+
+def test_missing_weights_warn_and_give_the_same_random_network_in_every_process(monkeypatch, tmp_path):
+    monkeypatch.setattr("model.inference.WEIGHTS_DIR", tmp_path)  # no bundled weights here
+    with pytest.warns(RuntimeWarning, match="randomly initialised"):
+        first = load_model("lite", weights=None)
+    assert first.weights_sha256 is None
+    with pytest.warns(RuntimeWarning):
+        second = load_model("lite")
+    for a, b in zip(first.network.state_dict().values(), second.network.state_dict().values()):
+        assert torch.equal(a, b)
+
+
+def test_weights_file_round_trip_keeps_predictions_config_and_reports_its_sha256(lite, tmp_path):
+    path = tmp_path / "weights.pt"
+    state = {k: v.half() for k, v in lite.network.state_dict().items()}  # fp16 on disk
+    config = ModelConfig.preset("lite", iters=(1, 2, 3))
+    torch.save({"model": state, "config": config.to_dict(), "meta": {"steps": 0}}, path)
+    loaded = load_model("lite", weights=path)
+    assert loaded.weights_sha256 == file_sha256(path) and len(loaded.weights_sha256) == 64
+    assert loaded.config == config and loaded.num_parameters == lite.num_parameters
+    left, right = random_pair(40, 60, seed=7)
+    np.testing.assert_allclose(
+        loaded.predict(left, right).disparity, lite.predict(left, right, iters=(1, 2, 3)).disparity, atol=0.05
+    )
+
+
+def test_missing_or_invalid_weights_files_raise(tmp_path):
+    with pytest.raises(FileNotFoundError):
+        load_model("lite", weights=tmp_path / "nope.pt")
+    bad = tmp_path / "bad.pt"
+    torch.save({"something": 1}, bad)
+    with pytest.raises(ValueError, match="not a weights file"):
+        load_model("lite", weights=bad)
+
+
+def test_inference_holds_no_autograd_state(lite):
+    left, right = random_pair(32, 32, seed=8)
+    batch = torch.from_numpy(left).permute(2, 0, 1)[None]
+    out = lite.predict(batch, batch)
+    assert not out.disparity.requires_grad and out.disparity.is_inference()
