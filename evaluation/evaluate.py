@@ -1,0 +1,156 @@
+"""Evaluate a predictor (and optionally the SGBM baseline) on a dataset of pairs with ground truth."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from tqdm import tqdm
+
+from model import StereoPredictor
+from stereo_data.readers import StereoSample
+
+from .metrics import DisparityMetrics, compute_metrics, mean_metrics
+from .sgbm import sgbm_disparity
+from .visualize import Panel, colorize, compose_sheet, disparity_panels
+
+SGBM = "sgbm"
+"""Method name of the OpenCV StereoSGBM baseline in reports."""
+
+
+@dataclass(frozen=True)
+class MethodResult:
+    """One method on one pair: its metrics and the seconds one prediction took."""
+
+    metrics: DisparityMetrics
+    seconds: float
+
+
+@dataclass(frozen=True)
+class PairResult:
+    """All methods on one pair (`methods` maps method name -> result, in evaluation order)."""
+
+    name: str
+    width: int
+    height: int
+    methods: dict[str, MethodResult]
+
+
+@dataclass(frozen=True)
+class EvaluationReport:
+    """Per-pair results of every method, plus what identifies the model."""
+
+    dataset: str
+    model: dict[str, Any]
+    pairs: list[PairResult] = field(default_factory=list)
+
+    @property
+    def method_names(self) -> list[str]:
+        return list(self.pairs[0].methods) if self.pairs else []
+
+    def mean(self, method: str) -> MethodResult:
+        """Unweighted mean over pairs of the metrics and the time of `method`."""
+        results = [pair.methods[method] for pair in self.pairs]
+        return MethodResult(mean_metrics([r.metrics for r in results]), float(np.mean([r.seconds for r in results])))
+
+    def to_dict(self) -> dict[str, Any]:
+        """Every number of the report, JSON-ready."""
+        return {
+            "dataset": self.dataset,
+            "model": self.model,
+            "pairs": [asdict(pair) for pair in self.pairs],
+            "mean": {method: asdict(self.mean(method)) for method in self.method_names},
+        }
+
+    def table(self) -> str:
+        """Plain-text table: one row per pair and method, then one mean row per method."""
+        header = f"{'pair':<34} {'method':<6} {'EPE':>7} {'bad-1%':>7} {'bad-2%':>7} {'bad-3%':>7} {'D1-all%':>8} {'time s':>8}"
+        lines = [header, "-" * len(header)]
+        rows = [(pair.name, pair.methods) for pair in self.pairs]
+        rows.append((f"mean of {len(self.pairs)} pairs", {m: self.mean(m) for m in self.method_names}))
+        for label, methods in rows:
+            for method, result in methods.items():
+                m = result.metrics
+                lines.append(
+                    f"{label:<34.34} {method:<6} {m.epe:>7.3f} {m.bad1:>7.2f} {m.bad2:>7.2f} {m.bad3:>7.2f}"
+                    f" {m.d1_all:>8.2f} {result.seconds:>8.3f}"
+                )
+                label = ""
+        return "\n".join(lines)
+
+
+def evaluate(
+    dataset: Sequence[StereoSample],
+    predictor: StereoPredictor,
+    *,
+    dataset_name: str,
+    baseline_sgbm: bool = False,
+    sheets_dir: Path | None = None,
+    two_pass: bool = False,
+    progress: bool = True,
+) -> EvaluationReport:
+    """Predict every pair of `dataset` with `predictor` (and SGBM when `baseline_sgbm`), score it.
+
+    Times are wall-clock seconds of one prediction, the model's after one untimed warm-up
+    prediction on the first pair. With `sheets_dir`, writes `sheets_dir/NAME.png` per pair:
+    left image, ground truth, uncertainty, then each method's disparity and error map, on fixed
+    colour scales (disparity 0..max ground truth of the pair; error 0..ERROR_SCALE_PX).
+    """
+    if len(dataset) == 0:
+        raise ValueError(f"{dataset_name} holds no stereo pairs")
+    report = EvaluationReport(
+        dataset=dataset_name,
+        model={
+            "name": predictor.name,
+            "weights_sha256": predictor.weights_sha256,
+            "num_parameters": predictor.num_parameters,
+        },
+    )
+    first = dataset[0]
+    predictor.predict(first.left, first.right, two_pass=two_pass)
+    for index in tqdm(range(len(dataset)), desc=f"eval {predictor.name}", unit="pair", disable=not progress):
+        sample = dataset[index]
+        known = sample.valid & np.isfinite(sample.disparity)
+        if not known.any():
+            raise ValueError(f"pair {sample.name!r} has no valid ground-truth pixel")
+        start = time.perf_counter()
+        prediction = predictor.predict(sample.left, sample.right, two_pass=two_pass)
+        seconds = time.perf_counter() - start
+        methods = {predictor.name: MethodResult(compute_metrics(prediction.disparity, sample.disparity, known), seconds)}
+        disparities = {predictor.name: prediction.disparity}
+        if baseline_sgbm:
+            start = time.perf_counter()
+            baseline = sgbm_disparity(sample.left, sample.right, float(sample.disparity[known].max()))
+            seconds = time.perf_counter() - start
+            methods[SGBM] = MethodResult(compute_metrics(baseline, sample.disparity, known), seconds)
+            disparities[SGBM] = baseline
+        height, width = sample.disparity.shape
+        report.pairs.append(PairResult(sample.name, width, height, methods))
+        if sheets_dir is not None:
+            sheet = evaluation_sheet(sample, known, prediction.uncertainty, disparities)
+            sheets_dir.mkdir(parents=True, exist_ok=True)
+            cv2.imwrite(str(sheets_dir / f"{sample.name}.png"), sheet[:, :, ::-1])
+    return report
+
+
+def evaluation_sheet(
+    sample: StereoSample, known: np.ndarray, uncertainty: np.ndarray, disparities: dict[str, np.ndarray]
+) -> np.ndarray:
+    """Sheet image (uint8 RGB) of one pair: row 1 left, ground truth, the model's uncertainty;
+    then one row per method (disparity, |error|). `disparities` maps method -> float HxW px."""
+    ground_truth = np.where(known, sample.disparity, np.inf)
+    disparity_max = float(ground_truth[known].max())
+    rows = [
+        [
+            Panel(f"{sample.name} left", sample.left),
+            Panel(f"ground truth 0-{disparity_max:.0f} px", colorize(ground_truth, 0.0, disparity_max)),
+            Panel("uncertainty 0-1", colorize(uncertainty, 0.0, 1.0, cv2.COLORMAP_VIRIDIS)),
+        ]
+    ]
+    rows += [disparity_panels(name, d, sample.disparity, known, disparity_max) for name, d in disparities.items()]
+    return compose_sheet(rows)

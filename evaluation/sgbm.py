@@ -1,0 +1,59 @@
+"""OpenCV StereoSGBM baseline, with exactly the settings of the stereo-dev README's table.
+
+numDisparities = ceil(max GT / 16) * 16, blockSize 5, P1 600 (8*3*5^2), P2 2400 (32*3*5^2),
+disp12MaxDiff 1, uniquenessRatio 10, speckleWindowSize 100, speckleRange 2, SGBM_3WAY, on the
+colour images; disparity = output / 16; invalid outputs (< 0) filled from the nearest valid pixel
+to the left (a row's leading invalid run from the nearest valid pixel to the right).
+"""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+
+
+def sgbm_num_disparities(max_disparity: float) -> int:
+    """SGBM's disparity range: `max_disparity` (px) rounded up to a multiple of 16, at least 16."""
+    return max(16, int(math.ceil(max_disparity / 16.0)) * 16)
+
+
+def create_sgbm(max_disparity: float) -> cv2.StereoSGBM:
+    """A StereoSGBM matcher with the baseline settings, searching 0..`max_disparity` px."""
+    block_size = 5
+    return cv2.StereoSGBM_create(
+        minDisparity=0,
+        numDisparities=sgbm_num_disparities(max_disparity),
+        blockSize=block_size,
+        P1=8 * 3 * block_size**2,
+        P2=32 * 3 * block_size**2,
+        disp12MaxDiff=1,
+        uniquenessRatio=10,
+        speckleWindowSize=100,
+        speckleRange=2,
+        mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY,
+    )
+
+
+def fill_invalid_from_left(disparity: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Replace each invalid pixel by the nearest valid pixel to its left in the same row.
+
+    disparity: float HxW; valid: bool HxW. A row's leading invalid run takes the nearest valid
+    pixel to its right; a row with no valid pixel becomes 0. Returns a new float32 array.
+    """
+    height, width = disparity.shape
+    columns = np.broadcast_to(np.arange(width), (height, width))
+    last_valid_left = np.maximum.accumulate(np.where(valid, columns, -1), axis=1)
+    next_valid_right = np.minimum.accumulate(np.where(valid, columns, width)[:, ::-1], axis=1)[:, ::-1]
+    source = np.where(last_valid_left >= 0, last_valid_left, next_valid_right)
+    row_has_valid = source < width
+    filled = np.take_along_axis(disparity, np.where(row_has_valid, source, 0), axis=1)
+    return np.where(row_has_valid, filled, 0.0).astype(np.float32)
+
+
+def sgbm_disparity(left: np.ndarray, right: np.ndarray, max_disparity: float) -> np.ndarray:
+    """Baseline disparity (float32 HxW, px, positive, no holes) of a rectified uint8 HxWx3 pair."""
+    raw = create_sgbm(max_disparity).compute(left, right)
+    disparity = raw.astype(np.float32) / 16.0
+    return fill_invalid_from_left(disparity, raw >= 0)

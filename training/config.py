@@ -1,0 +1,132 @@
+"""Typed training configuration, its presets (the paper's two stages) and (de)serialisation."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field, fields, replace
+from typing import Any, Literal
+
+SYNTHETIC = "synthetic"
+"""The `path` of a DataSource that stands for the procedural scene generator."""
+
+Schedule = Literal["one-cycle", "linear", "constant"]
+Precision = Literal["auto", "fp32", "bf16"]
+
+
+@dataclass(frozen=True)
+class DataSource:
+    """One training source and its sampling weight.
+
+    path: "synthetic" (the procedural generator) or the root of a dataset in any layout that
+    `stereo_data.readers.open_dataset` reads. weight: relative probability that a training pair
+    comes from this source (weights of all sources are normalised to sum to 1).
+    """
+
+    path: str
+    weight: float = 1.0
+
+    def __post_init__(self) -> None:
+        if not self.weight > 0:
+            raise ValueError(f"source weight must be positive, got {self.weight} for {self.path!r}")
+
+    @classmethod
+    def parse(cls, text: str) -> DataSource:
+        """Parse "PATH" or "PATH=WEIGHT", e.g. "synthetic=0.7" or "/data/kitti2015=0.3"."""
+        path, separator, weight = text.rpartition("=")
+        if not separator:
+            return cls(text)
+        try:
+            return cls(path, float(weight))
+        except ValueError as error:
+            raise ValueError(f"bad source {text!r}: expected PATH or PATH=WEIGHT ({error})") from None
+
+    def __str__(self) -> str:
+        return f"{self.path}={self.weight:g}"
+
+
+def _knob(default: Any, help: str, metavar: str | None = None) -> Any:
+    """A config field with its command-line help text (and the placeholder shown there)."""
+    return field(default=default, metadata={"help": help, "metavar": metavar})
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Everything that defines a training run; every field is a `crestereo-pp train` option."""
+
+    model: Literal["lite", "full"] = _knob("lite", "network preset to train")
+    sources: tuple[DataSource, ...] = _knob(
+        (DataSource(SYNTHETIC),),
+        "a training source (repeat for a mixture); PATH 'synthetic' is the procedural generator",
+        metavar="PATH[=WEIGHT]",
+    )
+    crop_height: int = _knob(384, "training crop height in pixels (multiple of 32)")
+    crop_width: int = _knob(512, "training crop width in pixels (multiple of 32)")
+    max_disparity: float = _knob(192.0, "largest disparity (px) of the procedural scenes")
+    real_scale_range: tuple[float, float] = _knob(
+        (0.8, 1.25), "random rescale range of real pairs before cropping (raised where a pair is smaller than the crop)"
+    )
+    color_jitter: float = _knob(0.1, "real pairs: each view's channels get independent gains in 1 +- this")
+    batch_size: int = _knob(8, "pairs per step and per process")
+    lr: float = _knob(4e-4, "peak learning rate")
+    betas: tuple[float, float] = _knob((0.9, 0.999), "Adam betas")
+    weight_decay: float = _knob(0.0, "decoupled weight decay (AdamW); 0 is plain Adam")
+    schedule: Schedule = _knob("one-cycle", "lr schedule after warm-up: cosine (one-cycle) or linear decay to 0, or constant")
+    warmup_fraction: float = _knob(0.01, "fraction of max_steps spent warming the lr up linearly from 0")
+    gamma: float = _knob(0.8, "sequence-loss decay: prediction i of n has weight gamma^(n-i)")
+    loss_max_disparity: float = _knob(512.0, "ground truth at or above this (px) is ignored by the loss")
+    grad_clip: float = _knob(1.0, "clip the gradient norm to this (0: no clipping)")
+    max_steps: int = _knob(150_000, "train until this optimiser step (counted across resumes)")
+    max_minutes: float | None = _knob(None, "stop after this many minutes of this run, saving a checkpoint")
+    precision: Precision = _knob("auto", "auto: bf16 autocast on CUDA, fp32 on CPU")
+    device: str = _knob("auto", "auto (cuda if available, else cpu), cpu, cuda, cuda:N")
+    seed: int = _knob(0, "seed of the initial weights and of every batch")
+    out_dir: str = _knob("runs/train", "folder for checkpoints, the CSV log and the loss curve")
+    log_every: int = _knob(10, "steps per CSV row (loss averaged over them)")
+    checkpoint_every: int = _knob(1000, "steps between checkpoints (one is also saved at the end)")
+    num_workers: int = _knob(2, "worker processes loading real pairs (0: in the training process)")
+    val_data: str | None = _knob(None, "dataset evaluated at every checkpoint (mean EPE and bad-2 go to the log)")
+
+    def __post_init__(self) -> None:
+        for name in ("crop_height", "crop_width"):
+            if getattr(self, name) % 32:
+                raise ValueError(f"{name}={getattr(self, name)} must be a multiple of 32")
+        if not self.sources:
+            raise ValueError("at least one training source is needed")
+        if self.batch_size < 1 or self.max_steps < 1 or self.log_every < 1 or self.checkpoint_every < 1:
+            raise ValueError("batch_size, max_steps, log_every and checkpoint_every must be positive")
+        low, high = self.real_scale_range
+        if not 0 < low <= high:
+            raise ValueError(f"real_scale_range must be 0 < low <= high, got {self.real_scale_range}")
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain dict of builtins (sources as {"path", "weight"} dicts), for checkpoints and JSON."""
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, values: dict[str, Any]) -> TrainConfig:
+        """Inverse of `to_dict`; unknown keys are an error, missing keys take the defaults."""
+        known = {f.name for f in fields(cls)}
+        unknown = set(values) - known
+        if unknown:
+            raise ValueError(f"unknown TrainConfig fields: {sorted(unknown)}")
+        converted = dict(values)
+        if "sources" in converted:
+            converted["sources"] = tuple(DataSource(**s) for s in converted["sources"])
+        for name in ("real_scale_range", "betas"):
+            if name in converted:
+                converted[name] = tuple(converted[name])
+        return cls(**converted)
+
+
+PRESETS: dict[str, TrainConfig] = {
+    # Paper, pre-training stage: Adam 4e-4, betas 0.9/0.999, 150k steps, crops 384x512, gamma 0.8.
+    "pretrain": TrainConfig(),
+    # Paper, fine-tuning stage: a further 50k steps at lr 1e-4 (start it with --init-weights).
+    "finetune": TrainConfig(lr=1e-4, max_steps=50_000, schedule="linear"),
+}
+
+
+def preset(name: str, **overrides: Any) -> TrainConfig:
+    """The named preset ("pretrain" | "finetune") with `overrides` applied."""
+    if name not in PRESETS:
+        raise ValueError(f"unknown training preset {name!r}; choose one of {sorted(PRESETS)}")
+    return replace(PRESETS[name], **overrides)

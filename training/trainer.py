@@ -1,0 +1,223 @@
+"""The training loop: `train(config)` on one process, or one process per device under torchrun."""
+
+from __future__ import annotations
+
+import datetime as dt
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from torch.nn.parallel import DistributedDataParallel
+from tqdm import tqdm
+
+from evaluation.evaluate import evaluate
+from model import CREStereoPP, ModelConfig, StereoPredictor, sequence_loss
+from stereo_data.readers import open_dataset
+
+from .checkpoint import load_checkpoint, restore_rng_state, rng_state, save_atomically
+from .config import TrainConfig
+from .data import TrainingBatch, TrainingData
+from .distributed import DistributedContext, resolve_device
+from .history import RunRecord, TrainingHistory
+from .records import CsvLog, plot_curves, read_csv
+from .schedule import build_scheduler
+
+CHECKPOINT_NAME = "checkpoint.pt"
+LOG_COLUMNS = ("step", "pairs_seen", "minutes", "loss", "train_epe", "lr", "pairs_per_second")
+"""Columns of log.csv: loss and train_epe (px, final prediction) are means over the steps since
+the previous row and over all processes; minutes is this run's wall time; pairs_per_second
+counts all processes."""
+VALIDATION_COLUMNS = ("step", "pairs_seen", "minutes", "epe", "bad1", "bad2", "bad3", "d1_all")
+
+
+@dataclass(frozen=True)
+class TrainResult:
+    """Where a run ended: its last `step`, the `checkpoint` saved there, and whether it stopped
+    on its time budget (`out_of_time`) rather than at max_steps."""
+
+    step: int
+    checkpoint: Path
+    out_of_time: bool
+
+
+def train(
+    config: TrainConfig,
+    *,
+    resume: Path | None = None,
+    init_weights: Path | None = None,
+    progress: bool = True,
+) -> TrainResult:
+    """Train per `config`, writing checkpoint.pt, log.csv and loss_curve.png to config.out_dir.
+
+    resume: a checkpoint to continue exactly (weights, optimiser, scheduler, step, RNG states;
+    `config` should be the checkpoint's train_config with any overrides applied).
+    init_weights: a weights file or checkpoint whose weights start a fresh run (new optimiser,
+    step 0); its training history is carried on.
+    Under torchrun each process trains on its own batches (config.batch_size each) and
+    DistributedDataParallel averages the gradients; only rank 0 writes files.
+    """
+    if resume is not None and init_weights is not None:
+        raise ValueError("give either resume or init_weights, not both")
+    context = DistributedContext.from_environment()
+    device = resolve_device(config.device, context.local_rank)
+    context.start(device)
+    try:
+        return _train(config, context, device, resume, init_weights, progress)
+    finally:
+        context.stop()
+
+
+def _train(
+    config: TrainConfig,
+    context: DistributedContext,
+    device: torch.device,
+    resume: Path | None,
+    init_weights: Path | None,
+    progress: bool,
+) -> TrainResult:
+    source = load_checkpoint(resume or init_weights) if (resume or init_weights) else None
+    model_config = ModelConfig.from_dict(dict(source["config"])) if source and "config" in source else ModelConfig.preset(config.model)
+    torch.manual_seed(config.seed)
+    network = CREStereoPP(model_config).to(device)
+    optimizer = torch.optim.AdamW(network.parameters(), lr=config.lr, betas=config.betas, weight_decay=config.weight_decay)
+    scheduler = build_scheduler(optimizer, config.max_steps, config.schedule, config.warmup_fraction)
+    history = TrainingHistory.from_dict(source.get("training") if source else None)
+    start_step = 0
+    if source is not None:
+        network.load_state_dict({name: tensor.float() for name, tensor in source["model"].items()})
+    if resume is not None:
+        optimizer.load_state_dict(source["optimizer"])
+        scheduler.load_state_dict(source["scheduler"])
+        follow_config(optimizer, scheduler, config)
+        start_step = int(source["step"])
+        restore_rng_state(source["rng"])
+    if start_step >= config.max_steps:
+        raise ValueError(f"nothing to do: the run is at step {start_step} and max_steps is {config.max_steps}")
+
+    pairs_per_step = config.batch_size * context.world_size
+    record = RunRecord(
+        started=dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
+        origin="resume" if resume else "init-weights" if init_weights else "scratch",
+        model=config.model,
+        device=torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
+        processes=context.world_size,
+        first_step=start_step,
+        last_step=start_step,
+    )
+    history.runs.append(record)
+    out_dir = Path(config.out_dir)
+    checkpoint_path = out_dir / CHECKPOINT_NAME
+    kept_rows = start_step if resume else None
+    log = CsvLog(out_dir / "log.csv", LOG_COLUMNS, kept_rows) if context.is_main else None
+    validation_log = CsvLog(out_dir / "validation.csv", VALIDATION_COLUMNS, kept_rows) if context.is_main and config.val_data else None
+    model = DistributedDataParallel(network, device_ids=[device.index] if device.type == "cuda" else None) if context.is_distributed else network
+    use_bf16 = config.precision == "bf16" or (config.precision == "auto" and device.type == "cuda")
+
+    bar = tqdm(
+        total=config.max_steps * pairs_per_step,
+        initial=start_step * pairs_per_step,
+        unit="pair",
+        desc=f"train {config.model}",
+        disable=not (progress and context.is_main),
+        dynamic_ncols=True,
+    )
+    run_start = window_start = time.monotonic()
+    window_sums = torch.zeros(2, device=device)  # loss, train EPE summed over the window's steps
+    window_steps = 0
+    step = start_step
+    out_of_time = False
+    network.train()
+    for batch in TrainingData(config, context.rank, device).batches(start_step):
+        lr = optimizer.param_groups[0]["lr"]
+        with torch.autocast(device.type, dtype=torch.bfloat16, enabled=use_bf16):
+            output = model(batch.left, batch.right)
+        predictions = [[p.float() for p in stage] for stage in output.predictions]
+        loss = sequence_loss(predictions, batch.disparity, batch.valid, config.gamma, config.loss_max_disparity)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        if config.grad_clip > 0:
+            torch.nn.utils.clip_grad_norm_(network.parameters(), config.grad_clip)
+        optimizer.step()
+        scheduler.step()
+        step += 1
+        window_sums += torch.stack([loss.detach(), end_point_error(predictions[-1][-1].detach(), batch)])
+        window_steps += 1
+        bar.update(pairs_per_step)
+
+        minutes = (time.monotonic() - run_start) / 60.0
+        out_of_time = context.any(config.max_minutes is not None and minutes >= config.max_minutes, device)
+        finished = out_of_time or step == config.max_steps
+        if step % config.log_every == 0 or finished:
+            mean_loss, mean_epe = (context.mean(window_sums) / window_steps).tolist()
+            rate = window_steps * pairs_per_step / max(time.monotonic() - window_start, 1e-9)
+            bar.set_postfix(loss=f"{mean_loss:.3f}", epe=f"{mean_epe:.2f}", lr=f"{lr:.2e}")
+            if log is not None:
+                row = dict(step=step, pairs_seen=step * pairs_per_step, minutes=minutes, loss=mean_loss, train_epe=mean_epe, lr=lr, pairs_per_second=rate)
+                log.append(row)
+            record.final_loss = mean_loss
+            window_sums.zero_()
+            window_steps = 0
+            window_start = time.monotonic()
+        if (step % config.checkpoint_every == 0 or finished) and context.is_main:
+            record.last_step, record.pairs, record.minutes = step, (step - start_step) * pairs_per_step, minutes
+            if config.val_data:
+                record.validation = validate(network, config, device)
+                validation_log.append(dict(step=step, pairs_seen=step * pairs_per_step, minutes=minutes, **record.validation))
+            save_atomically(
+                {
+                    "model": network.state_dict(),
+                    "config": model_config.to_dict(),
+                    "model_name": config.model,
+                    "train_config": config.to_dict(),
+                    "optimizer": optimizer.state_dict(),
+                    "scheduler": scheduler.state_dict(),
+                    "step": step,
+                    "rng": rng_state(),
+                    "training": history.to_dict(),
+                },
+                checkpoint_path,
+            )
+            draw_curves(out_dir)
+        if out_of_time:
+            break
+    bar.close()
+    return TrainResult(step, checkpoint_path, out_of_time)
+
+
+def follow_config(optimizer: torch.optim.Optimizer, scheduler: torch.optim.lr_scheduler.LambdaLR, config: TrainConfig) -> None:
+    """After loading an optimiser and scheduler state saved under another config, apply this
+    config's lr, betas and weight decay (so that e.g. `--resume ... --lr 1e-4` takes effect)."""
+    scheduler.base_lrs = [config.lr] * len(optimizer.param_groups)
+    factor = scheduler.lr_lambdas[0](scheduler.last_epoch)
+    for group in optimizer.param_groups:
+        group.update(initial_lr=config.lr, lr=config.lr * factor, betas=config.betas, weight_decay=config.weight_decay)
+
+
+def end_point_error(disparity: torch.Tensor, batch: TrainingBatch) -> torch.Tensor:
+    """Mean |disparity - ground truth| (px) over the batch's valid pixels; disparity (B,1,H,W)."""
+    errors = torch.where(batch.valid, (disparity - batch.disparity).abs(), 0.0)
+    return errors.sum() / batch.valid.sum().clamp(min=1)
+
+
+def validate(network: CREStereoPP, config: TrainConfig, device: torch.device) -> dict[str, float]:
+    """Mean EPE, bad-1/2/3 and D1-all of `network` on config.val_data; leaves it in train mode."""
+    predictor = StereoPredictor(network, config.model, None, device)
+    report = evaluate(open_dataset(config.val_data), predictor, dataset_name=config.val_data, progress=False)
+    network.train()
+    metrics = report.mean(config.model).metrics
+    return dict(epe=metrics.epe, bad1=metrics.bad1, bad2=metrics.bad2, bad3=metrics.bad3, d1_all=metrics.d1_all)
+
+
+def draw_curves(out_dir: Path) -> None:
+    """loss_curve.png from log.csv (loss and train EPE against step); validation_curve.png from
+    validation.csv (dev bad-2 % and EPE against step) when validation ran."""
+    rows = read_csv(out_dir / "log.csv")
+    steps = [int(r["step"]) for r in rows]
+    series = {name: (steps, [float(r[column]) for r in rows]) for name, column in (("loss", "loss"), ("train EPE px", "train_epe"))}
+    plot_curves(series, out_dir / "loss_curve.png", "step", "loss / EPE (px), log scale", log_y=True)
+    validation = read_csv(out_dir / "validation.csv")
+    if validation:
+        steps = [int(r["step"]) for r in validation]
+        series = {name: (steps, [float(r[column]) for r in validation]) for name, column in (("dev bad-2 %", "bad2"), ("dev EPE px", "epe"))}
+        plot_curves(series, out_dir / "validation_curve.png", "step", "dev metric")
