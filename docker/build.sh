@@ -1,0 +1,48 @@
+#!/usr/bin/env bash
+# Builds the service image on this kind of machine: no image registry, no PyTorch index.
+#  - base image: made locally by make-base-image.sh (debootstrap + docker import), once;
+#  - torch: the host's CPU wheel (from its pip find-links dirs), staged in docker/build-extras/wheels;
+#  - pip inside the build: the host's package index and CA bundle.
+# Usage: docker/build.sh [extra `docker build` arguments]    Env: IMAGE, BASE_IMAGE, TORCH_VERSION
+set -euo pipefail
+root=$(cd "$(dirname "$0")/.." && pwd)
+image=${IMAGE:-crestereo-pp:latest}
+base=${BASE_IMAGE:-crestereo-local/python:3.11-slim-bookworm}
+torch_version=${TORCH_VERSION:-2.13.0+cpu}
+extras=$root/docker/build-extras
+
+"$root/docker/make-base-image.sh" "$base"
+
+pip_config() { python3 -m pip config get "global.$1" 2>/dev/null || true; }
+
+# The host's CPU wheel of torch, if it has one (hard link when possible: no copy of 190 MB).
+mkdir -p "$extras/wheels"
+torch_index=https://download.pytorch.org/whl/cpu
+for dir in ${PIP_FIND_LINKS:-} $(pip_config find-links) /opt/wheels; do
+    for wheel in "$dir"/torch-"$torch_version"-cp311-cp311-*"$(uname -m)".whl; do
+        [ -f "$wheel" ] || continue
+        target=$extras/wheels/$(basename "$wheel")
+        if [ ! -f "$target" ] || [ "$(stat -c %s "$wheel")" != "$(stat -c %s "$target")" ]; then
+            ln -f "$wheel" "$target" 2>/dev/null || cp "$wheel" "$target"
+        fi
+        torch_index=""   # found: torch's own dependencies then come from the ordinary index
+    done
+done
+
+# The host's CA bundle, for an index behind a TLS-intercepting proxy.
+cert=${PIP_CERT:-$(pip_config cert)}
+cert=${cert:-/etc/ssl/certs/ca-certificates.crt}
+if [ -f "$cert" ] && ! cmp -s "$cert" "$extras/ca-bundle.crt"; then
+    cp "$cert" "$extras/ca-bundle.crt"
+fi
+
+index=${PIP_INDEX_URL:-$(pip_config index-url)}
+index=${index:-https://pypi.org/simple}
+
+# --network host: pip in the build reaches the index exactly as this host does.
+docker build --network host \
+    --build-arg "BASE_IMAGE=$base" \
+    --build-arg "TORCH_VERSION=$torch_version" \
+    --build-arg "TORCH_INDEX_URL=${torch_index:-$index}" \
+    --build-arg "PIP_INDEX_URL=$index" \
+    -f "$root/docker/Dockerfile" -t "$image" "$@" "$root"
