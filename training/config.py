@@ -70,11 +70,12 @@ class TrainConfig:
     betas: tuple[float, float] = _knob((0.9, 0.999), "Adam betas")
     weight_decay: float = _knob(0.0, "decoupled weight decay (AdamW); 0 is plain Adam")
     schedule: Schedule = _knob("one-cycle", "lr schedule after warm-up: cosine (one-cycle) or linear decay to 0, or constant")
-    warmup_fraction: float = _knob(0.01, "fraction of max_steps spent warming the lr up linearly from 0")
+    warmup_fraction: float = _knob(0.01, "fraction of the schedule spent warming the lr up linearly from 0")
     gamma: float = _knob(0.8, "sequence-loss decay: prediction i of n has weight gamma^(n-i)")
     loss_max_disparity: float = _knob(512.0, "ground truth at or above this (px) is ignored by the loss")
     grad_clip: float = _knob(1.0, "clip the gradient norm to this (0: no clipping)")
     max_steps: int = _knob(150_000, "train until this optimiser step (counted across resumes)")
+    schedule_steps: int | None = _knob(None, "length of the lr schedule in steps [max_steps]; longer lets a run stop early and resume")
     max_minutes: float | None = _knob(None, "stop after this many minutes of this run, saving a checkpoint")
     precision: Precision = _knob("auto", "auto: bf16 autocast on CUDA, fp32 on CPU")
     device: str = _knob("auto", "auto (cuda if available, else cpu), cpu, cuda, cuda:N")
@@ -93,9 +94,16 @@ class TrainConfig:
             raise ValueError("at least one training source is needed")
         if self.batch_size < 1 or self.max_steps < 1 or self.log_every < 1 or self.checkpoint_every < 1:
             raise ValueError("batch_size, max_steps, log_every and checkpoint_every must be positive")
+        if self.schedule_steps is not None and self.schedule_steps < 1:
+            raise ValueError("schedule_steps must be positive")
         low, high = self.real_scale_range
         if not 0 < low <= high:
             raise ValueError(f"real_scale_range must be 0 < low <= high, got {self.real_scale_range}")
+
+    @property
+    def schedule_length(self) -> int:
+        """Steps over which the lr schedule runs (schedule_steps, else max_steps)."""
+        return self.schedule_steps or self.max_steps
 
     def to_dict(self) -> dict[str, Any]:
         """Plain dict of builtins (sources as {"path", "weight"} dicts), for checkpoints and JSON."""

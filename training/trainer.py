@@ -26,19 +26,21 @@ from .schedule import build_scheduler
 CHECKPOINT_NAME = "checkpoint.pt"
 LOG_COLUMNS = ("step", "pairs_seen", "minutes", "loss", "train_epe", "lr", "pairs_per_second")
 """Columns of log.csv: loss and train_epe (px, final prediction) are means over the steps since
-the previous row and over all processes; minutes is this run's wall time; pairs_per_second
-counts all processes."""
+the previous row and over all processes; minutes is the cumulative wall time of every run in
+the weights' history; pairs_per_second counts all processes."""
 VALIDATION_COLUMNS = ("step", "pairs_seen", "minutes", "epe", "bad1", "bad2", "bad3", "d1_all")
 
 
 @dataclass(frozen=True)
 class TrainResult:
-    """Where a run ended: its last `step`, the `checkpoint` saved there, and whether it stopped
-    on its time budget (`out_of_time`) rather than at max_steps."""
+    """Where a run ended: its last `step`, the `checkpoint` saved there (by rank 0), whether it
+    stopped on its time budget (`out_of_time`) rather than at max_steps, and this process's
+    trained `network` (in train mode)."""
 
     step: int
     checkpoint: Path
     out_of_time: bool
+    network: CREStereoPP
 
 
 def train(
@@ -81,7 +83,7 @@ def _train(
     torch.manual_seed(config.seed)
     network = CREStereoPP(model_config).to(device)
     optimizer = torch.optim.AdamW(network.parameters(), lr=config.lr, betas=config.betas, weight_decay=config.weight_decay)
-    scheduler = build_scheduler(optimizer, config.max_steps, config.schedule, config.warmup_fraction)
+    scheduler = build_scheduler(optimizer, config.schedule_length, config.schedule, config.warmup_fraction)
     history = TrainingHistory.from_dict(source.get("training") if source else None)
     start_step = 0
     if source is not None:
@@ -105,6 +107,7 @@ def _train(
         first_step=start_step,
         last_step=start_step,
     )
+    prior_minutes = history.total_minutes
     history.runs.append(record)
     out_dir = Path(config.out_dir)
     checkpoint_path = out_dir / CHECKPOINT_NAME
@@ -145,8 +148,9 @@ def _train(
         window_steps += 1
         bar.update(pairs_per_step)
 
-        minutes = (time.monotonic() - run_start) / 60.0
-        out_of_time = context.any(config.max_minutes is not None and minutes >= config.max_minutes, device)
+        run_minutes = (time.monotonic() - run_start) / 60.0
+        minutes = prior_minutes + run_minutes
+        out_of_time = context.any(config.max_minutes is not None and run_minutes >= config.max_minutes, device)
         finished = out_of_time or step == config.max_steps
         if step % config.log_every == 0 or finished:
             mean_loss, mean_epe = (context.mean(window_sums) / window_steps).tolist()
@@ -160,7 +164,7 @@ def _train(
             window_steps = 0
             window_start = time.monotonic()
         if (step % config.checkpoint_every == 0 or finished) and context.is_main:
-            record.last_step, record.pairs, record.minutes = step, (step - start_step) * pairs_per_step, minutes
+            record.last_step, record.pairs, record.minutes = step, (step - start_step) * pairs_per_step, run_minutes
             if config.val_data:
                 record.validation = validate(network, config, device)
                 validation_log.append(dict(step=step, pairs_seen=step * pairs_per_step, minutes=minutes, **record.validation))
@@ -182,7 +186,7 @@ def _train(
         if out_of_time:
             break
     bar.close()
-    return TrainResult(step, checkpoint_path, out_of_time)
+    return TrainResult(step, checkpoint_path, out_of_time, network)
 
 
 def follow_config(optimizer: torch.optim.Optimizer, scheduler: torch.optim.lr_scheduler.LambdaLR, config: TrainConfig) -> None:

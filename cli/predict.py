@@ -1,0 +1,121 @@
+"""`crestereo-pp predict`: disparity (and uncertainty, colour) files for one pair or many."""
+
+from __future__ import annotations
+
+import argparse
+import glob
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+from tqdm import tqdm
+
+from evaluation.visualize import colorize
+from model import load_model
+from stereo_data.formats import read_image, write_kitti_disparity, write_pfm
+from training.distributed import resolve_device
+
+from .evaluate import add_model_options
+
+IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".ppm", ".pgm", ".tif", ".tiff", ".webp"}
+DISPARITY_FORMATS = ("pfm", "png", "npy")
+
+
+@dataclass(frozen=True)
+class PairPaths:
+    """Input images of one pair and the output `stem` (relative path without extension)."""
+
+    left: Path
+    right: Path
+    stem: Path
+
+
+def add_parser(commands: argparse._SubParsersAction) -> None:
+    parser = commands.add_parser(
+        "predict",
+        help="disparity of one rectified pair, or of two folders / globs of pairs",
+        description=(
+            "LEFT and RIGHT are two image files (OUT is a file: .pfm float with +inf invalid, "
+            ".png KITTI 16-bit x256, or .npy float32), two folders (pairs share file names) or two "
+            "quoted globs (pairs in sorted order); then OUT, --uncertainty and --color are folders "
+            "that mirror the left images' relative paths."
+        ),
+    )
+    parser.add_argument("left", help="left image, folder or glob")
+    parser.add_argument("right", help="right image, folder or glob")
+    parser.add_argument("-o", "--output", type=Path, required=True, help="disparity file (.pfm/.png/.npy) or folder")
+    parser.add_argument("--format", choices=DISPARITY_FORMATS, default="pfm", help="disparity format in folder mode [pfm]")
+    parser.add_argument("--uncertainty", type=Path, metavar="U_OUT", help="uncertainty in [0, 1]: .pfm/.npy float, .png 16-bit x65535 (folder mode: a folder of .pfm)")
+    parser.add_argument("--color", type=Path, metavar="PNG", help="colour-mapped disparity PNG (folder mode: a folder)")
+    parser.add_argument("--color-max", type=float, metavar="PX", help="disparity at the top of the colour scale [each map's maximum]")
+    parser.add_argument("--iters", type=int, help="iterations at 1/4 resolution [the model's default]")
+    add_model_options(parser)
+    parser.set_defaults(run=run)
+
+
+def find_pairs(left: str, right: str) -> list[PairPaths]:
+    """Pairs named by LEFT and RIGHT: two files, two folders (matched by file name), or two globs
+    (matched in sorted order). Stems are relative to the folder holding all left images."""
+    if Path(left).is_file() and Path(right).is_file():
+        return [PairPaths(Path(left), Path(right), Path(Path(left).stem))]
+    if Path(left).is_dir() and Path(right).is_dir():
+        lefts = {p.name: p for p in Path(left).iterdir() if p.suffix.lower() in IMAGE_SUFFIXES}
+        rights = {p.name: p for p in Path(right).iterdir() if p.suffix.lower() in IMAGE_SUFFIXES}
+        if set(lefts) != set(rights):
+            unmatched = sorted(set(lefts) ^ set(rights))
+            raise ValueError(f"{len(unmatched)} image(s) have no partner in the other folder: {unmatched[:5]}")
+        return [PairPaths(lefts[name], rights[name], Path(lefts[name].stem)) for name in sorted(lefts)]
+    left_paths = [Path(p) for p in sorted(glob.glob(left)) if Path(p).is_file()]
+    right_paths = [Path(p) for p in sorted(glob.glob(right)) if Path(p).is_file()]
+    if not left_paths:
+        raise ValueError(f"no left image matches {left!r}")
+    if len(left_paths) != len(right_paths):
+        raise ValueError(f"{len(left_paths)} left images match {left!r} but {len(right_paths)} right images match {right!r}")
+    root = Path(os.path.commonpath([p.parent.resolve() for p in left_paths]))
+    return [PairPaths(l, r, l.resolve().relative_to(root).with_suffix("")) for l, r in zip(left_paths, right_paths)]
+
+
+def write_disparity(path: Path, disparity: np.ndarray) -> None:
+    """Write float HxW disparity (px) by extension: .pfm (float32), .png (KITTI 16-bit, x256), .npy."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    suffix = path.suffix.lower()
+    if suffix == ".pfm":
+        write_pfm(path, disparity)
+    elif suffix == ".png":
+        write_kitti_disparity(path, disparity)
+    elif suffix == ".npy":
+        np.save(path, disparity.astype(np.float32))
+    else:
+        raise ValueError(f"unknown disparity format {path.suffix!r} for {path}: use .pfm, .png or .npy")
+
+
+def write_uncertainty(path: Path, uncertainty: np.ndarray) -> None:
+    """Write float HxW uncertainty in [0, 1] by extension: .pfm, .npy, or .png (16-bit, x65535)."""
+    if path.suffix.lower() == ".png":
+        path.parent.mkdir(parents=True, exist_ok=True)
+        cv2.imwrite(str(path), np.round(np.clip(uncertainty, 0.0, 1.0) * 65535).astype(np.uint16))
+    else:
+        write_disparity(path, uncertainty)
+
+
+def run(args: argparse.Namespace) -> int:
+    pairs = find_pairs(args.left, args.right)
+    single = Path(args.left).is_file()
+    predictor = load_model(args.model, args.weights, resolve_device(args.device, 0))
+    for pair in tqdm(pairs, desc=f"predict {args.model}", unit="pair", disable=single):
+        prediction = predictor.predict(read_image(pair.left), read_image(pair.right), iters=args.iters, two_pass=args.two_pass)
+        write_disparity(args.output if single else args.output / f"{pair.stem}.{args.format}", prediction.disparity)
+        if args.uncertainty is not None:
+            write_uncertainty(args.uncertainty if single else args.uncertainty / f"{pair.stem}.pfm", prediction.uncertainty)
+        if args.color is not None:
+            color_path = args.color if single else args.color / f"{pair.stem}.png"
+            color_path.parent.mkdir(parents=True, exist_ok=True)
+            scale = args.color_max if args.color_max is not None else float(prediction.disparity.max())
+            cv2.imwrite(str(color_path), colorize(prediction.disparity, 0.0, scale)[:, :, ::-1])
+    if single:
+        print(f"wrote {args.output}")
+    else:
+        print(f"wrote {len(pairs)} disparity maps to {args.output}")
+    return 0

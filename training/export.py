@@ -1,0 +1,34 @@
+"""Export a training checkpoint as a weights file (docs/CONTRACTS.md format), optionally fp16."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from .checkpoint import load_checkpoint, save_atomically
+
+
+def export_weights(checkpoint: Path, output: Path, half: bool = False) -> dict[str, Any]:
+    """Write `output` = {"model", "config", "model_name", "train_config", "step", "training"}
+    from a checkpoint, dropping the optimiser, scheduler and RNG states.
+
+    half: store floating-point tensors as float16 (half the size; `load_model` and
+    `--init-weights` cast them back to float32). Returns the written payload.
+    """
+    source = load_checkpoint(checkpoint)
+    state = source["model"]
+    if half:
+        state = {name: t.half() if t.is_floating_point() else t for name, t in state.items()}
+    payload = {
+        "model": state,
+        "config": source["config"],
+        "model_name": source.get("model_name"),
+        "train_config": source.get("train_config"),
+        "step": source.get("step"),
+        "training": source.get("training"),
+        "dtype": "float16" if half else "float32",
+    }
+    save_atomically(payload, output)
+    return payload
