@@ -19,23 +19,24 @@ GATE_KERNEL_CHAINS: dict[str, tuple[int, ...]] = {
 """Horizontal z/r gate of the separable GRU: widths of the 1xk convs applied in sequence."""
 
 
-def conv1xk(in_channels: int, out_channels: int, k: int, vertical: bool = False) -> nn.Conv2d:
+def conv1xk(in_channels: int, out_channels: int, k: int, vertical: bool = False, groups: int = 1) -> nn.Conv2d:
     """A 'same'-padded 1xk (or kx1 when ``vertical``) convolution."""
     size, pad = ((k, 1), (k // 2, 0)) if vertical else ((1, k), (0, k // 2))
-    return nn.Conv2d(in_channels, out_channels, size, padding=pad)
+    return nn.Conv2d(in_channels, out_channels, size, padding=pad, groups=groups)
 
 
-def gate(in_channels: int, out_channels: int, widths: tuple[int, ...], vertical: bool = False) -> nn.Sequential:
-    """Convolutions of the given widths applied in sequence (in -> out -> ... -> out)."""
-    channels = [in_channels] + [out_channels] * len(widths)
-    return nn.Sequential(*(conv1xk(a, b, k, vertical) for a, b, k in zip(channels, channels[1:], widths)))
+def zr_gates(in_channels: int, hidden: int, widths: tuple[int, ...], vertical: bool = False) -> nn.Sequential:
+    """The z and r gates computed together: convs of the given widths in sequence, in -> 2*hidden
+    first, then grouped 2*hidden -> 2*hidden so that z (first half) and r (second half) stay two
+    independent gates. One wide conv instead of two narrow ones is what makes this fast on a CPU."""
+    convs = [conv1xk(in_channels, 2 * hidden, widths[0], vertical)]
+    convs += [conv1xk(2 * hidden, 2 * hidden, k, vertical, groups=2) for k in widths[1:]]
+    return nn.Sequential(*convs)
 
 
-def gru_step(h: Tensor, x: Tensor, conv_z: nn.Module, conv_r: nn.Module, conv_q: nn.Module) -> Tensor:
+def gru_step(h: Tensor, x: Tensor, conv_zr: nn.Module, conv_q: nn.Module) -> Tensor:
     """One ConvGRU update: h (B,Ch,h,w) with input x (B,Cx,h,w) -> new h (B,Ch,h,w)."""
-    hx = torch.cat((h, x), dim=1)
-    z = torch.sigmoid(conv_z(hx))
-    r = torch.sigmoid(conv_r(hx))
+    z, r = torch.sigmoid(conv_zr(torch.cat((h, x), dim=1))).chunk(2, dim=1)
     q = torch.tanh(conv_q(torch.cat((r * h, x), dim=1)))
     return (1 - z) * h + z * q
 
@@ -46,10 +47,11 @@ class ConvGRU(nn.Module):
     def __init__(self, hidden: int, input_dim: int) -> None:
         super().__init__()
         c = hidden + input_dim
-        self.z, self.r, self.q = (nn.Conv2d(c, hidden, 3, padding=1) for _ in range(3))
+        self.zr = nn.Conv2d(c, 2 * hidden, 3, padding=1)
+        self.q = nn.Conv2d(c, hidden, 3, padding=1)
 
     def forward(self, h: Tensor, x: Tensor) -> Tensor:
-        return gru_step(h, x, self.z, self.r, self.q)
+        return gru_step(h, x, self.zr, self.q)
 
 
 class SeparableConvGRU(nn.Module):
@@ -62,14 +64,14 @@ class SeparableConvGRU(nn.Module):
     def __init__(self, hidden: int, input_dim: int, kernels: GruKernels) -> None:
         super().__init__()
         c = hidden + input_dim
-        widths = GATE_KERNEL_CHAINS[kernels]
-        self.z1, self.r1 = gate(c, hidden, widths), gate(c, hidden, widths)
+        self.zr1 = zr_gates(c, hidden, GATE_KERNEL_CHAINS[kernels])
         self.q1 = conv1xk(c, hidden, 5)
-        self.z2, self.r2, self.q2 = (conv1xk(c, hidden, 5, vertical=True) for _ in range(3))
+        self.zr2 = zr_gates(c, hidden, (5,), vertical=True)
+        self.q2 = conv1xk(c, hidden, 5, vertical=True)
 
     def forward(self, h: Tensor, x: Tensor) -> Tensor:
-        h = gru_step(h, x, self.z1, self.r1, self.q1)
-        return gru_step(h, x, self.z2, self.r2, self.q2)
+        h = gru_step(h, x, self.zr1, self.q1)
+        return gru_step(h, x, self.zr2, self.q2)
 
 
 class MotionEncoder(nn.Module):
