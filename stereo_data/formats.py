@@ -1,0 +1,161 @@
+"""File formats: PFM, KITTI 16-bit PNG disparity, and 8-bit RGB images.
+
+Conventions (see docs/CONTRACTS.md): disparity maps are float32 HxW arrays in pixels of the LEFT
+image, positive, with ``+inf`` where the ground truth is unknown. Images are uint8 RGB HxWx3.
+Every failure to read a file raises :class:`FormatError` (a ``ValueError``) naming the file.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+__all__ = [
+    "FormatError",
+    "read_pfm",
+    "write_pfm",
+    "read_kitti_disparity",
+    "write_kitti_disparity",
+    "read_image",
+    "decode_image",
+]
+
+PathLike = str | os.PathLike[str]
+
+# PFM header: "PF" (3 channels) or "Pf" (1 channel), width, height, scale; the sign of the scale gives
+# the byte order (negative = little-endian). Exactly one whitespace byte separates header and data.
+_PFM_HEADER = re.compile(rb"\A(PF|Pf)\s+(\d+)\s+(\d+)\s+([-+0-9.eE]+)\s")
+_KITTI_SCALE = 256.0
+
+
+class FormatError(ValueError):
+    """A file is missing, unreadable, or not in the expected format. The message names the file."""
+
+
+def _read_bytes(path: PathLike) -> bytes:
+    try:
+        return Path(path).read_bytes()
+    except OSError as error:
+        raise FormatError(f"cannot read {os.fspath(path)!r}: {error.strerror or error}") from error
+
+
+def read_pfm(path: PathLike) -> np.ndarray:
+    """Read a PFM file (either byte order).
+
+    Returns float32, HxW for ``Pf`` files and HxWx3 for ``PF`` files, rows top-to-bottom (PFM stores
+    them bottom-to-top). Values are returned as stored (no scaling by ``abs(scale)``).
+    """
+    data = _read_bytes(path)
+    header = _PFM_HEADER.match(data[:256])
+    if header is None:
+        raise FormatError(f"{os.fspath(path)!r} is not a PFM file (bad header)")
+    channels = 3 if header.group(1) == b"PF" else 1
+    width, height = int(header.group(2)), int(header.group(3))
+    try:
+        scale = float(header.group(4))
+    except ValueError:
+        raise FormatError(f"{os.fspath(path)!r}: bad PFM scale {header.group(4)!r}") from None
+    if scale == 0.0:
+        raise FormatError(f"{os.fspath(path)!r}: PFM scale 0 does not define the byte order")
+    count = width * height * channels
+    payload = data[header.end() :]
+    if len(payload) < 4 * count:
+        raise FormatError(
+            f"{os.fspath(path)!r}: truncated PFM ({len(payload)} data bytes, {4 * count} expected)"
+        )
+    dtype = np.dtype("<f4" if scale < 0 else ">f4")
+    values = np.frombuffer(payload, dtype=dtype, count=count)
+    shape = (height, width, channels) if channels == 3 else (height, width)
+    return np.ascontiguousarray(values.reshape(shape)[::-1]).astype(np.float32, copy=False)
+
+
+def write_pfm(path: PathLike, array: np.ndarray, *, little_endian: bool = True) -> None:
+    """Write a float array as PFM: HxW (or HxWx1) as ``Pf``, HxWx3 as ``PF``.
+
+    ``array`` is top-to-bottom in memory; rows are written bottom-to-top as PFM requires. The scale
+    written is -1.0 (little-endian) or 1.0 (big-endian). ``inf`` and ``nan`` are stored as is.
+    """
+    values = np.asarray(array, dtype=np.float32)
+    if values.ndim == 3 and values.shape[2] == 1:
+        values = values[:, :, 0]
+    if values.ndim == 2:
+        kind = b"Pf"
+    elif values.ndim == 3 and values.shape[2] == 3:
+        kind = b"PF"
+    else:
+        raise ValueError(f"PFM holds HxW or HxWx3 arrays, got shape {values.shape}")
+    height, width = values.shape[:2]
+    dtype = np.dtype("<f4" if little_endian else ">f4")
+    scale = b"-1.0" if little_endian else b"1.0"
+    header = kind + b"\n" + f"{width} {height}".encode() + b"\n" + scale + b"\n"
+    Path(path).write_bytes(header + np.ascontiguousarray(values[::-1], dtype=dtype).tobytes())
+
+
+def read_kitti_disparity(path: PathLike) -> np.ndarray:
+    """Read a KITTI 16-bit PNG disparity map: float32 HxW pixels (value / 256), ``+inf`` where 0."""
+    encoded = _decode(_read_bytes(path), path, cv2.IMREAD_UNCHANGED)
+    if encoded.dtype != np.uint16 or encoded.ndim != 2:
+        raise FormatError(
+            f"{os.fspath(path)!r}: a KITTI disparity map is a 16-bit single-channel PNG, "
+            f"got {encoded.dtype} with shape {encoded.shape}"
+        )
+    disparity = encoded.astype(np.float32) / _KITTI_SCALE
+    disparity[encoded == 0] = np.inf
+    return disparity
+
+
+def write_kitti_disparity(path: PathLike, disparity: np.ndarray) -> None:
+    """Write a float HxW disparity map as a KITTI 16-bit PNG (value = round(d * 256)).
+
+    ``+inf``, ``nan`` and values <= 0 are written as 0 (unknown). Other values are clipped to
+    [1, 65535], so a tiny positive disparity stays valid and a huge one saturates at 255.996 px.
+    """
+    values = np.asarray(disparity, dtype=np.float64)
+    if values.ndim != 2:
+        raise ValueError(f"a KITTI disparity map is HxW, got shape {values.shape}")
+    known = np.isfinite(values) & (values > 0)
+    encoded = np.zeros(values.shape, dtype=np.uint16)
+    encoded[known] = np.clip(np.rint(values[known] * _KITTI_SCALE), 1, 65535).astype(np.uint16)
+    if not cv2.imwrite(os.fspath(path), encoded):
+        raise FormatError(f"cannot write {os.fspath(path)!r} (is the extension .png?)")
+
+
+def read_image(path: PathLike, *, gray_to_rgb: bool = True) -> np.ndarray:
+    """Read an image file as uint8 RGB HxWx3 (see :func:`decode_image` for the conversions)."""
+    return decode_image(_read_bytes(path), gray_to_rgb=gray_to_rgb, source=path)
+
+
+def decode_image(
+    data: bytes, *, gray_to_rgb: bool = True, source: PathLike = "<bytes>"
+) -> np.ndarray:
+    """Decode an encoded image (PNG, JPEG, ...) to uint8 RGB HxWx3.
+
+    Alpha is dropped; 16-bit images are scaled to 8 bits (value / 257, rounded). A grayscale image
+    is replicated to 3 channels, or returned as uint8 HxW when ``gray_to_rgb`` is False.
+    ``source`` only names the data in error messages.
+    """
+    image = _decode(data, source, cv2.IMREAD_UNCHANGED)
+    if image.dtype == np.uint16:
+        image = ((image.astype(np.uint32) + 128) // 257).astype(np.uint8)
+    elif image.dtype != np.uint8:
+        raise FormatError(f"{os.fspath(source)!r}: unsupported pixel type {image.dtype}")
+    if image.ndim == 3 and image.shape[2] == 1:
+        image = image[:, :, 0]
+    if image.ndim == 2:
+        return np.repeat(image[:, :, None], 3, axis=2) if gray_to_rgb else image
+    if image.ndim == 3 and image.shape[2] == 3:
+        return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+    if image.ndim == 3 and image.shape[2] == 4:
+        return cv2.cvtColor(image, cv2.COLOR_BGRA2RGB)
+    raise FormatError(f"{os.fspath(source)!r}: unsupported image shape {image.shape}")
+
+
+def _decode(data: bytes, source: PathLike, flags: int) -> np.ndarray:
+    image = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), flags) if data else None
+    if image is None:
+        raise FormatError(f"{os.fspath(source)!r} is not a readable image")
+    return image

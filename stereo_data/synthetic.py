@@ -1,0 +1,584 @@
+"""Procedural rectified stereo scenes with exact ground truth, rendered with torch on any device.
+
+A scene is a background plane plus many foreground surfaces. Each surface is a planar patch of
+disparity ``d(x, y) = a*x + b*y + c`` (slanted or fronto-parallel), cut to a random shape (star
+polygon: triangles to 8-gons and stars, near-ellipses, thin bars; optionally with an elliptic hole)
+and painted with a texture attached to the surface. Both views are rendered exactly: in each view,
+every pixel shows the surface with the largest disparity there (z-buffer). A right pixel ``x_r``
+sees surface S at the left coordinate ``x_l`` solving ``x_l - d_S(x_l, y) = x_r``, i.e.
+``x_l = (x_r + b*y + c) / (1 - a)``, and shows S's texture at ``(x_l, y)``; so warping the right view
+by the left ground truth reproduces the left view wherever the match is visible.
+
+Coordinates: x to the right, y down, in pixels of the output images, pixel centres at integers.
+Disparity is positive, in pixels of the LEFT view: left pixel (x, y) matches right pixel (x - d, y).
+
+Randomness comes only from a ``torch.Generator`` on the target device seeded by ``generate``'s
+``seed``: a (config, device, batch_size, seed) tuple gives the same batch bit for bit. CPU and CUDA
+generators differ, so a seed gives different scenes on different device types.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import torch
+import torch.nn.functional as F
+
+__all__ = ["PhotometricConfig", "SceneConfig", "Scene", "SyntheticBatch", "SceneGenerator"]
+
+MAX_SIDES = 24
+"""Polygons have 3..MAX_SIDES vertices; a MAX_SIDES-gon with equal radii stands for an ellipse."""
+_OCCLUSION_TOLERANCE = 1e-3  # px: a surface must be this much nearer to hide a match
+
+
+@dataclass(frozen=True)
+class PhotometricConfig:
+    """Random photometric changes, drawn independently for each view and applied after rendering,
+    in this order: Gaussian blur, gamma, gain, offset, Gaussian noise, clipping to [0, 255]."""
+
+    blur_probability: float = 0.3
+    blur_sigma: tuple[float, float] = (0.3, 1.2)  # px
+    gamma: tuple[float, float] = (0.75, 1.35)  # out = 255 * (in / 255) ** gamma
+    gain: tuple[float, float] = (0.7, 1.3)  # multiplies all channels
+    channel_gain: tuple[float, float] = (0.9, 1.1)  # multiplies each channel on top of gain
+    offset: tuple[float, float] = (-15.0, 15.0)  # grey levels added
+    noise_sigma: tuple[float, float] = (0.0, 4.0)  # grey levels, per pixel and channel
+
+
+@dataclass(frozen=True)
+class SceneConfig:
+    """What the generator draws. Lengths are in output pixels unless said otherwise.
+
+    Scale/crop augmentation: each scene lives on a canvas of ``(height, width) / 2**log2_scale[0]``
+    canvas pixels; the output is a window of ``(height, width) / s`` canvas pixels at a random
+    position, magnified by a random ``s = 2**U(log2_scale)`` (lengths and disparities scale by s).
+    """
+
+    height: int = 384
+    width: int = 512
+    max_disparity: float | None = None  # px; None means 192 * width / 512
+    surfaces: int = 24  # foreground surface slots per scene
+    min_surfaces: int = 8  # a scene uses U{min_surfaces..surfaces} of them
+    size: tuple[float, float] = (0.02, 0.35)  # shape radius / canvas width, log-uniform
+    bar_probability: float = 0.15  # thin bars: 2-8 canvas px wide, 0.2-1 canvas width long
+    round_probability: float = 0.3  # near-ellipses; the others are 3- to 8-gons
+    star_probability: float = 0.5  # polygons with random vertex radii (irregular, concave)
+    hole_probability: float = 0.2
+    slant_probability: float = 0.7  # the others are fronto-parallel
+    max_slope: float = 0.4  # bound on |grad d| (px of disparity per px); must be < 1
+    background_max_fraction: float = 0.5  # the background's disparity stays below this * max
+    texture_size: int = 256  # texels per side of each (periodic) texture
+    noise_textures: int = 4  # 1/f^alpha noise: photo-like, fine detail, smooth gradients
+    leaves_textures: int = 2  # dead leaves: random discs with sharp edges, scale invariant
+    pattern_textures: int = 2  # stripes, checkers, grids, dots
+    texel_size: tuple[float, float] = (1.2, 6.0)  # canvas px per texel, log-uniform
+    contrast: tuple[float, float] = (4.0, 100.0)  # grey-level std of a surface's texture, log-uniform
+    shading: float = 60.0  # at most this many grey levels of linear ramp across a surface
+    log2_scale: tuple[float, float] = (-0.2, 0.4)
+    photometric: PhotometricConfig | None = field(default_factory=PhotometricConfig)
+
+    def __post_init__(self) -> None:
+        if self.max_disparity is None:
+            object.__setattr__(self, "max_disparity", 192.0 * self.width / 512.0)
+        if self.height < 1 or self.width < 1:
+            raise ValueError(f"image size must be positive, got {self.height}x{self.width}")
+        if not 0 < self.max_disparity:
+            raise ValueError(f"max_disparity must be positive, got {self.max_disparity}")
+        if not 0 <= self.max_slope < 1:
+            raise ValueError("max_slope must be in [0, 1): the right view needs 1 - a > 0")
+        if not 1 <= self.min_surfaces <= self.surfaces:
+            raise ValueError("need 1 <= min_surfaces <= surfaces")
+        if self.log2_scale[0] > self.log2_scale[1] or self.size[0] > self.size[1]:
+            raise ValueError("ranges must be (low, high)")
+        if self.noise_textures + self.leaves_textures + self.pattern_textures < 1:
+            raise ValueError("need at least one texture")
+        if 2 ** self.log2_scale[0] * self.texel_size[0] < 1:
+            raise ValueError("the smallest texel must cover at least 1 output px (aliasing)")
+
+    @property
+    def texture_count(self) -> int:
+        return self.noise_textures + self.leaves_textures + self.pattern_textures
+
+
+@dataclass
+class Scene:
+    """B scenes of S surfaces each, in output pixel coordinates of the left view.
+
+    A surface is the set of points (x, y) whose shape-frame coordinates (u, v) = to_shape @ (x, y, 1)
+    lie in its star polygon and not in its hole. The polygon has ``sides`` vertices, vertex j at
+    angle ``phase + 2*pi*j/sides`` and distance ``radii[j]`` from (0, 0). A surface with a zero
+    ``to_shape`` covers the whole plane (the background, surface 0 in generated scenes).
+
+    plane: (B, S, 3) float, (a, b, c): the surface's disparity is a*x + b*y + c px (a < 1).
+    to_shape: (B, S, 2, 3) float, affine map from (x, y) px to the shape frame.
+    sides: (B, S) int64 in [3, MAX_SIDES].
+    phase: (B, S) float, radians.
+    radii: (B, S, MAX_SIDES) float > 0, shape-frame units; entries >= sides are ignored.
+    hole: (B, S, 4) float, (u0, v0, ru, rv): the ellipse ((u-u0)/ru)^2 + ((v-v0)/rv)^2 < 1, ru, rv > 0.
+    has_hole: (B, S) bool.
+    present: (B, S) bool; absent surfaces are never drawn.
+    texture: (B, S) int64, which of the scene's K textures the surface shows.
+    to_texture: (B, S, 2, 3) float, affine map from (x, y) px to texel coordinates (wrapping).
+    base: (B, S, 3) float, mean RGB colour, grey levels.
+    contrast: (B, S) float, grey levels per unit of (standardised) texture.
+    ramp: (B, S, 3) float, (gx, gy, g0): gx*x + gy*y + g0 grey levels are added (shading).
+    textures: (B, K, T, T, 3) float, the texture bank: periodic, zero mean, unit std per texture.
+    """
+
+    plane: torch.Tensor
+    to_shape: torch.Tensor
+    sides: torch.Tensor
+    phase: torch.Tensor
+    radii: torch.Tensor
+    hole: torch.Tensor
+    has_hole: torch.Tensor
+    present: torch.Tensor
+    texture: torch.Tensor
+    to_texture: torch.Tensor
+    base: torch.Tensor
+    contrast: torch.Tensor
+    ramp: torch.Tensor
+    textures: torch.Tensor
+
+
+@dataclass
+class SyntheticBatch:
+    """A batch of rendered pairs.
+
+    left, right: (B, 3, H, W) float32 RGB in [0, 255].
+    disparity: (B, 1, H, W) float32 px of the LEFT view, in [0, max_disparity]; left pixel (x, y)
+        matches right pixel (x - d, y). Dense and exact, occluded pixels included.
+    valid: (B, 1, H, W) bool, where the ground truth is defined: everywhere (kept for the contract
+        shared with real datasets).
+    occluded: (B, 1, H, W) bool, left pixels whose match is hidden by a nearer surface in the right
+        view, or out of its frame (x - d < 0).
+    """
+
+    left: torch.Tensor
+    right: torch.Tensor
+    disparity: torch.Tensor
+    valid: torch.Tensor
+    occluded: torch.Tensor
+
+
+class _Draw:
+    """Random tensors on one device from one generator (the only source of randomness)."""
+
+    def __init__(self, generator: torch.Generator, device: torch.device) -> None:
+        self.generator = generator
+        self.device = device
+
+    def uniform(self, shape: tuple[int, ...], low: float, high: float) -> torch.Tensor:
+        sample = torch.rand(shape, generator=self.generator, device=self.device)
+        return low + (high - low) * sample
+
+    def log_uniform(self, shape: tuple[int, ...], low: float, high: float) -> torch.Tensor:
+        return torch.exp(self.uniform(shape, math.log(low), math.log(high)))
+
+    def normal(self, shape: tuple[int, ...]) -> torch.Tensor:
+        return torch.randn(shape, generator=self.generator, device=self.device)
+
+    def chance(self, shape: tuple[int, ...], probability: float) -> torch.Tensor:
+        return self.uniform(shape, 0.0, 1.0) < probability
+
+    def integers(self, shape: tuple[int, ...], low: int, high: int) -> torch.Tensor:
+        """Uniform int64 in [low, high]."""
+        return torch.randint(low, high + 1, shape, generator=self.generator, device=self.device)
+
+
+class SceneGenerator:
+    """Draws and renders batches of procedural stereo scenes on ``device``."""
+
+    def __init__(self, config: SceneConfig, device: str | torch.device = "cpu") -> None:
+        self.config = config
+        self.device = torch.device(device)
+        self._x = torch.arange(config.width, device=self.device, dtype=torch.float32).view(1, 1, 1, -1)
+        self._y = torch.arange(config.height, device=self.device, dtype=torch.float32).view(1, 1, -1, 1)
+
+    def generate(self, batch_size: int, seed: int) -> SyntheticBatch:
+        """Draw, render and (if configured) photometrically augment ``batch_size`` pairs."""
+        draw = _Draw(torch.Generator(device=self.device).manual_seed(seed), self.device)
+        batch = self.render(self._sample_scene(batch_size, draw))
+        if self.config.photometric is not None:
+            batch.left = _photometric(batch.left, self.config.photometric, draw)
+            batch.right = _photometric(batch.right, self.config.photometric, draw)
+        return batch
+
+    def sample_scene(self, batch_size: int, seed: int) -> Scene:
+        """The scenes that ``generate(batch_size, seed)`` renders."""
+        draw = _Draw(torch.Generator(device=self.device).manual_seed(seed), self.device)
+        return self._sample_scene(batch_size, draw)
+
+    def render(self, scene: Scene) -> SyntheticBatch:
+        """Render both views of ``scene`` exactly, without photometric changes."""
+        x, y = self._x, self._y
+        a, b, c = (part[..., None, None] for part in scene.plane.unbind(-1))  # (B, S, 1, 1)
+        left_disparity, left_surface, _ = _nearest_surface(scene, x, y)
+        left = _shade(scene, left_surface, x.expand_as(left_disparity), y)
+        right_disparity, right_surface, right_x_left = _nearest_surface(
+            scene, (x + b * y + c) / (1 - a), y
+        )
+        right = _shade(scene, right_surface, right_x_left, y)
+        x_match = x - left_disparity
+        match_disparity, _, _ = _nearest_surface(scene, (x_match + b * y + c) / (1 - a), y)
+        occluded = (match_disparity > left_disparity + _OCCLUSION_TOLERANCE) | (x_match < 0)
+        return SyntheticBatch(
+            left=left,
+            right=right,
+            disparity=left_disparity,
+            valid=torch.ones_like(occluded),
+            occluded=occluded,
+        )
+
+    def _sample_scene(self, batch_size: int, draw: _Draw) -> Scene:
+        cfg = self.config
+        height, width, max_disparity = cfg.height, cfg.width, float(cfg.max_disparity)
+        shape = (batch_size, cfg.surfaces + 1)  # surface 0 is the background
+
+        # Scale and crop: output = s * (canvas - origin).
+        smallest = 2 ** cfg.log2_scale[0]
+        canvas_width, canvas_height = width / smallest, height / smallest
+        scale = 2 ** draw.uniform((batch_size, 1), *cfg.log2_scale)
+        origin_x = draw.uniform((batch_size, 1), 0, 1) * (canvas_width - width / scale)
+        origin_y = draw.uniform((batch_size, 1), 0, 1) * (canvas_height - height / scale)
+
+        # Shapes, drawn in canvas px.
+        centre_x = draw.uniform(shape, 0, canvas_width)
+        centre_y = draw.uniform(shape, 0, canvas_height)
+        radius = canvas_width * draw.log_uniform(shape, *cfg.size)
+        aspect = 2 ** draw.uniform(shape, -1, 1)
+        bar = draw.chance(shape, cfg.bar_probability)
+        radius_x = torch.where(bar, canvas_width * draw.uniform(shape, 0.1, 0.5), radius * aspect.sqrt())
+        radius_y = torch.where(bar, draw.uniform(shape, 1.0, 4.0), radius / aspect.sqrt())
+        angle = draw.uniform(shape, 0, 2 * math.pi)
+        round_shape = draw.chance(shape, cfg.round_probability) & ~bar
+        sides = torch.where(round_shape, MAX_SIDES, draw.integers(shape, 3, 8))
+        sides = torch.where(bar, 4, sides)
+        star = draw.chance(shape, cfg.star_probability) & ~round_shape & ~bar
+        radii = torch.where(star[..., None], draw.uniform((*shape, MAX_SIDES), 0.35, 1.0), 1.0)
+        radii = torch.where(bar[..., None], math.sqrt(2), radii)  # square corners at (+-1, +-1)
+        phase = torch.where(bar, math.pi / 4, draw.uniform(shape, 0, 2 * math.pi))
+        hole = torch.stack(
+            [draw.uniform(shape, -0.3, 0.3), draw.uniform(shape, -0.3, 0.3),
+             draw.uniform(shape, 0.15, 0.5), draw.uniform(shape, 0.15, 0.5)], dim=-1
+        )
+        has_hole = draw.chance(shape, cfg.hole_probability) & ~bar
+        present = torch.arange(shape[1], device=self.device) <= draw.integers(
+            (batch_size, 1), cfg.min_surfaces, cfg.surfaces
+        )  # the background and U{min_surfaces..surfaces} foreground surfaces
+
+        # To output px. The background (surface 0) is centred on the frame and covers everything.
+        centre_x, centre_y = scale * (centre_x - origin_x), scale * (centre_y - origin_y)
+        centre_x[:, 0], centre_y[:, 0] = (width - 1) / 2, (height - 1) / 2
+        radius_x, radius_y = scale * radius_x, scale * radius_y
+        extent = torch.maximum(radius_x, radius_y) * radii.amax(-1)  # shape within this of its centre
+        extent[:, 0] = math.hypot(width, height) / 2
+        cos, sin = torch.cos(angle), torch.sin(angle)
+        to_shape = _affine(
+            torch.stack([torch.stack([cos / radius_x, sin / radius_x], -1),
+                         torch.stack([-sin / radius_y, cos / radius_y], -1)], -2),
+            centre_x, centre_y,
+        )
+        to_shape[:, 0] = 0.0
+        has_hole[:, 0] = False
+
+        # Disparity planes: the background spans at most [0, background_max_fraction * max], the
+        # foreground surfaces at most [the background's lowest disparity, max].
+        gradient = torch.where(
+            draw.chance(shape, cfg.slant_probability), draw.uniform(shape, 0, cfg.max_slope), 0.0
+        )
+        gradient_angle = draw.uniform(shape, 0, 2 * math.pi)
+        position = draw.uniform(shape, 0, 1)
+        background_low = torch.zeros(batch_size, 1, device=self.device)
+        background_gradient, background_disparity = _fit_plane(
+            gradient[:, :1], extent[:, :1], position[:, :1],
+            background_low, background_low + cfg.background_max_fraction * max_disparity,
+        )
+        foreground_low = background_disparity - background_gradient * extent[:, :1]
+        foreground_gradient, foreground_disparity = _fit_plane(
+            gradient[:, 1:], extent[:, 1:], position[:, 1:],
+            foreground_low, torch.full_like(foreground_low, max_disparity),
+        )
+        gradient = torch.cat([background_gradient, foreground_gradient], dim=1)
+        centre_disparity = torch.cat([background_disparity, foreground_disparity], dim=1)
+        slope_x, slope_y = gradient * torch.cos(gradient_angle), gradient * torch.sin(gradient_angle)
+        plane = torch.stack(
+            [slope_x, slope_y, centre_disparity - slope_x * centre_x - slope_y * centre_y], dim=-1
+        )
+
+        # Appearance.
+        texel = scale * draw.log_uniform(shape, *cfg.texel_size)  # output px per texel
+        texture_angle = draw.uniform(shape, 0, 2 * math.pi)
+        cos, sin = torch.cos(texture_angle) / texel, torch.sin(texture_angle) / texel
+        to_texture = _affine(
+            torch.stack([torch.stack([cos, sin], -1), torch.stack([-sin, cos], -1)], -2),
+            centre_x, centre_y,
+        )
+        to_texture[..., 2] += draw.uniform((*shape, 2), 0, cfg.texture_size)
+        grey = draw.uniform((*shape, 1), 20, 235)
+        base = grey + draw.uniform((*shape, 3), -30, 30)
+        contrast = draw.log_uniform(shape, *cfg.contrast)
+        ramp_angle = draw.uniform(shape, 0, 2 * math.pi)
+        ramp_size = draw.uniform(shape, -cfg.shading, cfg.shading) / (2 * extent)
+        ramp_x, ramp_y = ramp_size * torch.cos(ramp_angle), ramp_size * torch.sin(ramp_angle)
+        ramp = torch.stack([ramp_x, ramp_y, -ramp_x * centre_x - ramp_y * centre_y], dim=-1)
+
+        return Scene(
+            plane=plane,
+            to_shape=to_shape,
+            sides=sides,
+            phase=phase,
+            radii=radii,
+            hole=hole,
+            has_hole=has_hole,
+            present=present,
+            texture=draw.integers(shape, 0, cfg.texture_count - 1),
+            to_texture=to_texture,
+            base=base,
+            contrast=contrast,
+            ramp=ramp,
+            textures=_texture_bank(batch_size, cfg, draw),
+        )
+
+
+def _fit_plane(
+    gradient: torch.Tensor, extent: torch.Tensor, position: torch.Tensor, low: torch.Tensor,
+    high: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Fit planes into disparity spans: returns (gradient, centre disparity), each (B, n).
+
+    A surface reaching ``extent`` px from its centre keeps its disparity in [low, high] (B, 1) when
+    gradient <= (high - low) / (2 * extent); larger gradients are reduced to that. ``position`` in
+    [0, 1] places the centre disparity within what remains of the span.
+    """
+    gradient = torch.minimum(gradient, (high - low) / (2 * extent))
+    reach = gradient * extent
+    return gradient, low + reach + position * (high - low - 2 * reach)
+
+
+def _affine(linear: torch.Tensor, centre_x: torch.Tensor, centre_y: torch.Tensor) -> torch.Tensor:
+    """(..., 2, 3) affine map p -> linear @ (p - centre), from (..., 2, 2) and (...) centres."""
+    centre = torch.stack([centre_x, centre_y], dim=-1)[..., None]
+    return torch.cat([linear, -(linear @ centre)], dim=-1)
+
+
+def _apply(affine: torch.Tensor, x: torch.Tensor, y: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    """Apply (B, S, 2, 3) affine maps to points: x broadcastable to (B, S, H, W), y (1, 1, H, 1)."""
+    m = affine[..., None, None]  # (B, S, 2, 3, 1, 1)
+    return tuple(m[:, :, row, 0] * x + (m[:, :, row, 1] * y + m[:, :, row, 2]) for row in (0, 1))
+
+
+def _nearest_surface(
+    scene: Scene, x_left: torch.Tensor, y: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The nearest surface at each query point.
+
+    x_left: (B, S, H, W) or broadcastable, the left-view x of each surface's candidate point, px.
+    y: (1, 1, H, 1) rows, px.
+    Returns the winner's disparity (B, 1, H, W) px, its index (B, 1, H, W) int64 and its x_left.
+    """
+    a, b, c = (part[..., None, None] for part in scene.plane.unbind(-1))
+    disparity = a * x_left + (b * y + c)
+    covered = _covers(scene, x_left, y)
+    nearest, index = torch.where(covered, disparity, -math.inf).max(dim=1, keepdim=True)
+    return nearest, index, torch.gather(x_left.expand_as(disparity), 1, index)
+
+
+def _covers(scene: Scene, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """(B, S, H, W) bool: whether each surface's shape contains its point (x, y)."""
+    u, v = _apply(scene.to_shape, x, y)
+    batch, surfaces = scene.sides.shape
+    # The polygon's sector holding each point, then the side of that sector's edge line it is on.
+    sides = scene.sides[..., None, None].to(u.dtype)
+    sector_angle = torch.remainder(torch.atan2(v, u) - scene.phase[..., None, None], 2 * math.pi)
+    sector = torch.minimum((sector_angle * (sides / (2 * math.pi))).long(), scene.sides[..., None, None] - 1)
+    edges = _polygon_edges(scene).view(batch, surfaces, MAX_SIDES, 3)
+    flat_sector = sector.view(batch, surfaces, -1)
+    normal_u, normal_v, offset = (
+        torch.gather(edges[..., k], 2, flat_sector).view_as(u) for k in range(3)
+    )
+    inside = normal_u * u + normal_v * v <= offset
+    u0, v0, ru, rv = (part[..., None, None] for part in scene.hole.unbind(-1))
+    in_hole = ((u - u0) / ru).square() + ((v - v0) / rv).square() < 1
+    return inside & ~(in_hole & scene.has_hole[..., None, None]) & scene.present[..., None, None]
+
+
+def _polygon_edges(scene: Scene) -> torch.Tensor:
+    """(B, S, MAX_SIDES, 3): edge j from vertex j to vertex j+1 as its outward normal (nu, nv) and
+    offset h; a point of sector j is inside when nu*u + nv*v <= h."""
+    index = torch.arange(MAX_SIDES, device=scene.sides.device)
+    sides = scene.sides[..., None]
+    angle = scene.phase[..., None] + 2 * math.pi * index / sides
+    vertex = scene.radii[..., None] * torch.stack([torch.cos(angle), torch.sin(angle)], dim=-1)
+    following = torch.remainder(index + 1, sides)  # (B, S, MAX_SIDES)
+    next_vertex = torch.gather(vertex, 2, following[..., None].expand_as(vertex))
+    step = next_vertex - vertex
+    normal = torch.stack([step[..., 1], -step[..., 0]], dim=-1)
+    offset = (normal * vertex).sum(-1, keepdim=True)
+    return torch.cat([normal, offset], dim=-1)
+
+
+def _shade(scene: Scene, surface: torch.Tensor, x_left: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """Colour of the given surfaces at left-view points.
+
+    surface: (B, 1, H, W) int64 surface index; x_left: (B, 1, H, W) px; y: (1, 1, H, 1) px.
+    Returns (B, 3, H, W) float32 RGB in [0, 255].
+    """
+    batch, surfaces = scene.sides.shape
+    textures, size = scene.textures.shape[1], scene.textures.shape[2]
+    per_surface = torch.cat(
+        [scene.to_texture.flatten(2), scene.base, scene.contrast[..., None], scene.ramp], dim=-1
+    ).flatten(0, 1)  # (B*S, 13)
+    batch_index = torch.arange(batch, device=surface.device).view(batch, 1, 1, 1)
+    flat_surface = (batch_index * surfaces + surface).flatten()
+    params = per_surface.index_select(0, flat_surface)  # (N, 13), N = B*H*W
+    x = x_left.flatten()
+    y = y.expand_as(x_left).flatten()
+    tex_u = params[:, 0] * x + params[:, 1] * y + params[:, 2]
+    tex_v = params[:, 3] * x + params[:, 4] * y + params[:, 5]
+    slot = (batch_index * textures + scene.texture.flatten().index_select(0, flat_surface).view_as(surface))
+    texels = scene.textures.reshape(-1, 3)
+    first_texel = slot.flatten() * size * size
+    u_floor, v_floor = torch.floor(tex_u), torch.floor(tex_v)
+    u_weight, v_weight = (tex_u - u_floor)[:, None], (tex_v - v_floor)[:, None]
+    u0 = torch.remainder(u_floor.long(), size)
+    v0 = torch.remainder(v_floor.long(), size)
+    u1, v1 = torch.remainder(u0 + 1, size), torch.remainder(v0 + 1, size)
+
+    def texel(row: torch.Tensor, column: torch.Tensor) -> torch.Tensor:
+        return texels.index_select(0, first_texel + row * size + column)
+
+    texture = (1 - v_weight) * ((1 - u_weight) * texel(v0, u0) + u_weight * texel(v0, u1)) + v_weight * (
+        (1 - u_weight) * texel(v1, u0) + u_weight * texel(v1, u1)
+    )
+    shading = params[:, 10] * x + params[:, 11] * y + params[:, 12]
+    colour = params[:, 6:9] + params[:, 9:10] * texture + shading[:, None]
+    return colour.clamp(0, 255).view(batch, *surface.shape[2:], 3).permute(0, 3, 1, 2).contiguous()
+
+
+def _texture_bank(batch_size: int, cfg: SceneConfig, draw: _Draw) -> torch.Tensor:
+    """(B, K, T, T, 3) periodic textures, each standardised to zero mean and unit std.
+
+    Slots [0, noise) are 1/f^alpha noise, then dead leaves, then patterns; leaves and patterns
+    carry some of their slot's noise on top, so that no texture is perfectly clean.
+    """
+    size, count = cfg.texture_size, cfg.texture_count
+    noise = _standardise(_power_law_noise((batch_size, count), size, draw))
+    structured = torch.cat(
+        [
+            _dead_leaves((batch_size, cfg.leaves_textures), size, draw),
+            _patterns((batch_size, cfg.pattern_textures), size, draw),
+        ],
+        dim=1,
+    )
+    mix = draw.uniform((batch_size, count - cfg.noise_textures, 1, 1, 1), 0.0, 0.3)
+    textured = _standardise(structured) + mix * noise[:, cfg.noise_textures :]
+    return _standardise(torch.cat([noise[:, : cfg.noise_textures], textured], dim=1))
+
+
+def _standardise(textures: torch.Tensor) -> torch.Tensor:
+    """Zero mean per channel, unit std over all channels, per texture of (B, K, T, T, 3)."""
+    centred = textures - textures.mean(dim=(2, 3), keepdim=True)
+    return centred / centred.std(dim=(2, 3, 4), keepdim=True).clamp_min(1e-6)
+
+
+def _power_law_noise(shape: tuple[int, int], size: int, draw: _Draw) -> torch.Tensor:
+    """(B, K, T, T, 3) periodic noise with amplitude spectrum 1/f^alpha, alpha in [0.3, 2]: low
+    alpha gives fine detail, ~1 natural-photo statistics, high alpha smooth gradients. Colour is a
+    shared luminance field plus weaker independent chroma fields."""
+    device = draw.device
+    fy = torch.fft.fftfreq(size, device=device).view(-1, 1)
+    fx = torch.fft.rfftfreq(size, device=device).view(1, -1)
+    frequency = torch.sqrt(fx.square() + fy.square())
+    frequency[0, 0] = math.inf  # no DC
+    alpha = draw.uniform((*shape, 1, 1, 1), 0.3, 2.0)
+    amplitude = frequency.pow(-alpha)
+    spectrum_shape = (*shape, 4, size, size // 2 + 1)
+    spectrum = torch.complex(draw.normal(spectrum_shape), draw.normal(spectrum_shape)) * amplitude
+    fields = torch.fft.irfft2(spectrum, s=(size, size))  # (B, K, 4, T, T)
+    fields = fields / fields.std(dim=(3, 4), keepdim=True).clamp_min(1e-12)
+    saturation = draw.uniform((*shape, 1, 1, 1), 0.0, 0.7)
+    rgb = fields[:, :, :1] + saturation * fields[:, :, 1:]
+    return rgb.permute(0, 1, 3, 4, 2)
+
+
+def _texel_grid(size: int, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+    coordinates = torch.arange(size, device=device, dtype=torch.float32)
+    return coordinates.view(1, 1, 1, -1), coordinates.view(1, 1, -1, 1)  # u (columns), v (rows)
+
+
+def _dead_leaves(shape: tuple[int, int], size: int, draw: _Draw, discs: int = 32) -> torch.Tensor:
+    """(B, K, T, T, 3) dead leaves: discs of random colours painted over each other (wrapping),
+    radii from the scale-invariant density r^-3 on [1.5, T/4] texels."""
+    u, v = _texel_grid(size, draw.device)
+    centre_u = draw.uniform((discs, *shape, 1, 1), 0, size).unbind(0)
+    centre_v = draw.uniform((discs, *shape, 1, 1), 0, size).unbind(0)
+    low, high = 1.5**-2, (size / 4) ** -2
+    radius = (low + draw.uniform((discs, *shape, 1, 1), 0, 1) * (high - low)) ** -0.5
+    top = torch.zeros((*shape, size, size), dtype=torch.long, device=draw.device)  # 0: no disc yet
+    for disc in range(discs):
+        du = torch.remainder(u - centre_u[disc] + size / 2, size) - size / 2
+        dv = torch.remainder(v - centre_v[disc] + size / 2, size) - size / 2
+        top = torch.where(du.square() + dv.square() < radius[disc].square(), disc + 1, top)
+    colours = draw.normal((*shape, discs + 1, 3))  # entry 0 is the ground under all discs
+    return torch.gather(colours, 2, top.flatten(2)[..., None].expand(-1, -1, -1, 3)).view(
+        *shape, size, size, 3
+    )
+
+
+def _patterns(shape: tuple[int, int], size: int, draw: _Draw) -> torch.Tensor:
+    """(B, K, T, T, 3) two-colour periodic patterns: stripes, checkers, grid lines or dots, with
+    periods of 3-40 texels at any orientation (integer wave vectors keep them periodic in T)."""
+    u, v = _texel_grid(size, draw.device)
+    period = draw.log_uniform(shape, 3.0, 40.0)
+    orientation = draw.uniform(shape, 0, math.pi)
+    kx = torch.round(size / period * torch.cos(orientation))
+    ky = torch.round(size / period * torch.sin(orientation))
+    kx = torch.where((kx == 0) & (ky == 0), 1.0, kx)
+    kx, ky = kx[..., None, None], ky[..., None, None]
+    phase_a, phase_b = (draw.uniform((*shape, 1, 1), 0, 2 * math.pi) for _ in range(2))
+    cos_a = torch.cos(2 * math.pi * (kx * u + ky * v) / size + phase_a)
+    cos_b = torch.cos(2 * math.pi * (-ky * u + kx * v) / size + phase_b)
+    # (value, threshold) per kind: stripes with a random duty cycle, checkers, thin grid lines, dots.
+    values = torch.stack([cos_a, cos_a * cos_b, torch.maximum(cos_a, cos_b), (cos_a + cos_b) / 2], 2)
+    thresholds = torch.stack(
+        [draw.uniform(shape, -0.5, 0.5), torch.zeros(shape, device=draw.device),
+         draw.uniform(shape, 0.5, 0.9), draw.uniform(shape, 0.2, 0.8)], dim=2
+    )
+    kind = draw.integers((*shape, 1), 0, 3)
+    value = torch.gather(values, 2, kind[..., None, None].expand(*shape, 1, size, size))[:, :, 0]
+    threshold = torch.gather(thresholds, 2, kind)[..., None]
+    sharpness = draw.log_uniform((*shape, 1, 1), 2.0, 30.0)
+    mask = torch.sigmoid(sharpness * (value - threshold))[..., None]
+    first, second = draw.normal((*shape, 1, 1, 3)), draw.normal((*shape, 1, 1, 3))
+    return first + (second - first) * mask
+
+
+def _photometric(image: torch.Tensor, cfg: PhotometricConfig, draw: _Draw) -> torch.Tensor:
+    """Randomly change one view: (B, 3, H, W) in [0, 255] -> the same, changed per sample."""
+    batch = image.shape[0]
+    per_sample = (batch, 1, 1, 1)
+    sigma = torch.where(
+        draw.chance(per_sample, cfg.blur_probability), draw.uniform(per_sample, *cfg.blur_sigma), 0.0
+    )
+    image = _gaussian_blur(image, sigma)
+    gamma = draw.uniform(per_sample, *cfg.gamma)
+    gain = draw.uniform(per_sample, *cfg.gain) * draw.uniform((batch, 3, 1, 1), *cfg.channel_gain)
+    offset = draw.uniform(per_sample, *cfg.offset)
+    noise = draw.uniform(per_sample, *cfg.noise_sigma) * draw.normal(tuple(image.shape))
+    image = 255 * (image / 255).clamp(0, 1).pow(gamma)
+    return (gain * image + offset + noise).clamp(0, 255)
+
+
+def _gaussian_blur(image: torch.Tensor, sigma: torch.Tensor, radius: int = 3) -> torch.Tensor:
+    """Separable Gaussian blur with per-sample sigma (B, 1, 1, 1) px; sigma 0 leaves the sample as is.
+    Written as shifted sums (no convolution call) so that it is deterministic on every device."""
+    offsets = torch.arange(-radius, radius + 1, device=image.device, dtype=image.dtype)
+    weights = torch.exp(-offsets.square() / (2 * sigma.clamp_min(1e-3).square()))  # (B, 1, 1, taps)
+    weights = (weights / weights.sum(-1, keepdim=True)).unbind(-1)
+    height, width = image.shape[-2:]
+    padded = F.pad(image, (radius, radius, 0, 0), mode="replicate")
+    image = sum(w * padded[..., :, k : k + width] for k, w in enumerate(weights))
+    padded = F.pad(image, (0, 0, radius, radius), mode="replicate")
+    return sum(w * padded[..., k : k + height, :] for k, w in enumerate(weights))
