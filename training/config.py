@@ -60,7 +60,7 @@ class TrainConfig:
     )
     crop_height: int = _knob(384, "training crop height in pixels (multiple of 32)")
     crop_width: int = _knob(512, "training crop width in pixels (multiple of 32)")
-    max_disparity: float = _knob(192.0, "largest disparity (px) of the procedural scenes")
+    max_disparity: float | None = _knob(None, "largest disparity (px) of the procedural scenes [192 * crop_width / 512]")
     real_scale_range: tuple[float, float] = _knob(
         (0.8, 1.25), "random rescale range of real pairs before cropping (raised where a pair is smaller than the crop)"
     )

@@ -1,0 +1,102 @@
+"""`crestereo-pp predict`: output formats by extension, uncertainty and colour files, batches."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from cli.main import main
+from cli.predict import find_pairs
+from stereo_data.formats import read_kitti_disparity, read_pfm
+
+REPO = Path(__file__).resolve().parents[2]
+pytestmark = pytest.mark.filterwarnings("ignore:no weights at:RuntimeWarning")
+
+
+def test_one_pair_to_pfm_with_uncertainty_and_colour(pairs_dir, tmp_path):
+    pair = pairs_dir / "shift4"
+    out, uncertainty, colour = tmp_path / "d.pfm", tmp_path / "u.npy", tmp_path / "c.png"
+
+    status = main(["predict", str(pair / "left.png"), str(pair / "right.png"), "-o", str(out),
+                   "--uncertainty", str(uncertainty), "--color", str(colour), "--device", "cpu"])
+
+    assert status == 0
+    disparity = read_pfm(out)
+    assert disparity.shape == (64, 96) and disparity.dtype == np.float32
+    assert np.isfinite(disparity).all() and (disparity >= 0).all()
+    u = np.load(uncertainty)
+    assert u.shape == (64, 96) and 0.0 <= u.min() and u.max() <= 1.0
+    assert cv2.imread(str(colour)).shape == (64, 96, 3)
+
+
+@pytest.mark.parametrize("suffix", [".png", ".npy"])
+def test_the_output_extension_picks_the_format_and_all_formats_agree(pairs_dir, tmp_path, suffix):
+    pair = pairs_dir / "shift9"
+    args = ["predict", str(pair / "left.png"), str(pair / "right.png"), "--device", "cpu"]
+    main([*args, "-o", str(tmp_path / "d.pfm")])
+    main([*args, "-o", str(tmp_path / f"d{suffix}")])
+    reference = read_pfm(tmp_path / "d.pfm")
+    if suffix == ".png":  # KITTI: value * 256 in 16 bits, 0 = invalid
+        decoded = read_kitti_disparity(tmp_path / "d.png")
+        known = np.isfinite(decoded)
+        np.testing.assert_allclose(decoded[known], reference[known], atol=0.5 / 256)
+        assert (reference[~known] < 0.5 / 256).all()  # only (near-)zero disparities read back as unknown
+    else:
+        np.testing.assert_array_equal(np.load(tmp_path / "d.npy"), reference)
+
+
+def test_two_folders_pair_images_by_name_and_write_a_folder(tmp_path, pairs_dir):
+    lefts, rights = tmp_path / "left", tmp_path / "right"
+    lefts.mkdir(), rights.mkdir()
+    for name in ("shift4", "shift9"):
+        (lefts / f"{name}.png").symlink_to(pairs_dir / name / "left.png")
+        (rights / f"{name}.png").symlink_to(pairs_dir / name / "right.png")
+    out = tmp_path / "out"
+
+    assert main(["predict", str(lefts), str(rights), "-o", str(out), "--format", "npy", "--color", str(tmp_path / "c")]) == 0
+
+    assert sorted(p.name for p in out.iterdir()) == ["shift4.npy", "shift9.npy"]
+    assert sorted(p.name for p in (tmp_path / "c").iterdir()) == ["shift4.png", "shift9.png"]
+
+
+def test_globs_pair_in_sorted_order_and_mirror_the_folders_of_the_left_images(pairs_dir, tmp_path):
+    out = tmp_path / "out"
+    result = subprocess.run(
+        [sys.executable, "-m", "cli.main", "predict", f"{pairs_dir}/*/left.png", f"{pairs_dir}/*/right.png",
+         "-o", str(out), "--uncertainty", str(tmp_path / "u"), "--device", "cpu"],
+        cwd=REPO, capture_output=True, text=True, timeout=300,
+    )
+    assert result.returncode == 0, result.stderr
+    assert read_pfm(out / "shift4" / "left.pfm").shape == (64, 96)
+    assert read_pfm(out / "shift9" / "left.pfm").shape == (64, 96)
+    assert (tmp_path / "u" / "shift9" / "left.pfm").is_file()
+
+
+def test_unmatched_inputs_are_errors(tmp_path, pairs_dir):
+    lefts, rights = tmp_path / "left", tmp_path / "right"
+    lefts.mkdir(), rights.mkdir()
+    (lefts / "a.png").symlink_to(pairs_dir / "shift4" / "left.png")
+    (rights / "b.png").symlink_to(pairs_dir / "shift4" / "right.png")
+    with pytest.raises(ValueError, match="no partner"):
+        find_pairs(str(lefts), str(rights))
+    with pytest.raises(ValueError, match="1 left images match .* but 2 right images"):
+        find_pairs(f"{pairs_dir}/shift4/left.png*", f"{pairs_dir}/*/right.png")
+    with pytest.raises(ValueError, match="no left image"):
+        find_pairs(str(tmp_path / "nothing*.png"), str(tmp_path / "nothing*.png"))
+
+
+def test_an_unknown_output_extension_is_refused(pairs_dir, tmp_path, capsys):
+    pair = pairs_dir / "shift4"
+    assert main(["predict", str(pair / "left.png"), str(pair / "right.png"), "-o", str(tmp_path / "d.tif")]) == 2
+    assert "use .pfm, .png or .npy" in capsys.readouterr().err
+
+
+def test_predict_on_a_real_pair_keeps_its_size(small_stereo_dev, tmp_path):
+    pair = next(small_stereo_dev.iterdir())
+    out = tmp_path / "d.pfm"
+    assert main(["predict", str(pair / "left.png"), str(pair / "right.png"), "-o", str(out), "--two-pass", "--device", "cpu"]) == 0
+    left = cv2.imread(str(pair / "left.png"))
+    assert read_pfm(out).shape == left.shape[:2]
