@@ -1,0 +1,95 @@
+"""evaluate(): joins predictions with ground truth per pair, averages per method, renders sheets."""
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from evaluation.evaluate import SGBM, evaluate
+from evaluation.visualize import PANEL_WIDTH, colorize
+from model import Prediction
+from stereo_data.readers import StereoSample
+
+
+class OffsetPredictor:
+    """Stands in for a StereoPredictor: predicts the true disparity plus `offset` px."""
+
+    name = "lite"
+    weights_sha256 = None
+    num_parameters = 0
+
+    def __init__(self, samples: list[StereoSample], offset: float) -> None:
+        self.truth = {id(s.left): s.disparity for s in samples}
+        self.offset = offset
+        self.calls = 0
+
+    def predict(self, left, right, *, two_pass=False):
+        self.calls += 1
+        truth = self.truth[id(left)]
+        disparity = np.where(np.isfinite(truth), truth + self.offset, 0.0).astype(np.float32)
+        return Prediction(disparity, np.full(truth.shape, 0.25, np.float32))
+
+
+def shifted_sample(name: str, disparity: int, seed: int) -> StereoSample:
+    rng = np.random.default_rng(seed)
+    texture = rng.integers(0, 256, (48, 80 + disparity, 3), dtype=np.uint8)
+    truth = np.full((48, 80), float(disparity), np.float32)
+    truth[:, :disparity] = np.inf
+    return StereoSample(name, texture[:, :80].copy(), texture[:, disparity:].copy(), truth, np.isfinite(truth))
+
+
+@pytest.fixture
+def samples() -> list[StereoSample]:
+    return [shifted_sample("a", 3, 0), shifted_sample("b", 6, 1)]
+
+
+def test_a_prediction_off_by_1_5_px_everywhere_scores_exactly_that(samples):
+    report = evaluate(samples, OffsetPredictor(samples, 1.5), dataset_name="mem", progress=False)
+    assert [p.name for p in report.pairs] == ["a", "b"] and report.method_names == ["lite"]
+    for pair in report.pairs:
+        m = pair.methods["lite"].metrics
+        assert (m.epe, m.bad1, m.bad2, m.bad3, m.d1_all) == pytest.approx((1.5, 100.0, 0.0, 0.0, 0.0))
+    assert report.pairs[0].methods["lite"].metrics.valid_pixels == 48 * (80 - 3)
+
+
+def test_the_model_is_warmed_up_once_before_timing(samples):
+    predictor = OffsetPredictor(samples, 0.0)
+    evaluate(samples, predictor, dataset_name="mem", progress=False)
+    assert predictor.calls == len(samples) + 1
+
+
+def test_sgbm_rows_sit_beside_the_model_and_means_are_per_method(samples):
+    report = evaluate(samples, OffsetPredictor(samples, 4.0), dataset_name="mem", baseline_sgbm=True, progress=False)
+    assert report.method_names == ["lite", SGBM]
+    assert report.mean("lite").metrics.epe == pytest.approx(4.0)
+    sgbm_epes = [p.methods[SGBM].metrics.epe for p in report.pairs]
+    assert report.mean(SGBM).metrics.epe == pytest.approx(np.mean(sgbm_epes))
+    assert max(sgbm_epes) < 0.1  # an exact integer shift of random texture
+    document = json.loads(json.dumps(report.to_dict()))
+    assert document["mean"][SGBM]["metrics"]["epe"] == pytest.approx(np.mean(sgbm_epes))
+    assert len(report.table().splitlines()) == 2 + 2 * 3  # header, rule, (2 pairs + mean) x 2 methods
+
+
+def test_one_sheet_per_pair_with_a_row_per_method(samples, tmp_path):
+    evaluate(samples, OffsetPredictor(samples, 0.0), dataset_name="mem", baseline_sgbm=True, sheets_dir=tmp_path, progress=False)
+    sheet = cv2.imread(str(tmp_path / "a.png"))
+    assert sheet.shape[1] == 3 * PANEL_WIDTH
+    panel_height = 24 + round(48 * PANEL_WIDTH / 80)
+    assert sheet.shape[0] == 3 * panel_height  # inputs row, model row, SGBM row
+
+
+def test_a_pair_without_ground_truth_is_an_error():
+    sample = shifted_sample("empty", 3, 0)
+    sample = StereoSample("empty", sample.left, sample.right, np.full((48, 80), np.inf, np.float32), np.zeros((48, 80), bool))
+    with pytest.raises(ValueError, match="no valid ground-truth pixel"):
+        evaluate([sample], OffsetPredictor([sample], 0.0), dataset_name="mem", progress=False)
+
+
+def test_colour_scale_is_fixed_and_unknown_is_black():
+    values = np.array([[0.0, 10.0, 20.0, np.inf]], np.float32)
+    image = colorize(values, 0.0, 10.0)
+    assert image.dtype == np.uint8 and image.shape == (1, 4, 3)
+    np.testing.assert_array_equal(image[0, 1], image[0, 2])  # clipped at the top of the scale
+    assert not np.array_equal(image[0, 0], image[0, 1])
+    np.testing.assert_array_equal(image[0, 3], [0, 0, 0])
