@@ -1,0 +1,55 @@
+"""The FastAPI application. Serve with `uvicorn service.app:create_app --factory`."""
+
+from __future__ import annotations
+
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+
+from fastapi import FastAPI
+
+from model import load_model
+from service.errors import install_error_handlers
+from service.logs import configure_logging
+from service.middleware import BodySizeLimitMiddleware, RequestContextMiddleware
+from service.routes import disparity, health, metrics
+from service.runtime import ModelLoader, ServiceRuntime
+from service.settings import Settings
+
+API_VERSION = "1.0.0"  # version of the HTTP contract in openapi.yaml
+
+
+def create_app(settings: Settings | None = None, loader: ModelLoader = load_model) -> FastAPI:
+    """Build the app; its lifespan loads the models once and runs the batching worker.
+
+    settings: defaults to `Settings.from_env()` (the `CRESTEREO_*` variables).
+    loader: `model.load_model`, or a wrapper of it (tests inject faults through it).
+    """
+    settings = settings or Settings.from_env()
+    configure_logging(settings.log_level)
+    runtime = ServiceRuntime(settings, loader)
+
+    @asynccontextmanager
+    async def lifespan(_: FastAPI) -> AsyncIterator[None]:
+        await runtime.start()
+        try:
+            yield
+        finally:
+            await runtime.stop()
+
+    app = FastAPI(
+        title="CREStereo++ disparity service",
+        version=API_VERSION,
+        description="Dense disparity, uncertainty and metric depth from a rectified stereo pair, "
+        "computed by CREStereo++ (`full`) or Lite-CREStereo++ (`lite`). Errors are JSON "
+        '`{"error": {"code", "message"}}`; every response echoes `X-Request-Id`.',
+        lifespan=lifespan,
+    )
+    app.state.runtime = runtime
+    install_error_handlers(app, runtime.metrics)
+    app.add_middleware(BodySizeLimitMiddleware, max_bytes=settings.max_body_bytes,
+                       metrics=runtime.metrics)
+    app.add_middleware(RequestContextMiddleware, metrics=runtime.metrics)
+    app.include_router(disparity.router)
+    app.include_router(health.router)
+    app.include_router(metrics.router)
+    return app

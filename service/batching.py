@@ -1,0 +1,380 @@
+"""Dynamic batching: requests queue per model and run, one batch at a time, on one worker thread.
+
+A batch holds requests of one model and one padded input shape. The scheduler picks, whenever
+the worker is free:
+1. the oldest group if its oldest request has waited `max_wait_ms`;
+2. else the oldest group that is full (`max_batch_size`, or `max_batch_pixels` reached);
+3. else, when no other request is still being received or decoded, the oldest group at once
+   (an idle server runs a lone request immediately);
+4. else it waits for more requests, at most until rule 1 applies.
+Before a batch runs, requests whose client has gone, whose deadline has passed or cannot be met
+(estimated from measured compute time per pixel) are dropped. An exception in the network fails
+only the batch it happened in.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+import time
+import uuid
+from collections import deque
+from collections.abc import AsyncIterator, Awaitable, Callable, Mapping, Sequence
+from concurrent.futures import Executor
+from contextlib import asynccontextmanager
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+import torch
+
+from service.metrics import Metrics
+from service.settings import Settings
+
+logger = logging.getLogger(__name__)
+
+PAD_MULTIPLE = 32  # the network pads its input to a multiple of 32 (replicate), then crops back
+_EMA_WEIGHT = 0.2  # weight of the newest batch in the running means of compute time
+
+
+class Predictor(Protocol):
+    """What the service needs from `model.load_model(...)`."""
+
+    name: str
+    weights_sha256: str | None
+    num_parameters: int
+
+    def predict(self, left: Any, right: Any, *, iters: Any = None, init_disparity: Any = None,
+                two_pass: bool = False) -> Any: ...
+
+
+class BatchingError(Exception):
+    """A request the batcher could not compute."""
+
+
+class QueueFull(BatchingError):
+    def __init__(self, retry_after_s: int) -> None:
+        super().__init__(f"queue full; retry in {retry_after_s} s")
+        self.retry_after_s = retry_after_s
+
+
+class Draining(BatchingError):
+    """The server is shutting down and takes no more work (or ran out of drain time)."""
+
+
+class DeadlineExceeded(BatchingError):
+    """The request's deadline passed, or would pass before its batch could finish."""
+
+
+class ClientDisconnected(BatchingError):
+    """The client went away before the request was computed."""
+
+
+class InferenceFailed(BatchingError):
+    def __init__(self, error_id: str) -> None:
+        super().__init__(f"inference failed; logged as error id {error_id}")
+        self.error_id = error_id
+
+
+@dataclass(frozen=True)
+class BatchKey:
+    """Requests with equal keys may share a batch."""
+
+    model: str
+    two_pass: bool
+    height: int  # input shape of the batch: padded to a multiple of 32, or exact for two_pass
+    width: int
+
+    @property
+    def pixels(self) -> int:
+        return self.height * self.width
+
+
+def batch_key(model: str, two_pass: bool, height: int, width: int) -> BatchKey:
+    """One-pass requests batch by padded shape: padding them to it is what the network does
+    anyway. Two-pass requests batch by exact shape, since their half-resolution pass sees the
+    unpadded image."""
+    if two_pass:
+        return BatchKey(model, True, height, width)
+    return BatchKey(model, False, _round_up(height), _round_up(width))
+
+
+@dataclass(frozen=True)
+class JobResult:
+    disparity: np.ndarray  # float32 HxW, pixels of the left image
+    uncertainty: np.ndarray  # float32 HxW in [0, 1]
+    batch_size: int
+    queue_seconds: float
+    compute_seconds: float
+
+
+@dataclass(eq=False)
+class _Job:
+    key: BatchKey
+    left: np.ndarray  # float32 HxWx3 RGB in [0, 255]
+    right: np.ndarray
+    deadline: float | None  # time.monotonic() by which the answer is due
+    is_disconnected: Callable[[], Awaitable[bool]]
+    request_id: str | None
+    enqueued_at: float = field(default_factory=time.monotonic)
+    dispatched: bool = False  # its batch has started; its admission no longer counts it
+    future: asyncio.Future[JobResult] = field(
+        default_factory=lambda: asyncio.get_running_loop().create_future())
+
+
+class Admission:
+    """A request's place in its model's queue, from before decoding until its batch starts."""
+
+    def __init__(self, batcher: Batcher, model: str) -> None:
+        self._batcher = batcher
+        self.model = model
+        self.job: _Job | None = None
+
+    async def run(self, left: np.ndarray, right: np.ndarray, *, two_pass: bool,
+                  deadline: float | None, is_disconnected: Callable[[], Awaitable[bool]],
+                  request_id: str | None = None) -> JobResult:
+        """Queue a decoded pair (float32 HxWx3 RGB in [0, 255]) and wait for its result."""
+        height, width = left.shape[:2]
+        job = _Job(batch_key(self.model, two_pass, height, width), left, right, deadline,
+                   is_disconnected, request_id)
+        if deadline is not None and deadline <= job.enqueued_at:
+            raise DeadlineExceeded("deadline passed before the request was queued")
+        self.job = job
+        self._batcher.enqueue(job)
+        timeout = None if deadline is None else deadline - job.enqueued_at
+        try:
+            return await asyncio.wait_for(asyncio.shield(job.future), timeout)
+        except TimeoutError:
+            raise DeadlineExceeded("deadline passed while waiting for the result") from None
+
+
+class Batcher:
+    """Per-model queues, the batch scheduler and the worker thread that computes batches."""
+
+    def __init__(self, settings: Settings, predictors: Mapping[str, Predictor],
+                 executor: Executor, metrics: Metrics) -> None:
+        self._settings = settings
+        self._predictors = predictors
+        self._executor = executor
+        self._metrics = metrics
+        self._queues: dict[str, deque[_Job]] = {name: deque() for name in predictors}
+        self._pending: dict[str, int] = dict.fromkeys(predictors, 0)
+        self._running: list[_Job] = []
+        self._batch_seconds: dict[str, float] = {}
+        self._seconds_per_pixel: dict[str, float] = {}
+        self._changed = asyncio.Event()
+        self._draining = False
+        self._task: asyncio.Task[None] | None = None
+        for name in predictors:
+            metrics.queue_depth.labels(model=name).set(0)
+
+    def start(self) -> None:
+        self._task = asyncio.create_task(self._schedule(), name="batch-scheduler")
+
+    async def close(self) -> None:
+        """Stop scheduling; whatever is queued or running gets `Draining`."""
+        self._draining = True
+        if self._task is not None:
+            self._task.cancel()
+            await asyncio.gather(self._task, return_exceptions=True)
+        self._fail([*self._running, *self._take_queued()], Draining("server stopped"))
+
+    @property
+    def is_running(self) -> bool:
+        """The scheduler is alive (False after `close()` or if it crashed)."""
+        return self._task is not None and not self._task.done()
+
+    def begin_drain(self) -> None:
+        """Admit nothing more; what is already admitted still runs."""
+        self._draining = True
+
+    def fail_queued(self, error: BatchingError) -> None:
+        """Answer every queued (not yet running) request with `error`."""
+        self._fail(self._take_queued(), error)
+
+    def _take_queued(self) -> list[_Job]:
+        jobs = [job for queue in self._queues.values() for job in queue]
+        for queue in self._queues.values():
+            queue.clear()
+        return jobs
+
+    def queue_depths(self) -> dict[str, int]:
+        """Per model: requests admitted and not yet computing."""
+        return dict(self._pending)
+
+    def retry_after(self, model: str) -> int:
+        """Seconds until the model's queue has likely room: the batches ahead times the mean
+        batch time (1 s before any batch has been measured)."""
+        batches_ahead = self._pending[model] / self._settings.max_batch_size + 1
+        return max(1, math.ceil(batches_ahead * self._batch_seconds.get(model, 1.0)))
+
+    @asynccontextmanager
+    async def admit(self, model: str) -> AsyncIterator[Admission]:
+        """Reserve a queue place for `model` before the request is decoded (raises `QueueFull` or
+        `Draining`); the place is given back when the batch starts or the request ends."""
+        if self._draining:
+            raise Draining("server is shutting down")
+        if self._pending[model] >= self._settings.max_queue:
+            raise QueueFull(self.retry_after(model))
+        admission = Admission(self, model)
+        self._set_pending(model, +1)
+        try:
+            yield admission
+        finally:
+            job = admission.job
+            if job is None or not job.dispatched:
+                self._set_pending(model, -1)
+            if job is not None and job in self._queues[model]:
+                self._queues[model].remove(job)
+                job.future.cancel()
+            self._changed.set()
+
+    def enqueue(self, job: _Job) -> None:
+        self._queues[job.key.model].append(job)
+        self._changed.set()
+
+    # --- scheduler --------------------------------------------------------------------------
+
+    async def _schedule(self) -> None:
+        while True:
+            batch = await self._next_batch()
+            await self._execute(batch)
+
+    async def _next_batch(self) -> list[_Job]:
+        while True:
+            self._changed.clear()
+            batch, wait_s = self._choose(time.monotonic())
+            if batch:
+                if await self._drop_unservable(batch):
+                    continue  # the batch changed: choose again, with the requests still here
+                return batch
+            try:
+                await asyncio.wait_for(self._changed.wait(), wait_s)
+            except TimeoutError:
+                pass
+
+    def _choose(self, now: float) -> tuple[list[_Job], float | None]:
+        """The batch to run now, or none and how long to wait (None: until something changes)."""
+        queued = sorted((job for queue in self._queues.values() for job in queue),
+                        key=lambda job: job.enqueued_at)
+        groups: dict[BatchKey, list[_Job]] = {}
+        for job in queued:
+            groups.setdefault(job.key, []).append(job)
+        if not groups:
+            return [], None
+        candidates: list[tuple[list[_Job], bool]] = []  # (batch, is full), oldest first
+        for jobs in groups.values():
+            capacity = self._capacity(jobs[0].key)
+            candidates.append((jobs[:capacity], len(jobs) >= capacity))
+        max_wait_s = self._settings.max_wait_ms / 1000
+        oldest, _ = candidates[0]
+        if now - oldest[0].enqueued_at >= max_wait_s:
+            return oldest, None
+        full = [jobs for jobs, is_full in candidates if is_full]
+        if full:
+            return full[0], None
+        incoming = sum(self._pending.values()) - len(queued)
+        if incoming == 0:
+            return oldest, None
+        return [], oldest[0].enqueued_at + max_wait_s - now
+
+    def _capacity(self, key: BatchKey) -> int:
+        return max(1, min(self._settings.max_batch_size,
+                          self._settings.max_batch_pixels // key.pixels))
+
+    async def _drop_unservable(self, batch: list[_Job]) -> bool:
+        """Drop requests of `batch` whose client left or whose deadline cannot be met; True when
+        the batch is no longer intact."""
+        changed = False
+        for job in batch:
+            if await job.is_disconnected():
+                self._drop(job, ClientDisconnected("client disconnected before compute"))
+                changed = True
+        estimate = self._seconds_per_pixel.get(batch[0].key.model, 0.0) * len(batch) \
+            * batch[0].key.pixels
+        finish = time.monotonic() + estimate
+        for job in batch:
+            if job.deadline is not None and finish > job.deadline and not job.future.done():
+                self._drop(job, DeadlineExceeded("deadline cannot be met"))
+                changed = True
+        # Requests can also leave while the disconnect checks above await.
+        return changed or any(job.future.done() for job in batch)
+
+    def _drop(self, job: _Job, error: BatchingError) -> None:
+        queue = self._queues[job.key.model]
+        if job in queue:
+            queue.remove(job)
+        self._fail([job], error)
+
+    async def _execute(self, batch: list[_Job]) -> None:
+        key = batch[0].key
+        started = time.monotonic()
+        for job in batch:
+            self._queues[key.model].remove(job)
+            job.dispatched = True
+            self._metrics.queue_wait.labels(model=key.model).observe(started - job.enqueued_at)
+        self._set_pending(key.model, -len(batch))  # their admissions no longer count them
+        self._running = batch
+        try:
+            outputs = await asyncio.get_running_loop().run_in_executor(
+                self._executor, compute_batch, self._predictors[key.model], key,
+                [job.left for job in batch], [job.right for job in batch])
+        except Exception as exc:  # any failure of the network fails this batch only
+            error_id = uuid.uuid4().hex[:12]
+            logger.error("inference failed", exc_info=exc, extra={
+                "error_id": error_id, "model": key.model, "batch_size": len(batch),
+                "request_ids": [job.request_id for job in batch]})
+            self._fail(batch, InferenceFailed(error_id))
+            return
+        finally:
+            self._running = []
+        compute = time.monotonic() - started
+        self._record_batch(key, len(batch), compute)
+        for job, (disparity, uncertainty) in zip(batch, outputs, strict=True):
+            if not job.future.done():
+                job.future.set_result(JobResult(disparity, uncertainty, len(batch),
+                                                started - job.enqueued_at, compute))
+
+    def _record_batch(self, key: BatchKey, size: int, seconds: float) -> None:
+        self._metrics.compute.labels(model=key.model).observe(seconds)
+        self._metrics.batch_size.labels(model=key.model).observe(size)
+        per_pixel = seconds / (size * key.pixels)
+        for means, value in ((self._batch_seconds, seconds), (self._seconds_per_pixel, per_pixel)):
+            previous = means.get(key.model)
+            means[key.model] = value if previous is None else \
+                (1 - _EMA_WEIGHT) * previous + _EMA_WEIGHT * value
+
+    def _set_pending(self, model: str, delta: int) -> None:
+        self._pending[model] += delta
+        self._metrics.queue_depth.labels(model=model).set(self._pending[model])
+
+    @staticmethod
+    def _fail(jobs: Sequence[_Job], error: BatchingError) -> None:
+        for job in jobs:
+            if not job.future.done():
+                job.future.set_exception(error)
+
+
+def compute_batch(predictor: Predictor, key: BatchKey, lefts: Sequence[np.ndarray],
+                  rights: Sequence[np.ndarray]) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Run one batch on the calling (worker) thread: pad every image to the batch shape the way
+    the network pads, predict, and crop each map back to its image's size."""
+    left = _to_batch_tensor(lefts, key)
+    right = _to_batch_tensor(rights, key)
+    prediction = predictor.predict(left, right, two_pass=key.two_pass)
+    disparity = prediction.disparity.numpy()
+    uncertainty = prediction.uncertainty.numpy()
+    return [(np.ascontiguousarray(disparity[i, :h, :w]), np.ascontiguousarray(uncertainty[i, :h, :w]))
+            for i, (h, w) in enumerate(image.shape[:2] for image in lefts)]
+
+
+def _to_batch_tensor(images: Sequence[np.ndarray], key: BatchKey) -> torch.Tensor:
+    """Bx3xHxW float32 tensor of HxWx3 images, each replicate-padded at the bottom and right."""
+    padded = [np.pad(image, ((0, key.height - image.shape[0]), (0, key.width - image.shape[1]),
+                             (0, 0)), mode="edge") for image in images]
+    return torch.from_numpy(np.stack(padded)).permute(0, 3, 1, 2).contiguous()
+
+
+def _round_up(size: int) -> int:
+    return -(-size // PAD_MULTIPLE) * PAD_MULTIPLE

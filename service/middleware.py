@@ -1,0 +1,111 @@
+"""ASGI middleware: request ids, access log and request metrics; the request body size limit."""
+
+from __future__ import annotations
+
+import logging
+import re
+import time
+import uuid
+
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from service.errors import ApiError, error_response
+from service.logs import request_id_var
+from service.metrics import Metrics
+
+REQUEST_ID_HEADER = "X-Request-Id"
+_VALID_REQUEST_ID = re.compile(r"[A-Za-z0-9._:-]{1,128}")
+_QUIET_PATHS = ("/health", "/metrics")  # probes and scrapes are logged at debug level
+
+logger = logging.getLogger("service.access")
+
+
+class RequestContextMiddleware:
+    """Gives each request an id (the client's `X-Request-Id` when well-formed, else a new one),
+    echoes it in the response, writes one JSON access line and counts `/disparity` answers.
+
+    The `/disparity` route stores the model it served in the request's state (`model`,
+    `batch_size`), which lands in the metrics labels and the access line.
+    """
+
+    def __init__(self, app: ASGIApp, metrics: Metrics) -> None:
+        self.app = app
+        self.metrics = metrics
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        request_id = _client_request_id(scope) or uuid.uuid4().hex
+        token = request_id_var.set(request_id)
+        started = time.perf_counter()
+        status = 500
+
+        async def send_with_id(message: Message) -> None:
+            nonlocal status
+            if message["type"] == "http.response.start":
+                status = message["status"]
+                message["headers"] = [*message.get("headers", []),
+                                      (b"x-request-id", request_id.encode())]
+            await send(message)
+
+        try:
+            await self.app(scope, receive, send_with_id)
+        finally:
+            seconds = time.perf_counter() - started
+            state = scope.get("state", {})
+            path = scope["path"]
+            if path == "/disparity":
+                model = state.get("model", "none")
+                self.metrics.requests.labels(model=model, status=str(status)).inc()
+                self.metrics.latency.labels(model=model).observe(seconds)
+            level = logging.DEBUG if path.startswith(_QUIET_PATHS) else logging.INFO
+            logger.log(level, "request", extra={
+                "method": scope["method"], "path": path, "status": status,
+                "duration_ms": round(seconds * 1000, 2),
+                "client": scope["client"][0] if scope.get("client") else None,
+                "model": state.get("model"), "batch_size": state.get("batch_size")})
+            request_id_var.reset(token)
+
+
+def _client_request_id(scope: Scope) -> str | None:
+    for name, value in scope["headers"]:
+        if name == b"x-request-id":
+            candidate = value.decode("latin-1")
+            return candidate if _VALID_REQUEST_ID.fullmatch(candidate) else None
+    return None
+
+
+class BodySizeLimitMiddleware:
+    """Refuses bodies over `max_bytes` with 413: at once from `Content-Length`, else as soon as
+    the streamed body passes the limit (chunked uploads)."""
+
+    def __init__(self, app: ASGIApp, max_bytes: int, metrics: Metrics) -> None:
+        self.app = app
+        self.max_bytes = max_bytes
+        self.metrics = metrics
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        declared = dict(scope["headers"]).get(b"content-length")
+        if declared is not None and declared.isdigit() and int(declared) > self.max_bytes:
+            self.metrics.reject("too_large")
+            await error_response(413, "body_too_large", self._message())(scope, receive, send)
+            return
+        received = 0
+
+        async def limited_receive() -> Message:
+            nonlocal received
+            message = await receive()
+            if message["type"] == "http.request":
+                received += len(message.get("body", b""))
+                if received > self.max_bytes:
+                    raise ApiError(413, "body_too_large", self._message(), reject_reason="too_large")
+            return message
+
+        await self.app(scope, limited_receive, send)
+
+    def _message(self) -> str:
+        return f"request body larger than {self.max_bytes} bytes"

@@ -1,0 +1,153 @@
+"""What one running service owns: settings, metrics, loaded models, the worker and its batcher."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import signal
+import threading
+from collections.abc import Callable, Coroutine
+from concurrent.futures import ThreadPoolExecutor
+from functools import partial
+from pathlib import Path
+from types import FrameType
+from typing import Any
+
+from service.batching import Batcher, Draining, Predictor
+from service.cpu import configure_torch_threads, usable_cpus
+from service.metrics import Metrics
+from service.schemas import BatchingConfig, HealthResponse, ModelStatus, ServiceState
+from service.settings import Settings
+
+logger = logging.getLogger(__name__)
+
+ModelLoader = Callable[..., Predictor]  # called as loader(name, weights=..., device=...)
+
+
+def weights_identity(predictor: Predictor) -> str:
+    """First 16 hex digits of the weights' sha256, or `random-init`."""
+    return predictor.weights_sha256[:16] if predictor.weights_sha256 else "random-init"
+
+
+class ServiceRuntime:
+    """Lifecycle: `start()` loads the models on the worker thread in the background (the service
+    answers 503 `loading` meanwhile), then batching starts (`ready`). SIGTERM switches to
+    `draining`: nothing new is admitted and queued work has `drain_timeout_s` to finish."""
+
+    def __init__(self, settings: Settings, loader: ModelLoader) -> None:
+        self.settings = settings
+        self.metrics = Metrics(settings.max_batch_size)
+        self.state: ServiceState = "loading"
+        self.torch_threads = settings.threads or usable_cpus()
+        self.predictors: dict[str, Predictor] = {}
+        self.batcher: Batcher | None = None
+        self._loader = loader
+        self._executor: ThreadPoolExecutor | None = None
+        self._tasks: set[asyncio.Task[None]] = set()
+        self._previous_sigterm: Callable[[int, FrameType | None], object] | None = None
+
+    async def start(self) -> None:
+        configure_torch_threads(self.torch_threads)
+        # The single worker thread owns the CPU: it loads the models and computes every batch.
+        self._executor = ThreadPoolExecutor(
+            max_workers=1, thread_name_prefix="inference",
+            initializer=configure_torch_threads, initargs=(self.torch_threads,))
+        self._spawn(self._load_models())
+        self._hook_sigterm()
+
+    async def stop(self) -> None:
+        self._unhook_sigterm()
+        for task in list(self._tasks):
+            task.cancel()
+        await asyncio.gather(*self._tasks, return_exceptions=True)
+        if self.batcher is not None:
+            await self.batcher.close()
+        if self._executor is not None:
+            await asyncio.to_thread(self._executor.shutdown)
+
+    def begin_drain(self) -> None:
+        """Stop admitting work; fail what is still queued after `drain_timeout_s`."""
+        if self.state == "draining":
+            return
+        logger.info("draining", extra={"drain_timeout_s": self.settings.drain_timeout_s})
+        self.state = "draining"
+        if self.batcher is not None:
+            self.batcher.begin_drain()
+            self._spawn(self._expire_drain(self.batcher))
+
+    @property
+    def is_alive(self) -> bool:
+        """False when the process should be restarted: models failed to load or the worker died."""
+        return self.state != "failed" and (self.batcher is None or self.batcher.is_running)
+
+    def health(self) -> HealthResponse:
+        depths = self.batcher.queue_depths() if self.batcher else {}
+        return HealthResponse(
+            status=self.state,
+            models={name: self._model_status(name) for name in self.settings.models},
+            queue_depth={name: depths.get(name, 0) for name in self.settings.models},
+            batching=BatchingConfig(
+                max_batch_size=self.settings.max_batch_size,
+                max_batch_pixels=self.settings.max_batch_pixels,
+                max_wait_ms=self.settings.max_wait_ms,
+                max_queue=self.settings.max_queue,
+                torch_threads=self.torch_threads))
+
+    def _model_status(self, name: str) -> ModelStatus:
+        predictor = self.predictors.get(name)
+        if predictor is None:
+            return ModelStatus(loaded=False)
+        return ModelStatus(loaded=True, parameters=predictor.num_parameters,
+                           weights=weights_identity(predictor))
+
+    async def _load_models(self) -> None:
+        loop = asyncio.get_running_loop()
+        try:
+            for name in self.settings.models:
+                weights: Path | None = self.settings.weights.get(name)
+                self.predictors[name] = await loop.run_in_executor(self._executor, partial(
+                    self._loader, name, weights=weights, device=self.settings.device))
+                logger.info("model loaded", extra={
+                    "model": name, "parameters": self.predictors[name].num_parameters,
+                    "weights": weights_identity(self.predictors[name])})
+        except Exception:
+            logger.exception("model loading failed; the service stays unready")
+            self.state = "failed"
+            return
+        assert self._executor is not None
+        self.batcher = Batcher(self.settings, self.predictors, self._executor, self.metrics)
+        self.batcher.start()
+        if self.state == "loading":
+            self.state = "ready"
+        else:  # SIGTERM came while loading
+            self.batcher.begin_drain()
+
+    async def _expire_drain(self, batcher: Batcher) -> None:
+        await asyncio.sleep(self.settings.drain_timeout_s)
+        batcher.fail_queued(Draining("drain timeout reached before this request was computed"))
+
+    def _spawn(self, coroutine: Coroutine[Any, Any, None]) -> None:
+        task = asyncio.create_task(coroutine)
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+    def _hook_sigterm(self) -> None:
+        """Chain in front of the server's own SIGTERM handler (uvicorn's stops the listener and
+        waits for in-flight requests), so that readiness turns 503 at once. Only done where a
+        server owns SIGTERM; a bare process keeps the default handler."""
+        previous = signal.getsignal(signal.SIGTERM)
+        if threading.current_thread() is not threading.main_thread() or not callable(previous):
+            return
+        loop = asyncio.get_running_loop()
+
+        def on_sigterm(signum: int, frame: FrameType | None) -> None:
+            loop.call_soon_threadsafe(self.begin_drain)
+            previous(signum, frame)
+
+        signal.signal(signal.SIGTERM, on_sigterm)
+        self._previous_sigterm = previous
+
+    def _unhook_sigterm(self) -> None:
+        if self._previous_sigterm is not None:
+            signal.signal(signal.SIGTERM, self._previous_sigterm)
+            self._previous_sigterm = None

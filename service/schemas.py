@@ -1,0 +1,130 @@
+"""The HTTP contract: request options and response bodies as pydantic models."""
+
+from __future__ import annotations
+
+from enum import StrEnum
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, model_validator
+
+from service.settings import ModelName
+
+
+class OutputFormat(StrEnum):
+    """How `POST /disparity` returns its maps."""
+
+    json = "json"
+    npz = "npz"
+    png = "png"
+    disparity_png16 = "disparity_png16"
+    uncertainty_png16 = "uncertainty_png16"
+    depth_png16 = "depth_png16"
+
+
+class DisparityOptions(BaseModel):
+    """Query parameters of `POST /disparity` (options go in the query string, never the form)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    model: ModelName = Field("lite", description="Network: `lite` (fast) or `full` (accurate).")
+    format: OutputFormat = Field(
+        OutputFormat.json,
+        description="`json`: maps as base64 little-endian float32 with shape and dtype. "
+        "`npz`: numpy archive of the maps. `png`: colour preview, disparity (turbo colour map, "
+        "0 to 192 px, clipped) beside uncertainty (inferno, 0 to 1). `disparity_png16`: KITTI "
+        "16-bit PNG, value = round(disparity x 256), 0 = invalid, clipped at 65535. "
+        "`depth_png16`: KITTI depth 16-bit PNG, value = round(metres x 256), 0 = invalid, needs "
+        "`focal_px` and `baseline_m`. `uncertainty_png16`: 16-bit PNG, value = "
+        "round(uncertainty x 65535).",
+    )
+    two_pass: bool = Field(
+        False, description="Cascaded inference: a half-resolution pass initialises the "
+        "full-resolution one (better on large images, slower).")
+    focal_px: FiniteFloat | None = Field(
+        None, gt=0, description="Focal length in pixels; with `baseline_m` adds a metric depth "
+        "map Z = focal_px x baseline_m / disparity (invalid where disparity <= 0).")
+    baseline_m: FiniteFloat | None = Field(
+        None, gt=0, description="Stereo baseline in metres; see `focal_px`.")
+
+    @model_validator(mode="after")
+    def _depth_needs_calibration(self) -> DisparityOptions:
+        if (self.focal_px is None) != (self.baseline_m is None):
+            raise ValueError("give both focal_px and baseline_m, or neither")
+        if self.format is OutputFormat.depth_png16 and self.focal_px is None:
+            raise ValueError("format=depth_png16 needs focal_px and baseline_m")
+        return self
+
+
+class EncodedArray(BaseModel):
+    """A 2-D array as base64 of its raw little-endian bytes, row-major."""
+
+    dtype: Literal["float32"] = "float32"
+    byte_order: Literal["little"] = "little"
+    shape: tuple[int, int] = Field(description="[height, width]")
+    data: str = Field(description="base64 of the raw bytes")
+
+
+class ImageSize(BaseModel):
+    width: int
+    height: int
+
+
+class Timings(BaseModel):
+    """Where the server spent the request's time, in milliseconds."""
+
+    queue_ms: float = Field(description="From queueing (after decoding) until the batch started.")
+    compute_ms: float = Field(description="Network time of the whole batch the request ran in.")
+
+
+class DisparityResponse(BaseModel):
+    """Body of a `format=json` answer; the same facts come as `X-*` headers in every format."""
+
+    model: ModelName
+    weights: str = Field(description="First 16 hex digits of the weights' sha256, or `random-init`.")
+    image_size: ImageSize
+    batch_size: int = Field(description="How many requests were computed together with this one.")
+    timings: Timings
+    disparity: EncodedArray = Field(description="Pixels of the left image, positive; x_right = x - d.")
+    uncertainty: EncodedArray = Field(description="Per-pixel uncertainty in [0, 1].")
+    depth: EncodedArray | None = Field(
+        None, description="Metres, +inf where disparity <= 0; only with focal_px and baseline_m.")
+
+
+class ErrorDetail(BaseModel):
+    code: str = Field(description="Stable machine-readable reason, e.g. `size_mismatch`.")
+    message: str = Field(description="What was wrong, for humans.")
+
+
+class ErrorResponse(BaseModel):
+    """Body of every error answer."""
+
+    error: ErrorDetail
+
+
+ServiceState = Literal["loading", "ready", "draining", "failed"]
+
+
+class ModelStatus(BaseModel):
+    loaded: bool
+    parameters: int | None = None
+    weights: str | None = Field(None, description="As in `DisparityResponse.weights`.")
+
+
+class BatchingConfig(BaseModel):
+    max_batch_size: int
+    max_batch_pixels: int
+    max_wait_ms: float
+    max_queue: int
+    torch_threads: int
+
+
+class HealthResponse(BaseModel):
+    status: ServiceState
+    models: dict[str, ModelStatus]
+    queue_depth: dict[str, int] = Field(
+        description="Per model: requests admitted and not yet computing.")
+    batching: BatchingConfig
+
+
+class ProbeResponse(BaseModel):
+    status: str

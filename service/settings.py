@@ -1,0 +1,103 @@
+"""Service settings, read once from `CRESTEREO_*` environment variables.
+
+Every field of `Settings` is one variable: the field name upper-cased with the `CRESTEREO_`
+prefix (`max_batch_size` -> `CRESTEREO_MAX_BATCH_SIZE`). `service/README.md` documents each one;
+a test keeps that table and this class in step.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+ENV_PREFIX = "CRESTEREO_"
+ModelName = Literal["lite", "full"]
+
+
+class Settings(BaseModel):
+    """Everything the service can be configured with; immutable once the app is created."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    models: tuple[ModelName, ...] = Field(
+        ("lite", "full"), min_length=1, description="Comma-separated models to load at startup."
+    )
+    weights: dict[ModelName, Path] = Field(
+        default_factory=dict,
+        description="Weights file per model as `name=path,...`; a model not listed loads its "
+        "packaged weights (`model/weights/<name>.pt`, random initialisation when absent).",
+    )
+    device: str = Field("cpu", description="Torch device the models run on.")
+    threads: int = Field(
+        0, ge=0, description="Torch intra-op threads; 0 = the container's CPU quota (cgroup), "
+        "else the number of usable cores."
+    )
+    max_batch_size: int = Field(8, ge=1, description="Most requests computed together in one batch.")
+    max_batch_pixels: int = Field(
+        2_000_000, ge=1, description="Most padded pixels (batch size x height x width) in one batch; "
+        "a single larger image still runs, alone."
+    )
+    max_wait_ms: float = Field(
+        10.0, ge=0, description="Longest a partial batch is held back while more requests are being "
+        "received, or while full batches run first; an idle server runs a lone request at once."
+    )
+    max_queue: int = Field(
+        32, ge=1, description="Requests admitted per model and not yet computing (decoding or "
+        "queued); beyond it `/disparity` answers 503 with `Retry-After`."
+    )
+    max_body_bytes: int = Field(
+        32 * 1024 * 1024, ge=1, description="Largest request body in bytes (413 beyond)."
+    )
+    max_image_pixels: int = Field(
+        4_194_304, ge=1, description="Largest image (width x height), checked from the file header "
+        "before decoding (413 beyond)."
+    )
+    min_image_side: int = Field(32, ge=1, description="Smallest image width or height (422 below).")
+    api_key: str | None = Field(
+        None, description="When set, `POST /disparity` requires `Authorization: Bearer <key>`; "
+        "health and metrics stay open."
+    )
+    drain_timeout_s: float = Field(
+        30.0, ge=0, description="After SIGTERM, how long queued requests may still be computed; "
+        "those left then get 503."
+    )
+    log_level: Literal["debug", "info", "warning", "error"] = Field(
+        "info", description="Level of the JSON logs on stderr."
+    )
+
+    @field_validator("models", mode="before")
+    @classmethod
+    def _split_models(cls, value: object) -> object:
+        if isinstance(value, str):
+            return tuple(name.strip() for name in value.split(",") if name.strip())
+        return value
+
+    @field_validator("weights", mode="before")
+    @classmethod
+    def _split_weights(cls, value: object) -> object:
+        if isinstance(value, str):
+            pairs = [item.split("=", 1) for item in value.split(",") if item.strip()]
+            if any(len(pair) != 2 for pair in pairs):
+                raise ValueError("expected name=path[,name=path]")
+            return {name.strip(): path.strip() for name, path in pairs}
+        return value
+
+    @field_validator("api_key", mode="before")
+    @classmethod
+    def _empty_key_is_none(cls, value: object) -> object:
+        return None if value == "" else value
+
+    @classmethod
+    def from_env(cls, environ: Mapping[str, str] | None = None) -> Settings:
+        """Settings from `CRESTEREO_<FIELD>` variables; unset ones keep their defaults."""
+        environ = os.environ if environ is None else environ
+        values = {
+            name: environ[ENV_PREFIX + name.upper()]
+            for name in cls.model_fields
+            if ENV_PREFIX + name.upper() in environ
+        }
+        return cls.model_validate(values)

@@ -1,0 +1,192 @@
+"""Helpers of the service tests: the real lite model, test images, apps driven through httpx on
+ASGI, and real uvicorn processes on a free loopback port."""
+
+from __future__ import annotations
+
+import os
+import socket
+import subprocess
+import sys
+import threading
+import time
+import warnings
+from collections.abc import AsyncIterator, Iterator
+from contextlib import asynccontextmanager, contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import anyio
+import cv2
+import httpx
+import numpy as np
+from fastapi import FastAPI
+
+from model import load_model
+from service.app import create_app
+from service.batching import Predictor
+from service.settings import Settings
+
+REPO = Path(__file__).resolve().parents[2]
+STEREO_DEV = REPO.parent / "shared" / "data" / "stereo-dev"
+HEIGHT, WIDTH = 64, 96
+
+
+def quiet_load_model(name: str, **kwargs: Any) -> Predictor:
+    """`model.load_model` without the warning about random weights (expected until training)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return load_model(name, **kwargs)
+
+
+def stereo_pair(height: int = HEIGHT, width: int = WIDTH, shift: int = 4,
+                seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """A textured RGB uint8 pair whose right view is the left shifted by `shift` px."""
+    rng = np.random.default_rng(seed)
+    texture = cv2.resize(rng.integers(0, 256, (height // 4 + 1, (width + shift) // 4 + 1, 3),
+                                      dtype=np.uint8), ((width + shift), height),
+                         interpolation=cv2.INTER_CUBIC)
+    return np.ascontiguousarray(texture[:, shift:]), np.ascontiguousarray(texture[:, :width])
+
+
+def encode(image: np.ndarray, ext: str = ".png") -> bytes:
+    """Image bytes; colour input is RGB."""
+    if image.ndim == 3:
+        image = cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
+    ok, data = cv2.imencode(ext, image)
+    assert ok
+    return data.tobytes()
+
+
+def pair_files(left: np.ndarray, right: np.ndarray, ext: str = ".png") -> dict[str, Any]:
+    return {"left": ("left" + ext, encode(left, ext)), "right": ("right" + ext, encode(right, ext))}
+
+
+def lite_settings(**overrides: Any) -> Settings:
+    return Settings(models=("lite",), **overrides)
+
+
+class GatedPredictor:
+    """The real predictor, except that `predict` first waits for `gate` (lets a test hold the
+    worker busy while requests queue) and raises for an all-black left batch (fault injection)."""
+
+    def __init__(self, inner: Predictor) -> None:
+        self._inner = inner
+        self.gate = threading.Event()
+        self.gate.set()
+        self.calls: list[int] = []  # batch size of each predict call
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._inner, name)
+
+    def predict(self, left: Any, right: Any, **kwargs: Any) -> Any:
+        self.calls.append(left.shape[0])
+        assert self.gate.wait(timeout=60)
+        if float(left.max()) == 0:
+            raise RuntimeError("injected fault: all-black left image")
+        return self._inner.predict(left, right, **kwargs)
+
+
+@dataclass
+class Harness:
+    app: FastAPI
+    client: httpx.AsyncClient
+    predictors: dict[str, GatedPredictor]
+
+
+@asynccontextmanager
+async def serve_asgi(settings: Settings | None = None, *,
+                     load_gate: threading.Event | None = None) -> AsyncIterator[Harness]:
+    """The app with its lifespan running, an httpx client on it, and (once loaded) its gated
+    predictors; waits for readiness unless `load_gate` holds the model loading back."""
+    predictors: dict[str, GatedPredictor] = {}
+
+    def loader(name: str, **kwargs: Any) -> Predictor:
+        if load_gate is not None:
+            assert load_gate.wait(timeout=60)
+        predictors[name] = GatedPredictor(quiet_load_model(name, **kwargs))
+        return predictors[name]
+
+    app = create_app(settings or lite_settings(), loader=loader)
+    async with app.router.lifespan_context(app):
+        transport = httpx.ASGITransport(app=app)
+        async with httpx.AsyncClient(transport=transport, base_url="http://service",
+                                     timeout=60) as client:
+            if load_gate is None:
+                await wait_ready(client)
+            yield Harness(app, client, predictors)
+
+
+async def wait_ready(client: httpx.AsyncClient, timeout_s: float = 60) -> None:
+    with anyio.fail_after(timeout_s):
+        while (await client.get("/health/ready")).status_code != 200:
+            await anyio.sleep(0.01)
+
+
+def metric_value(text: str, name: str, **labels: str) -> float:
+    """The value of one sample in a Prometheus exposition (0 when absent)."""
+    wanted = ",".join(f'{key}="{value}"' for key, value in sorted(labels.items()))
+    for line in text.splitlines():
+        if line.startswith("#"):
+            continue
+        sample, _, value = line.rpartition(" ")
+        sample_name, _, sample_labels = sample.partition("{")
+        got = ",".join(sorted(sample_labels.rstrip("}").split(","))) if sample_labels else ""
+        if sample_name == name and got == wanted:
+            return float(value)
+    return 0.0
+
+
+# --- real uvicorn processes --------------------------------------------------------------------
+
+
+@dataclass
+class Server:
+    base_url: str
+    process: subprocess.Popen[bytes]
+    log_path: Path
+
+    def log(self) -> str:
+        return self.log_path.read_text(errors="replace")
+
+
+def free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+@contextmanager
+def run_uvicorn(tmp_path: Path, **env: str) -> Iterator[Server]:
+    """`uvicorn service.app:create_app --factory` on a free loopback port with `CRESTEREO_*`
+    settings from `env` (lite only unless given); stopped (and killed if need be) on exit."""
+    port = free_port()
+    log_path = tmp_path / f"uvicorn-{port}.log"
+    environ = {**os.environ, "CRESTEREO_MODELS": "lite", "PYTHONWARNINGS": "ignore::RuntimeWarning",
+               **{f"CRESTEREO_{key.upper()}": value for key, value in env.items()}}
+    with log_path.open("wb") as log:
+        process = subprocess.Popen(
+            [sys.executable, "-m", "uvicorn", "service.app:create_app", "--factory",
+             "--host", "127.0.0.1", "--port", str(port)],
+            cwd=REPO, env=environ, stdout=log, stderr=subprocess.STDOUT)
+    server = Server(f"http://127.0.0.1:{port}", process, log_path)
+    try:
+        deadline = time.monotonic() + 90
+        while True:
+            assert process.poll() is None, f"uvicorn exited:\n{server.log()}"
+            assert time.monotonic() < deadline, f"uvicorn not ready:\n{server.log()}"
+            try:
+                if httpx.get(server.base_url + "/health/ready").status_code == 200:
+                    break
+            except httpx.TransportError:
+                pass
+            time.sleep(0.1)
+        yield server
+    finally:
+        if process.poll() is None:
+            process.terminate()
+            try:
+                process.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                process.kill()
+                process.wait()

@@ -1,0 +1,139 @@
+"""POST /disparity answers, through httpx on the ASGI app with the real lite model."""
+
+from __future__ import annotations
+
+import base64
+import io
+import json
+import logging
+
+import cv2
+import numpy as np
+import pytest
+
+from service.logs import JsonFormatter
+from service_helpers import HEIGHT, WIDTH, encode, pair_files, serve_asgi, stereo_pair
+
+pytestmark = pytest.mark.anyio
+
+
+def decode_array(payload: dict) -> np.ndarray:
+    assert payload["dtype"] == "float32" and payload["byte_order"] == "little"
+    return np.frombuffer(base64.b64decode(payload["data"]), "<f4").reshape(payload["shape"])
+
+
+async def test_json_answer_has_maps_equal_to_the_predictor_and_says_how_it_was_computed():
+    left, right = stereo_pair()
+    async with serve_asgi() as h:
+        response = await h.client.post("/disparity", files=pair_files(left, right))
+        direct = h.predictors["lite"].predict(left, right)
+        weights_sha256 = h.predictors["lite"].weights_sha256
+    assert response.status_code == 200
+    assert response.headers["content-type"] == "application/json"
+    body = response.json()
+    weights = weights_sha256[:16] if weights_sha256 else "random-init"
+    assert body["model"] == "lite" and body["weights"] == weights
+    assert body["image_size"] == {"width": WIDTH, "height": HEIGHT}
+    assert body["batch_size"] == 1
+    assert body["timings"]["queue_ms"] >= 0 and body["timings"]["compute_ms"] > 0
+    assert body["depth"] is None
+    disparity, uncertainty = decode_array(body["disparity"]), decode_array(body["uncertainty"])
+    assert disparity.shape == uncertainty.shape == (HEIGHT, WIDTH)
+    np.testing.assert_allclose(disparity, direct.disparity, rtol=1e-4, atol=1e-4)
+    np.testing.assert_allclose(uncertainty, direct.uncertainty, rtol=1e-4, atol=1e-4)
+    assert disparity.min() >= 0 and 0 <= uncertainty.min() <= uncertainty.max() <= 1
+    assert response.headers["x-model"] == "lite"
+    assert response.headers["x-weights"] == weights
+    assert response.headers["x-image-size"] == f"{WIDTH}x{HEIGHT}"
+    assert response.headers["x-batch-size"] == "1"
+    assert float(response.headers["x-compute-ms"]) == pytest.approx(
+        body["timings"]["compute_ms"], abs=0.01)
+
+
+async def test_every_format_encodes_the_same_maps_and_depth_is_focal_times_baseline_over_disparity():
+    left, right = stereo_pair()
+    calibration = {"focal_px": 700.0, "baseline_m": 0.5}
+    async with serve_asgi() as h:
+        async def get(format: str, **params: float) -> bytes:
+            response = await h.client.post("/disparity", params={"format": format, **params},
+                                           files=pair_files(left, right))
+            assert response.status_code == 200, response.text
+            assert response.headers["x-image-size"] == f"{WIDTH}x{HEIGHT}"
+            return response.content
+
+        body = json.loads(await get("json", **calibration))
+        archive = np.load(io.BytesIO(await get("npz", **calibration)))
+        preview = cv2.imdecode(np.frombuffer(await get("png"), np.uint8), cv2.IMREAD_UNCHANGED)
+        png16 = {name: cv2.imdecode(np.frombuffer(await get(f"{name}_png16", **calibration),
+                                                  np.uint8), cv2.IMREAD_UNCHANGED)
+                 for name in ("disparity", "depth", "uncertainty")}
+    disparity, uncertainty, depth = (decode_array(body[name])
+                                     for name in ("disparity", "uncertainty", "depth"))
+    expected_depth = np.where(disparity > 0, 700.0 * 0.5 / np.maximum(disparity, 1e-30), np.inf)
+    np.testing.assert_allclose(depth, expected_depth, rtol=1e-5)
+    assert sorted(archive.files) == ["depth", "disparity", "uncertainty"]
+    np.testing.assert_allclose(archive["disparity"], disparity, atol=1e-4)
+    np.testing.assert_allclose(archive["uncertainty"], uncertainty, atol=1e-4)
+    assert preview.shape == (HEIGHT, 2 * WIDTH, 3) and preview.dtype == np.uint8
+    for name, values, scale in (("disparity", disparity, 256), ("depth", depth, 256),
+                                ("uncertainty", uncertainty, 65535)):
+        image = png16[name]
+        assert image.dtype == np.uint16 and image.shape == (HEIGHT, WIDTH)
+        valid = np.isfinite(values) & (values > 0) & (values * scale < 65535)
+        np.testing.assert_allclose(image[valid] / scale, values[valid], atol=1.0 / scale + 1e-3)
+    assert (png16["depth"][~np.isfinite(depth)] == 0).all()
+
+
+async def test_grayscale_16_bit_and_jpeg_uploads_are_accepted():
+    left, right = stereo_pair()
+    grey_left, grey_right = (cv2.cvtColor(image, cv2.COLOR_RGB2GRAY) for image in (left, right))
+    async with serve_asgi() as h:
+        sixteen_bit = await h.client.post("/disparity", files={
+            "left": ("l.png", encode(left.astype(np.uint16) * 257)),
+            "right": ("r.png", encode(right.astype(np.uint16) * 257))})
+        eight_bit = await h.client.post("/disparity", files=pair_files(left, right))
+        grey = await h.client.post("/disparity", files=pair_files(grey_left, grey_right))
+        jpeg = await h.client.post("/disparity", files=pair_files(left, right, ".jpg"))
+    assert [r.status_code for r in (sixteen_bit, eight_bit, grey, jpeg)] == [200] * 4
+    # 16-bit samples are scaled to the 8-bit range: the same picture gives the same answer
+    np.testing.assert_allclose(decode_array(sixteen_bit.json()["disparity"]),
+                               decode_array(eight_bit.json()["disparity"]), atol=1e-4)
+
+
+async def test_two_pass_inference_is_served():
+    left, right = stereo_pair()
+    async with serve_asgi() as h:
+        response = await h.client.post("/disparity", params={"two_pass": "true"},
+                                       files=pair_files(left, right))
+        direct = h.predictors["lite"].predict(left, right, two_pass=True)
+    assert response.status_code == 200
+    np.testing.assert_allclose(decode_array(response.json()["disparity"]), direct.disparity,
+                               rtol=1e-4, atol=1e-4)
+
+
+async def test_request_id_is_echoed_when_well_formed_and_replaced_otherwise():
+    async with serve_asgi() as h:
+        echoed = await h.client.get("/health", headers={"X-Request-Id": "trace-42.a:b"})
+        replaced = await h.client.get("/health", headers={"X-Request-Id": "bad id\nforged"})
+        generated = await h.client.get("/health")
+    assert echoed.headers["x-request-id"] == "trace-42.a:b"
+    assert len(replaced.headers["x-request-id"]) == 32 and " " not in replaced.headers["x-request-id"]
+    assert generated.headers["x-request-id"] != replaced.headers["x-request-id"]
+
+
+async def test_logs_are_json_lines_carrying_the_request_id():
+    stream = io.StringIO()
+    handler = logging.StreamHandler(stream)
+    handler.setFormatter(JsonFormatter())
+    async with serve_asgi() as h:
+        logging.getLogger("service").addHandler(handler)
+        try:
+            await h.client.post("/disparity", headers={"X-Request-Id": "req-1"},
+                                files=pair_files(*stereo_pair()))
+        finally:
+            logging.getLogger("service").removeHandler(handler)
+    lines = [json.loads(line) for line in stream.getvalue().splitlines()]
+    access = [line for line in lines if line["message"] == "request"]
+    assert access == [{**access[0], "request_id": "req-1", "method": "POST", "path": "/disparity",
+                       "status": 200, "model": "lite", "batch_size": 1}]
+    assert access[0]["duration_ms"] > 0 and access[0]["level"] == "info"
