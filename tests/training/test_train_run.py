@@ -1,0 +1,138 @@
+"""Training runs on the CPU at tiny sizes: outputs, exact resume, time budget, init weights, export."""
+
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+import training.data
+import training.trainer
+from cli.main import main
+from model import load_model
+from stereo_data.readers import StereoSample
+from training.checkpoint import load_checkpoint
+from training.config import DataSource, TrainConfig
+from training.records import read_csv
+from training.trainer import train
+
+
+def textured_pair(seed: int, disparity: float = 3.0) -> StereoSample:
+    """A 64x96 random-texture pair shifted by `disparity` px (left x = right x - disparity)."""
+    rng = np.random.default_rng(seed)
+    texture = rng.integers(0, 256, (64, 96 + int(disparity), 3), dtype=np.uint8)
+    truth = np.full((64, 96), disparity, np.float32)
+    return StereoSample(f"pair{seed}", texture[:, :96].copy(), texture[:, int(disparity) :].copy(), truth, np.ones((64, 96), bool))
+
+
+@pytest.fixture
+def real_pairs(monkeypatch) -> DataSource:
+    """A training source of three in-memory real pairs (open_dataset is replaced for the test)."""
+    pairs = [textured_pair(seed, 2.0 + seed) for seed in range(3)]
+    monkeypatch.setattr(training.data, "open_dataset", lambda path: pairs)
+    monkeypatch.setattr(training.trainer, "open_dataset", lambda path: pairs)
+    return DataSource("/in-memory", 1.0)
+
+
+def tiny(out_dir: Path, **overrides) -> TrainConfig:
+    """Lite at 64x96, one pair per step, every step logged, fp32 on the CPU."""
+    values = dict(
+        crop_height=64, crop_width=96, batch_size=1, max_steps=2, log_every=1, checkpoint_every=1000,
+        num_workers=0, device="cpu", out_dir=str(out_dir), warmup_fraction=0.0, real_scale_range=(1.0, 1.0),
+    )
+    return TrainConfig(**{**values, **overrides})
+
+
+def losses(out_dir: Path) -> list[float]:
+    return [float(row["loss"]) for row in read_csv(out_dir / "log.csv")]
+
+
+def test_train_command_runs_steps_on_procedural_scenes_and_leaves_checkpoint_log_and_curve(tmp_path):
+    out = tmp_path / "run"
+    status = main(["train", "--crop-height", "64", "--crop-width", "96", "--batch-size", "1", "--max-steps", "2",
+                   "--log-every", "1", "--device", "cpu", "--out-dir", str(out), "--no-progress"])
+    assert status == 0
+    checkpoint = load_checkpoint(out / "checkpoint.pt")
+    assert {"model", "config", "model_name", "train_config", "optimizer", "scheduler", "step", "rng", "training"} <= set(checkpoint)
+    assert checkpoint["step"] == 2 and checkpoint["model_name"] == "lite"
+    assert TrainConfig.from_dict(checkpoint["train_config"]).sources == (DataSource("synthetic"),)
+    rows = read_csv(out / "log.csv")
+    assert [int(r["step"]) for r in rows] == [1, 2] and all(np.isfinite(float(r["loss"])) for r in rows)
+    assert float(rows[-1]["pairs_per_second"]) > 0
+    assert (out / "loss_curve.png").stat().st_size > 0
+    # a checkpoint is a weights file (docs/CONTRACTS.md)
+    loaded = load_model("lite", weights=out / "checkpoint.pt").network.state_dict()
+    assert all(torch.equal(loaded[name], tensor) for name, tensor in checkpoint["model"].items())
+
+
+def test_a_resumed_run_repeats_the_uninterrupted_run_exactly(tmp_path, real_pairs):
+    whole = tiny(tmp_path / "whole", sources=(real_pairs,), max_steps=4, schedule_steps=4)
+    train(whole, progress=False)
+    # interrupted after 2 steps (same schedule), with a loader worker this time, then resumed in-process
+    first = replace(whole, out_dir=str(tmp_path / "split"), max_steps=2, num_workers=1)
+    train(first, progress=False)
+    resumed = replace(first, max_steps=4, num_workers=0)
+    result = train(resumed, resume=tmp_path / "split" / "checkpoint.pt", progress=False)
+
+    assert result.step == 4
+    assert losses(tmp_path / "split") == losses(tmp_path / "whole")  # bit-exact, all four steps
+    a = load_checkpoint(tmp_path / "whole" / "checkpoint.pt")["model"]
+    b = load_checkpoint(tmp_path / "split" / "checkpoint.pt")["model"]
+    assert all(torch.equal(a[name], b[name]) for name in a)
+    history = load_checkpoint(tmp_path / "split" / "checkpoint.pt")["training"]
+    assert [run["origin"] for run in history["runs"]] == ["scratch", "resume"] and history["total_steps"] == 4
+
+
+def test_the_time_budget_stops_after_the_current_step_and_saves_it(tmp_path, real_pairs):
+    result = train(tiny(tmp_path, sources=(real_pairs,), max_steps=50, max_minutes=0.0), progress=False)
+    assert result.out_of_time and result.step == 1
+    assert load_checkpoint(result.checkpoint)["step"] == 1
+
+
+def test_resume_options_override_the_checkpoint_config(tmp_path, real_pairs):
+    train(tiny(tmp_path, sources=(real_pairs,), max_steps=1, schedule="constant"), progress=False)
+    checkpoint = tmp_path / "checkpoint.pt"
+    status = main(["train", "--resume", str(checkpoint), "--max-steps", "2", "--lr", "1e-5", "--no-progress"])
+    assert status == 0
+    rows = read_csv(tmp_path / "log.csv")
+    assert [float(r["lr"]) for r in rows] == [4e-4, 1e-5]
+
+
+def test_init_weights_start_a_fresh_run_that_carries_the_history(tmp_path, real_pairs):
+    train(tiny(tmp_path / "a", sources=(real_pairs,), max_steps=1), progress=False)
+    weights = tmp_path / "a.pt"
+    assert main(["export", str(tmp_path / "a" / "checkpoint.pt"), "-o", str(weights)]) == 0
+    # lr 0: the weights cannot move, so they must come out as they went in
+    result = train(tiny(tmp_path / "b", sources=(real_pairs,), max_steps=2, lr=0.0), init_weights=weights, progress=False)
+
+    assert result.step == 2
+    start = load_checkpoint(weights)["model"]
+    assert all(torch.equal(start[name], tensor) for name, tensor in result.network.state_dict().items())
+    history = load_checkpoint(result.checkpoint)["training"]
+    assert [run["origin"] for run in history["runs"]] == ["scratch", "init-weights"]
+    assert history["total_steps"] == 3 and history["total_pairs"] == 3
+
+
+def test_validation_at_checkpoints_is_logged(tmp_path, real_pairs):
+    train(tiny(tmp_path, sources=(real_pairs,), max_steps=2, checkpoint_every=1, val_data="/in-memory"), progress=False)
+    rows = read_csv(tmp_path / "validation.csv")
+    assert [int(r["step"]) for r in rows] == [1, 2]
+    assert all(float(r["epe"]) >= 0 and 0 <= float(r["bad2"]) <= 100 for r in rows)
+    assert (tmp_path / "validation_curve.png").is_file()
+    assert load_checkpoint(tmp_path / "checkpoint.pt")["training"]["runs"][-1]["validation"]["bad2"] == float(rows[-1]["bad2"])
+
+
+def test_fp16_export_halves_the_file_and_predicts_like_fp32(tmp_path, real_pairs):
+    train(tiny(tmp_path, sources=(real_pairs,), max_steps=1), progress=False)
+    full, half = tmp_path / "fp32.pt", tmp_path / "fp16.pt"
+    assert main(["export", str(tmp_path / "checkpoint.pt"), "-o", str(full)]) == 0
+    assert main(["export", str(tmp_path / "checkpoint.pt"), "-o", str(half), "--fp16"]) == 0
+
+    exported = load_checkpoint(half)
+    assert {"model", "config", "training"} <= set(exported) and "optimizer" not in exported
+    assert half.stat().st_size < 0.6 * full.stat().st_size
+    pair = textured_pair(7)
+    a = load_model("lite", weights=full).predict(pair.left, pair.right).disparity
+    b = load_model("lite", weights=half).predict(pair.left, pair.right).disparity
+    assert np.abs(a - b).max() < 0.05 * max(1.0, np.abs(a).max())
