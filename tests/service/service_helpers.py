@@ -95,10 +95,11 @@ class Harness:
 
 
 @asynccontextmanager
-async def serve_asgi(settings: Settings | None = None, *,
-                     load_gate: threading.Event | None = None) -> AsyncIterator[Harness]:
+async def serve_asgi(settings: Settings | None = None, *, load_gate: threading.Event | None = None,
+                     await_ready: bool = True) -> AsyncIterator[Harness]:
     """The app with its lifespan running, an httpx client on it, and (once loaded) its gated
-    predictors; waits for readiness unless `load_gate` holds the model loading back."""
+    predictors. `load_gate` holds model loading back until set; `await_ready` waits for
+    readiness before yielding."""
     predictors: dict[str, GatedPredictor] = {}
 
     def loader(name: str, **kwargs: Any) -> Predictor:
@@ -112,7 +113,7 @@ async def serve_asgi(settings: Settings | None = None, *,
         transport = httpx.ASGITransport(app=app)
         async with httpx.AsyncClient(transport=transport, base_url="http://service",
                                      timeout=60) as client:
-            if load_gate is None:
+            if await_ready:
                 await wait_ready(client)
             yield Harness(app, client, predictors)
 
@@ -123,18 +124,18 @@ async def wait_ready(client: httpx.AsyncClient, timeout_s: float = 60) -> None:
             await anyio.sleep(0.01)
 
 
-def metric_value(text: str, name: str, **labels: str) -> float:
-    """The value of one sample in a Prometheus exposition (0 when absent)."""
-    wanted = ",".join(f'{key}="{value}"' for key, value in sorted(labels.items()))
+def metric_total(text: str, name: str, **labels: str) -> float:
+    """Sum of the samples `name` in a Prometheus exposition whose labels include `labels`."""
+    wanted = {f'{key}="{value}"' for key, value in labels.items()}
+    total = 0.0
     for line in text.splitlines():
         if line.startswith("#"):
             continue
         sample, _, value = line.rpartition(" ")
         sample_name, _, sample_labels = sample.partition("{")
-        got = ",".join(sorted(sample_labels.rstrip("}").split(","))) if sample_labels else ""
-        if sample_name == name and got == wanted:
-            return float(value)
-    return 0.0
+        if sample_name == name and wanted <= set(sample_labels.rstrip("}").split(",")):
+            total += float(value)
+    return total
 
 
 # --- real uvicorn processes --------------------------------------------------------------------

@@ -1,0 +1,305 @@
+"""Batching, queue limits, deadlines, disconnects, faults and the service lifecycle, through
+httpx on the ASGI app. A gate on the real predictor holds the worker busy so that requests queue
+deterministically."""
+
+from __future__ import annotations
+
+import base64
+import io
+import json
+import logging
+import threading
+from collections.abc import Callable
+from typing import Any
+
+import anyio
+import httpx
+import numpy as np
+import pytest
+import torch
+
+from service.logs import JsonFormatter
+from service_helpers import (
+    Harness,
+    lite_settings,
+    metric_total,
+    pair_files,
+    serve_asgi,
+    stereo_pair,
+    wait_ready,
+)
+
+pytestmark = pytest.mark.anyio
+
+
+def disparity_of(response: httpx.Response) -> np.ndarray:
+    payload = response.json()["disparity"]
+    return np.frombuffer(base64.b64decode(payload["data"]), "<f4").reshape(payload["shape"])
+
+
+async def eventually(condition: Callable[[], bool], timeout_s: float = 30) -> None:
+    with anyio.fail_after(timeout_s):
+        while not condition():
+            await anyio.sleep(0.005)
+
+
+async def queue_depth(h: Harness, model: str = "lite") -> int:
+    return (await h.client.get("/health")).json()["queue_depth"][model]
+
+
+async def wait_queued(h: Harness, depth: int) -> None:
+    with anyio.fail_after(30):
+        while await queue_depth(h) != depth:
+            await anyio.sleep(0.005)
+
+
+class Requests:
+    """Posts requests in the background and keeps their responses by name."""
+
+    def __init__(self, h: Harness, tg: anyio.abc.TaskGroup) -> None:
+        self.h, self.tg, self.responses = h, tg, {}
+
+    def post(self, name: str, left: np.ndarray, right: np.ndarray, **kwargs: Any) -> None:
+        async def send() -> None:
+            self.responses[name] = await self.h.client.post(
+                "/disparity", files=pair_files(left, right), **kwargs)
+        self.tg.start_soon(send)
+
+
+async def test_requests_queued_behind_a_busy_worker_run_as_one_batch_equal_to_single_runs():
+    # Three true sizes that all pad to 64x96: they share one batch, each padded like the network does.
+    pairs = {size: stereo_pair(*size, seed=i) for i, size in enumerate([(64, 96), (50, 90), (60, 70)])}
+    async with serve_asgi() as h:
+        gated = h.predictors["lite"]
+        gated.gate.clear()
+        async with anyio.create_task_group() as tg:
+            requests = Requests(h, tg)
+            requests.post("busy", *pairs[(64, 96)])
+            await eventually(lambda: gated.calls == [1])
+            for size, pair in pairs.items():
+                requests.post(size, *pair)
+            await wait_queued(h, 3)
+            gated.gate.set()
+        metrics = (await h.client.get("/metrics")).text
+        singles = {size: gated.predict(torch.from_numpy(np.stack([left])).permute(0, 3, 1, 2).float(),
+                                       torch.from_numpy(np.stack([right])).permute(0, 3, 1, 2).float())
+                   for size, (left, right) in pairs.items()}
+    assert gated.calls[:2] == [1, 3]
+    for size in pairs:
+        response = requests.responses[size]
+        assert response.status_code == 200
+        assert response.json()["batch_size"] == 3 and response.headers["x-batch-size"] == "3"
+        assert disparity_of(response).shape == size
+        np.testing.assert_allclose(disparity_of(response), singles[size].disparity[0].numpy(),
+                                   rtol=1e-4, atol=1e-3)
+    assert metric_total(metrics, "crestereo_batch_size_count", model="lite") == 2
+    assert metric_total(metrics, "crestereo_batch_size_sum", model="lite") == 4
+
+
+async def test_batches_respect_max_batch_size_and_never_mix_shapes():
+    small, large = stereo_pair(64, 96), stereo_pair(96, 64)
+    async with serve_asgi(lite_settings(max_batch_size=2)) as h:
+        gated = h.predictors["lite"]
+        gated.gate.clear()
+        async with anyio.create_task_group() as tg:
+            requests = Requests(h, tg)
+            requests.post("busy", *small)
+            await eventually(lambda: gated.calls == [1])
+            for queued, (name, pair) in enumerate([("s1", small), ("l1", large), ("s2", small),
+                                                    ("s3", small)], start=1):
+                requests.post(name, *pair)
+                await wait_queued(h, queued)
+            gated.gate.set()
+    sizes = {name: r.json()["batch_size"] for name, r in requests.responses.items()}
+    assert sizes == {"busy": 1, "s1": 2, "s2": 2, "l1": 1, "s3": 1}
+    assert gated.calls == [1, 2, 1, 1]
+
+
+async def test_a_full_queue_answers_503_with_retry_after():
+    async with serve_asgi(lite_settings(max_queue=1, max_batch_size=1)) as h:
+        gated = h.predictors["lite"]
+        gated.gate.clear()
+        async with anyio.create_task_group() as tg:
+            requests = Requests(h, tg)
+            requests.post("busy", *stereo_pair())
+            await eventually(lambda: gated.calls == [1])
+            requests.post("queued", *stereo_pair())
+            await wait_queued(h, 1)
+            refused = await h.client.post("/disparity", files=pair_files(*stereo_pair()))
+            gated.gate.set()
+        metrics = (await h.client.get("/metrics")).text
+    assert refused.status_code == 503
+    assert refused.json()["error"]["code"] == "queue_full"
+    assert int(refused.headers["retry-after"]) >= 1
+    assert [requests.responses[name].status_code for name in ("busy", "queued")] == [200, 200]
+    assert metric_total(metrics, "crestereo_rejected_total", reason="queue_full") == 1
+
+
+async def test_a_request_whose_deadline_passes_in_the_queue_gets_503_and_is_never_computed():
+    async with serve_asgi() as h:
+        gated = h.predictors["lite"]
+        gated.gate.clear()
+        async with anyio.create_task_group() as tg:
+            requests = Requests(h, tg)
+            requests.post("busy", *stereo_pair())
+            await eventually(lambda: gated.calls == [1])
+            late = await h.client.post("/disparity", files=pair_files(*stereo_pair()),
+                                       headers={"X-Request-Timeout-Ms": "100"})
+            assert await queue_depth(h) == 0  # it left the queue when it gave up
+            gated.gate.set()
+        metrics = (await h.client.get("/metrics")).text
+    assert late.status_code == 503
+    assert late.json()["error"]["code"] == "deadline_exceeded"
+    assert "retry-after" in late.headers
+    assert requests.responses["busy"].status_code == 200
+    assert gated.calls == [1]
+    assert metric_total(metrics, "crestereo_rejected_total", reason="deadline") == 1
+
+
+async def test_a_request_whose_client_disconnected_is_dropped_before_compute():
+    async with serve_asgi() as h:
+        request = h.client.build_request("POST", "/disparity", files=pair_files(*stereo_pair()))
+        body = request.read()
+        scope = {"type": "http", "asgi": {"version": "3.0"}, "http_version": "1.1",
+                 "method": "POST", "scheme": "http", "path": "/disparity",
+                 "raw_path": b"/disparity", "query_string": b"", "root_path": "",
+                 "headers": [(k.lower(), v) for k, v in request.headers.raw],
+                 "client": ("127.0.0.1", 50000), "server": ("service", 80)}
+        messages = [{"type": "http.request", "body": body, "more_body": False}]
+
+        async def receive() -> dict[str, Any]:  # the body, then the client is gone
+            return messages.pop(0) if messages else {"type": "http.disconnect"}
+
+        async def send(_: dict[str, Any]) -> None:
+            pass
+
+        await h.app(scope, receive, send)
+        metrics = (await h.client.get("/metrics")).text
+    assert h.predictors["lite"].calls == []
+    assert metric_total(metrics, "crestereo_rejected_total", reason="disconnect") == 1
+
+
+async def test_an_inference_exception_fails_only_its_batch_and_logs_an_error_id():
+    black = np.zeros((64, 96, 3), np.uint8)  # the gated predictor raises on an all-black left image
+    stream = io.StringIO()
+    handler = logging.StreamHandler(stream)
+    handler.setFormatter(JsonFormatter())
+    async with serve_asgi() as h:
+        logging.getLogger("service").addHandler(handler)  # after create_app set up logging
+        try:
+            gated = h.predictors["lite"]
+            gated.gate.clear()
+            async with anyio.create_task_group() as tg:
+                requests = Requests(h, tg)
+                requests.post("before", *stereo_pair())
+                await eventually(lambda: gated.calls == [1])
+                requests.post("faulty", black, black, headers={"X-Request-Id": "faulty-1"})
+                requests.post("other shape", *stereo_pair(96, 64))
+                await wait_queued(h, 2)
+                gated.gate.set()
+            after = await h.client.post("/disparity", files=pair_files(*stereo_pair()))
+            ready = await h.client.get("/health/ready")
+        finally:
+            logging.getLogger("service").removeHandler(handler)
+    faulty = requests.responses["faulty"]
+    assert faulty.status_code == 500
+    assert faulty.json()["error"]["code"] == "inference_failed"
+    error_id = faulty.json()["error"]["message"].rsplit(" ", 1)[-1]
+    logged = [json.loads(line) for line in stream.getvalue().splitlines()]
+    failure = next(line for line in logged if line.get("error_id") == error_id)
+    assert failure["request_ids"] == ["faulty-1"] and "injected fault" in failure["traceback"]
+    statuses = [requests.responses[name].status_code for name in ("before", "other shape")]
+    assert statuses == [200, 200] and after.status_code == 200 and ready.status_code == 200
+
+
+async def test_while_models_load_health_and_readiness_are_503_and_liveness_is_200():
+    gate = threading.Event()
+    async with serve_asgi(load_gate=gate, await_ready=False) as h:
+        loading = {path: await h.client.get(path) for path in ("/health", "/health/ready",
+                                                               "/health/live")}
+        refused = await h.client.post("/disparity", files=pair_files(*stereo_pair()))
+        gate.set()
+        await wait_ready(h.client)
+        ready = await h.client.get("/health")
+    assert loading["/health"].status_code == 503
+    assert loading["/health"].json()["status"] == "loading"
+    assert loading["/health"].json()["models"]["lite"] == {"loaded": False, "parameters": None,
+                                                           "weights": None}
+    assert (loading["/health/ready"].status_code, loading["/health/ready"].json()) == (
+        503, {"status": "loading"})
+    assert loading["/health/live"].status_code == 200
+    assert refused.status_code == 503 and refused.json()["error"]["code"] == "loading"
+    assert "retry-after" in refused.headers
+    health = ready.json()
+    assert ready.status_code == 200 and health["status"] == "ready"
+    assert health["models"]["lite"]["loaded"] is True
+    assert health["models"]["lite"]["parameters"] == h.predictors["lite"].num_parameters
+    assert health["queue_depth"] == {"lite": 0}
+    assert health["batching"] == {"max_batch_size": 8, "max_batch_pixels": 2_000_000,
+                                  "max_wait_ms": 10.0, "max_queue": 32,
+                                  "torch_threads": health["batching"]["torch_threads"]}
+
+
+async def test_models_that_fail_to_load_make_the_process_not_live():
+    settings = lite_settings(weights={"lite": "/nonexistent/lite.pt"})
+    async with serve_asgi(settings, await_ready=False) as h:
+        await eventually(lambda: h.app.state.runtime.state == "failed")
+        live = await h.client.get("/health/live")
+        ready = await h.client.get("/health/ready")
+    assert (live.status_code, live.json()) == (503, {"status": "dead"})
+    assert (ready.status_code, ready.json()) == (503, {"status": "failed"})
+
+
+async def test_draining_refuses_new_work_but_finishes_what_was_queued():
+    async with serve_asgi() as h:
+        gated = h.predictors["lite"]
+        gated.gate.clear()
+        async with anyio.create_task_group() as tg:
+            requests = Requests(h, tg)
+            requests.post("running", *stereo_pair())
+            await eventually(lambda: gated.calls == [1])
+            requests.post("queued", *stereo_pair())
+            await wait_queued(h, 1)
+            h.app.state.runtime.begin_drain()
+            refused = await h.client.post("/disparity", files=pair_files(*stereo_pair()))
+            ready = await h.client.get("/health/ready")
+            live = await h.client.get("/health/live")
+            gated.gate.set()
+    assert refused.status_code == 503 and refused.json()["error"]["code"] == "draining"
+    assert (ready.status_code, ready.json()) == (503, {"status": "draining"})
+    assert live.status_code == 200
+    assert [requests.responses[n].status_code for n in ("running", "queued")] == [200, 200]
+
+
+async def test_after_the_drain_timeout_queued_requests_get_503():
+    async with serve_asgi(lite_settings(drain_timeout_s=0.05)) as h:
+        gated = h.predictors["lite"]
+        gated.gate.clear()
+        async with anyio.create_task_group() as tg:
+            requests = Requests(h, tg)
+            requests.post("running", *stereo_pair())
+            await eventually(lambda: gated.calls == [1])
+            requests.post("queued", *stereo_pair())
+            await wait_queued(h, 1)
+            h.app.state.runtime.begin_drain()
+            await eventually(lambda: "queued" in requests.responses)
+            gated.gate.set()
+    assert requests.responses["running"].status_code == 200
+    assert requests.responses["queued"].status_code == 503
+    assert requests.responses["queued"].json()["error"]["code"] == "draining"
+
+
+async def test_the_worker_runs_torch_with_the_configured_threads():
+    async with serve_asgi(lite_settings(threads=1)) as h:
+        seen: list[int] = []
+        inner_predict = h.predictors["lite"]._inner.predict
+
+        def recording_predict(*args: Any, **kwargs: Any) -> Any:
+            seen.append(torch.get_num_threads())
+            return inner_predict(*args, **kwargs)
+
+        h.predictors["lite"]._inner.predict = recording_predict
+        response = await h.client.post("/disparity", files=pair_files(*stereo_pair()))
+        health = (await h.client.get("/health")).json()
+    assert response.status_code == 200
+    assert seen == [1] and health["batching"]["torch_threads"] == 1
