@@ -50,9 +50,11 @@ class PhotometricConfig:
 class SceneConfig:
     """What the generator draws. Lengths are in output pixels unless said otherwise.
 
-    Scale/crop augmentation: each scene lives on a canvas of ``(height, width) / 2**log2_scale[0]``
-    canvas pixels; the output is a window of ``(height, width) / s`` canvas pixels at a random
-    position, magnified by a random ``s = 2**U(log2_scale)`` (lengths and disparities scale by s).
+    Scale/crop augmentation: each scene is magnified by a random ``s = 2**U(log2_scale)``: every
+    length (shape sizes, bar widths, texel sizes) is its unscaled length times s. A random crop of a
+    procedural scene is distributed like the scene itself, so the crop is implicit: shapes are
+    spread over the output frame (and a margin of 10 % around it) at every scale. Disparities are
+    drawn in output pixels after scaling, so that they span [0, max_disparity] at every scale.
     """
 
     height: int = 384
@@ -60,8 +62,8 @@ class SceneConfig:
     max_disparity: float | None = None  # px; None means 192 * width / 512
     surfaces: int = 24  # foreground surface slots per scene
     min_surfaces: int = 8  # a scene uses U{min_surfaces..surfaces} of them
-    size: tuple[float, float] = (0.02, 0.35)  # shape radius / canvas width, log-uniform
-    bar_probability: float = 0.15  # thin bars: 2-8 canvas px wide, 0.2-1 canvas width long
+    size: tuple[float, float] = (0.02, 0.35)  # unscaled shape radius / width, log-uniform
+    bar_probability: float = 0.15  # thin bars: 2-8 px wide, 0.2-1 width long (unscaled)
     round_probability: float = 0.3  # near-ellipses; the others are 3- to 8-gons
     star_probability: float = 0.5  # polygons with random vertex radii (irregular, concave)
     hole_probability: float = 0.2
@@ -72,8 +74,8 @@ class SceneConfig:
     noise_textures: int = 4  # 1/f^alpha noise: photo-like, fine detail, smooth gradients
     leaves_textures: int = 2  # dead leaves: random discs with sharp edges, scale invariant
     pattern_textures: int = 2  # stripes, checkers, grids, dots
-    texel_size: tuple[float, float] = (1.2, 6.0)  # canvas px per texel, log-uniform
-    contrast: tuple[float, float] = (4.0, 100.0)  # grey-level std of a surface's texture, log-uniform
+    texel_size: tuple[float, float] = (1.2, 5.0)  # unscaled px per texel, log-uniform
+    contrast: tuple[float, float] = (6.0, 100.0)  # grey-level std of a surface's texture, log-uniform
     shading: float = 60.0  # at most this many grey levels of linear ramp across a surface
     log2_scale: tuple[float, float] = (-0.2, 0.4)
     photometric: PhotometricConfig | None = field(default_factory=PhotometricConfig)
@@ -236,21 +238,16 @@ class SceneGenerator:
         height, width, max_disparity = cfg.height, cfg.width, float(cfg.max_disparity)
         shape = (batch_size, cfg.surfaces + 1)  # surface 0 is the background
 
-        # Scale and crop: output = s * (canvas - origin).
-        smallest = 2 ** cfg.log2_scale[0]
-        canvas_width, canvas_height = width / smallest, height / smallest
-        scale = 2 ** draw.uniform((batch_size, 1), *cfg.log2_scale)
-        origin_x = draw.uniform((batch_size, 1), 0, 1) * (canvas_width - width / scale)
-        origin_y = draw.uniform((batch_size, 1), 0, 1) * (canvas_height - height / scale)
+        scale = 2 ** draw.uniform((batch_size, 1), *cfg.log2_scale)  # magnification s
 
-        # Shapes, drawn in canvas px.
-        centre_x = draw.uniform(shape, 0, canvas_width)
-        centre_y = draw.uniform(shape, 0, canvas_height)
-        radius = canvas_width * draw.log_uniform(shape, *cfg.size)
+        # Shapes, in output px.
+        centre_x = draw.uniform(shape, -0.1 * width, 1.1 * width)
+        centre_y = draw.uniform(shape, -0.1 * height, 1.1 * height)
+        radius = scale * width * draw.log_uniform(shape, *cfg.size)
         aspect = 2 ** draw.uniform(shape, -1, 1)
         bar = draw.chance(shape, cfg.bar_probability)
-        radius_x = torch.where(bar, canvas_width * draw.uniform(shape, 0.1, 0.5), radius * aspect.sqrt())
-        radius_y = torch.where(bar, draw.uniform(shape, 1.0, 4.0), radius / aspect.sqrt())
+        radius_x = torch.where(bar, scale * width * draw.uniform(shape, 0.1, 0.5), radius * aspect.sqrt())
+        radius_y = torch.where(bar, scale * draw.uniform(shape, 1.0, 4.0), radius / aspect.sqrt())
         angle = draw.uniform(shape, 0, 2 * math.pi)
         round_shape = draw.chance(shape, cfg.round_probability) & ~bar
         sides = torch.where(round_shape, MAX_SIDES, draw.integers(shape, 3, 8))
@@ -268,10 +265,8 @@ class SceneGenerator:
             (batch_size, 1), cfg.min_surfaces, cfg.surfaces
         )  # the background and U{min_surfaces..surfaces} foreground surfaces
 
-        # To output px. The background (surface 0) is centred on the frame and covers everything.
-        centre_x, centre_y = scale * (centre_x - origin_x), scale * (centre_y - origin_y)
+        # The background (surface 0) is centred on the frame and covers everything.
         centre_x[:, 0], centre_y[:, 0] = (width - 1) / 2, (height - 1) / 2
-        radius_x, radius_y = scale * radius_x, scale * radius_y
         extent = torch.maximum(radius_x, radius_y) * radii.amax(-1)  # shape within this of its centre
         extent[:, 0] = math.hypot(width, height) / 2
         cos, sin = torch.cos(angle), torch.sin(angle)
@@ -484,7 +479,7 @@ def _standardise(textures: torch.Tensor) -> torch.Tensor:
 
 
 def _power_law_noise(shape: tuple[int, int], size: int, draw: _Draw) -> torch.Tensor:
-    """(B, K, T, T, 3) periodic noise with amplitude spectrum 1/f^alpha, alpha in [0.3, 2]: low
+    """(B, K, T, T, 3) periodic noise with amplitude spectrum 1/f^alpha, alpha in [0.4, 1.8]: low
     alpha gives fine detail, ~1 natural-photo statistics, high alpha smooth gradients. Colour is a
     shared luminance field plus weaker independent chroma fields."""
     device = draw.device
@@ -492,7 +487,7 @@ def _power_law_noise(shape: tuple[int, int], size: int, draw: _Draw) -> torch.Te
     fx = torch.fft.rfftfreq(size, device=device).view(1, -1)
     frequency = torch.sqrt(fx.square() + fy.square())
     frequency[0, 0] = math.inf  # no DC
-    alpha = draw.uniform((*shape, 1, 1, 1), 0.3, 2.0)
+    alpha = draw.uniform((*shape, 1, 1, 1), 0.4, 1.8)
     amplitude = frequency.pow(-alpha)
     spectrum_shape = (*shape, 4, size, size // 2 + 1)
     spectrum = torch.complex(draw.normal(spectrum_shape), draw.normal(spectrum_shape)) * amplitude
@@ -575,8 +570,8 @@ def _gaussian_blur(image: torch.Tensor, sigma: torch.Tensor, radius: int = 3) ->
     """Separable Gaussian blur with per-sample sigma (B, 1, 1, 1) px; sigma 0 leaves the sample as is.
     Written as shifted sums (no convolution call) so that it is deterministic on every device."""
     offsets = torch.arange(-radius, radius + 1, device=image.device, dtype=image.dtype)
-    weights = torch.exp(-offsets.square() / (2 * sigma.clamp_min(1e-3).square()))  # (B, 1, 1, taps)
-    weights = (weights / weights.sum(-1, keepdim=True)).unbind(-1)
+    weights = torch.exp(-offsets.square() / (2 * sigma[..., None].clamp_min(1e-3).square()))
+    weights = (weights / weights.sum(-1, keepdim=True)).unbind(-1)  # taps x (B, 1, 1, 1)
     height, width = image.shape[-2:]
     padded = F.pad(image, (radius, radius, 0, 0), mode="replicate")
     image = sum(w * padded[..., :, k : k + width] for k, w in enumerate(weights))

@@ -1,0 +1,220 @@
+"""Spec of stereo_data.synthetic: exact, deterministic procedural stereo pairs."""
+
+import math
+from dataclasses import replace
+
+import pytest
+import torch
+import torch.nn.functional as F
+
+from stereo_data.synthetic import MAX_SIDES, Scene, SceneConfig, SceneGenerator
+
+@pytest.fixture(autouse=True, scope="module")
+def one_cpu_thread():
+    """These tensors are tiny: on a small shared CPU, thread start-up and contention cost more
+    than the work, so run this module single-threaded (and restore the setting after)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+SMALL = SceneConfig(height=64, width=128, surfaces=12, min_surfaces=6, texture_size=64)
+CLEAN = replace(SMALL, photometric=None)
+
+
+def warp_right_to_left(right: torch.Tensor, disparity: torch.Tensor) -> torch.Tensor:
+    """Bilinearly sample right (B, C, H, W) at (x - d, y) for every left pixel."""
+    batch, _, height, width = right.shape
+    x = torch.arange(width, dtype=torch.float32).view(1, 1, -1) - disparity[:, 0]
+    y = torch.arange(height, dtype=torch.float32).view(1, -1, 1).expand_as(x)
+    grid = torch.stack([2 * x / (width - 1) - 1, 2 * y / (height - 1) - 1], dim=-1)
+    return F.grid_sample(right, grid, mode="bilinear", align_corners=True)
+
+
+def test_batch_has_the_contract_shapes_types_and_ranges() -> None:
+    batch = SceneGenerator(SMALL).generate(batch_size=3, seed=0)
+    for image in (batch.left, batch.right):
+        assert image.shape == (3, 3, 64, 128) and image.dtype == torch.float32
+        assert image.min() >= 0 and image.max() <= 255
+    for mask in (batch.valid, batch.occluded):
+        assert mask.shape == (3, 1, 64, 128) and mask.dtype == torch.bool
+    assert batch.disparity.shape == (3, 1, 64, 128) and batch.disparity.dtype == torch.float32
+    assert batch.valid.all()
+
+
+def test_default_max_disparity_is_192_at_512_px_and_scales_with_width() -> None:
+    assert SceneConfig(width=512).max_disparity == 192
+    assert SceneConfig(width=1024).max_disparity == 384
+    assert SceneConfig(width=512, max_disparity=64).max_disparity == 64
+
+
+@pytest.mark.parametrize("max_disparity", [None, 12.0])
+def test_disparity_stays_within_zero_and_max_disparity(max_disparity: float | None) -> None:
+    config = replace(SMALL, max_disparity=max_disparity)
+    batch = SceneGenerator(config).generate(batch_size=8, seed=1)
+    assert batch.disparity.min() >= 0
+    assert batch.disparity.max() <= config.max_disparity
+    assert batch.disparity.max() > 0.5 * config.max_disparity  # and the range is used
+
+
+def test_same_seed_reproduces_the_batch_bit_for_bit() -> None:
+    generator = SceneGenerator(SMALL)
+    first, second = generator.generate(batch_size=2, seed=7), generator.generate(batch_size=2, seed=7)
+    for name in ("left", "right", "disparity", "valid", "occluded"):
+        assert torch.equal(getattr(first, name), getattr(second, name)), name
+    assert torch.equal(SceneGenerator(SMALL).generate(batch_size=2, seed=7).left, first.left)
+
+
+def test_different_seeds_give_different_scenes() -> None:
+    generator = SceneGenerator(SMALL)
+    first, second = generator.generate(batch_size=2, seed=7), generator.generate(batch_size=2, seed=8)
+    assert not torch.equal(first.disparity, second.disparity)
+    assert (first.left - second.left).abs().mean() > 10
+
+
+def test_right_view_warped_by_ground_truth_reproduces_left_where_not_occluded() -> None:
+    config = replace(CLEAN, height=96, width=192)
+    batch = SceneGenerator(config).generate(batch_size=4, seed=3)
+    visible = (~batch.occluded).expand_as(batch.left)
+    error = (warp_right_to_left(batch.right, batch.disparity) - batch.left).abs()[visible]
+    zero_disparity_error = (batch.right - batch.left).abs()[visible]
+    assert visible.float().mean() > 0.4
+    # Exact up to the bilinear interpolation of fine textures and of edges in the right view.
+    assert error.median() < 0.5
+    assert error.mean() < 2.5
+    assert zero_disparity_error.mean() > 15 * error.mean()
+
+
+def test_warp_is_exact_when_every_surface_is_at_an_integer_fronto_parallel_disparity() -> None:
+    generator = SceneGenerator(replace(CLEAN, height=96, width=192))
+    scene = generator.sample_scene(batch_size=4, seed=3)
+    scene.plane[..., :2] = 0.0
+    scene.plane[..., 2] = scene.plane[..., 2].round()
+    batch = generator.render(scene)
+    visible = (~batch.occluded).expand_as(batch.left)
+    error = (warp_right_to_left(batch.right, batch.disparity) - batch.left).abs()
+    assert error[visible].max() < 0.01  # grey levels: only grid_sample coordinate rounding
+    assert error[~visible].mean() > 5  # occluded pixels see another surface, or nothing
+
+
+def test_sample_scene_and_render_give_the_clean_batch() -> None:
+    generator = SceneGenerator(CLEAN)
+    rendered = generator.render(generator.sample_scene(batch_size=2, seed=5))
+    generated = generator.generate(batch_size=2, seed=5)
+    assert torch.equal(rendered.left, generated.left) and torch.equal(rendered.right, generated.right)
+
+
+def test_photometric_changes_touch_only_the_images_and_differ_between_views() -> None:
+    clean = SceneGenerator(CLEAN).generate(batch_size=4, seed=11)
+    changed = SceneGenerator(SMALL).generate(batch_size=4, seed=11)
+    assert torch.equal(clean.disparity, changed.disparity)
+    assert torch.equal(clean.occluded, changed.occluded)
+    left_change = (changed.left - clean.left).abs().mean(dim=(1, 2, 3))
+    right_change = (changed.right - clean.right).abs().mean(dim=(1, 2, 3))
+    assert (left_change > 0.5).all() and (right_change > 0.5).all()
+    # Asymmetric: the per-channel brightness ratio augmented / clean differs between the views.
+    ratio_left = changed.left.mean(dim=(2, 3)) / clean.left.mean(dim=(2, 3))
+    ratio_right = changed.right.mean(dim=(2, 3)) / clean.right.mean(dim=(2, 3))
+    assert ((ratio_left - ratio_right).abs().amax(dim=1) > 0.02).all()
+
+
+def test_slanted_surfaces_appear_and_fronto_parallel_scenes_have_none() -> None:
+    def smooth_gradients(config: SceneConfig) -> torch.Tensor:
+        """|d disparity / dx| between horizontal neighbours on the same surface (not at edges)."""
+        disparity = SceneGenerator(config).generate(batch_size=4, seed=2).disparity
+        step = (disparity[..., 1:] - disparity[..., :-1]).abs()
+        return step[step < 0.9]
+
+    slanted = smooth_gradients(CLEAN)
+    assert (slanted > 0.01).float().mean() > 0.2
+    fronto_parallel = smooth_gradients(replace(CLEAN, slant_probability=0.0))
+    assert (fronto_parallel > 1e-3).float().mean() < 0.002
+
+
+def test_scenes_mix_polygons_ellipses_thin_bars_and_holes() -> None:
+    scene = SceneGenerator(replace(CLEAN, surfaces=24)).sample_scene(batch_size=8, seed=4)
+    foreground = scene.present[:, 1:]
+    sides = set(scene.sides[:, 1:][foreground].tolist())
+    assert set(range(3, 9)) | {MAX_SIDES} <= sides
+    assert scene.has_hole[:, 1:][foreground].any()
+    axis_lengths = 1 / scene.to_shape[:, 1:, :, :2].norm(dim=-1)  # shape radii (B, S, 2), px
+    aspect = axis_lengths.max(-1).values / axis_lengths.min(-1).values
+    assert (aspect[foreground] > 10).any()  # thin bars
+    slope = scene.plane[:, 1:, :2].norm(dim=-1)[foreground]
+    assert (slope == 0).any() and (slope > 0.05).any()
+
+
+def test_scale_augmentation_multiplies_every_length_by_the_scale() -> None:
+    def lengths(log2_scale: float) -> tuple[torch.Tensor, torch.Tensor]:
+        config = replace(CLEAN, log2_scale=(log2_scale, log2_scale))
+        scene = SceneGenerator(config).sample_scene(batch_size=2, seed=6)
+        shape_axes = 1 / scene.to_shape[:, 1:, :, :2].norm(dim=-1)  # (B, S, 2) shape radii, px
+        texel = 1 / scene.to_texture[..., :2].norm(dim=-1)  # (B, S, 2) px per texel
+        return shape_axes, texel
+
+    unscaled, doubled = lengths(0.0), lengths(1.0)
+    torch.testing.assert_close(doubled[0], 2 * unscaled[0])
+    torch.testing.assert_close(doubled[1], 2 * unscaled[1])
+
+
+def test_images_hold_both_flat_and_strongly_textured_regions() -> None:
+    left = SceneGenerator(replace(CLEAN, height=96, width=192)).generate(batch_size=4, seed=9).left
+    gradient = (left[..., 1:] - left[..., :-1]).abs().mean(dim=1)
+    assert (gradient < 0.5).float().mean() > 0.05
+    assert (gradient > 15).float().mean() > 0.05
+
+
+def one_square_scene() -> Scene:
+    """A flat background at disparity 10 (grey 50) and, in front, a square at disparity 30 (grey 200)
+    covering columns 100..159 and rows 20..59 of a 80 x 200 left view."""
+
+    def pair(background: list[float], square: list[float]) -> torch.Tensor:
+        return torch.tensor([[background, square]], dtype=torch.float32)
+
+    no_texture = pair([0.0] * 6, [0.0] * 6).view(1, 2, 2, 3)
+    return Scene(
+        plane=pair([0, 0, 10], [0, 0, 30]),
+        to_shape=torch.stack([torch.zeros(2, 3), torch.tensor([[1 / 30, 0, -129.5 / 30], [0, 1 / 20, -39.5 / 20]])])[None],
+        sides=torch.tensor([[4, 4]]),
+        phase=torch.full((1, 2), math.pi / 4),
+        radii=torch.full((1, 2, MAX_SIDES), math.sqrt(2)),  # corners at (+-1, +-1) in the shape frame
+        hole=pair([0, 0, 1, 1], [0, 0, 1, 1]),
+        has_hole=torch.tensor([[False, False]]),
+        present=torch.tensor([[True, True]]),
+        texture=torch.zeros(1, 2, dtype=torch.long),
+        to_texture=no_texture,
+        base=pair([50] * 3, [200] * 3),
+        contrast=torch.zeros(1, 2),
+        ramp=torch.zeros(1, 2, 3),
+        textures=torch.zeros(1, 1, 4, 4, 3),
+    )
+
+
+def test_occluded_pixels_are_exactly_those_whose_match_is_hidden_or_out_of_frame() -> None:
+    batch = SceneGenerator(SceneConfig(height=80, width=200)).render(one_square_scene())
+    rows, columns = torch.arange(80).view(-1, 1), torch.arange(200).view(1, -1)
+    square_rows = (rows >= 20) & (rows <= 59)
+    in_square = square_rows & (columns >= 100) & (columns <= 159)
+    assert torch.equal(batch.disparity[0, 0], torch.where(in_square, 30.0, 10.0))
+    assert torch.equal(batch.left[0, 0], torch.where(in_square, 200.0, 50.0))
+    # The right view shows the square 30 px to the left, over columns 70..129.
+    assert torch.equal(batch.right[0, 0], torch.where(square_rows & (columns >= 70) & (columns <= 129), 200.0, 50.0))
+    # Background pixels 80..99 match right pixels 70..89, which the square hides; columns 0..9
+    # match x - 10 < 0, out of the right frame.
+    hidden = square_rows & (columns >= 80) & (columns <= 99)
+    assert torch.equal(batch.occluded[0, 0], hidden | (columns <= 9))
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_generator_runs_and_is_deterministic_on_cuda() -> None:
+    generator = SceneGenerator(SMALL, device="cuda")
+    first, second = generator.generate(batch_size=2, seed=3), generator.generate(batch_size=2, seed=3)
+    assert first.left.device.type == "cuda"
+    for name in ("left", "right", "disparity", "occluded"):
+        assert torch.equal(getattr(first, name), getattr(second, name)), name
+    visible = (~first.occluded).expand_as(first.left)
+    clean = replace(SMALL, photometric=None)
+    batch = SceneGenerator(clean, device="cuda").generate(batch_size=2, seed=3)
+    error = (warp_right_to_left(batch.right.cpu(), batch.disparity.cpu()) - batch.left.cpu()).abs()
+    assert error[visible.cpu()].median() < 0.1
