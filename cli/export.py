@@ -15,7 +15,9 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         description="Write {model, config, training metadata} from a checkpoint, without optimiser state.",
     )
     parser.add_argument("checkpoint", type=Path, help="checkpoint.pt written by `crestereo-pp train`")
-    parser.add_argument("-o", "--output", type=Path, required=True, help="weights file to write, e.g. model/weights/lite.pt")
+    parser.add_argument(
+        "-o", "--output", type=Path, required=True, help="weights file to write, e.g. model/weights/lite.pt"
+    )
     parser.add_argument("--fp16", action="store_true", help="store float16 tensors (half the size)")
     parser.set_defaults(run=run)
 

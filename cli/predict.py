@@ -46,10 +46,19 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     parser.add_argument("left", help="left image, folder or glob")
     parser.add_argument("right", help="right image, folder or glob")
     parser.add_argument("-o", "--output", type=Path, required=True, help="disparity file (.pfm/.png/.npy) or folder")
-    parser.add_argument("--format", choices=DISPARITY_FORMATS, default="pfm", help="disparity format in folder mode [pfm]")
-    parser.add_argument("--uncertainty", type=Path, metavar="U_OUT", help="uncertainty in [0, 1]: .pfm/.npy float, .png 16-bit x65535 (folder mode: a folder of .pfm)")
+    parser.add_argument(
+        "--format", choices=DISPARITY_FORMATS, default="pfm", help="disparity format in folder mode [pfm]"
+    )
+    parser.add_argument(
+        "--uncertainty",
+        type=Path,
+        metavar="U_OUT",
+        help="uncertainty in [0, 1]: .pfm/.npy float, .png 16-bit x65535 (folder mode: a folder of .pfm)",
+    )
     parser.add_argument("--color", type=Path, metavar="PNG", help="colour-mapped disparity PNG (folder mode: a folder)")
-    parser.add_argument("--color-max", type=float, metavar="PX", help="disparity at the top of the colour scale [each map's maximum]")
+    parser.add_argument(
+        "--color-max", type=float, metavar="PX", help="disparity at the top of the colour scale [each map's maximum]"
+    )
     parser.add_argument("--iters", type=int, help="iterations at 1/4 resolution [the model's default]")
     add_model_options(parser)
     parser.set_defaults(run=run)
@@ -72,9 +81,14 @@ def find_pairs(left: str, right: str) -> list[PairPaths]:
     if not left_paths:
         raise ValueError(f"no left image matches {left!r}")
     if len(left_paths) != len(right_paths):
-        raise ValueError(f"{len(left_paths)} left images match {left!r} but {len(right_paths)} right images match {right!r}")
+        raise ValueError(
+            f"{len(left_paths)} left images match {left!r} but {len(right_paths)} right images match {right!r}"
+        )
     root = Path(os.path.commonpath([p.parent.resolve() for p in left_paths]))
-    return [PairPaths(l, r, l.resolve().relative_to(root).with_suffix("")) for l, r in zip(left_paths, right_paths)]
+    return [
+        PairPaths(left_path, right_path, left_path.resolve().relative_to(root).with_suffix(""))
+        for left_path, right_path in zip(left_paths, right_paths, strict=True)
+    ]
 
 
 def write_disparity(path: Path, disparity: np.ndarray) -> None:
@@ -105,10 +119,14 @@ def run(args: argparse.Namespace) -> int:
     single = Path(args.left).is_file()
     predictor = load_model(args.model, args.weights, resolve_device(args.device, 0))
     for pair in tqdm(pairs, desc=f"predict {args.model}", unit="pair", disable=single):
-        prediction = predictor.predict(read_image(pair.left), read_image(pair.right), iters=args.iters, two_pass=args.two_pass)
+        prediction = predictor.predict(
+            read_image(pair.left), read_image(pair.right), iters=args.iters, two_pass=args.two_pass
+        )
         write_disparity(args.output if single else args.output / f"{pair.stem}.{args.format}", prediction.disparity)
         if args.uncertainty is not None:
-            write_uncertainty(args.uncertainty if single else args.uncertainty / f"{pair.stem}.pfm", prediction.uncertainty)
+            write_uncertainty(
+                args.uncertainty if single else args.uncertainty / f"{pair.stem}.pfm", prediction.uncertainty
+            )
         if args.color is not None:
             color_path = args.color if single else args.color / f"{pair.stem}.png"
             color_path.parent.mkdir(parents=True, exist_ok=True)

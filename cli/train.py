@@ -29,7 +29,10 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     start = parser.add_mutually_exclusive_group()
     start.add_argument("--resume", type=Path, metavar="CHECKPOINT", help="continue this checkpoint exactly")
     start.add_argument(
-        "--init-weights", type=Path, metavar="WEIGHTS", help="start from these weights with a fresh optimiser, at step 0"
+        "--init-weights",
+        type=Path,
+        metavar="WEIGHTS",
+        help="start from these weights with a fresh optimiser, at step 0",
     )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_dataclass_options(parser.add_argument_group("training config"), TrainConfig)
@@ -40,7 +43,9 @@ def run(args: argparse.Namespace) -> int:
     overrides = given_options(args, TrainConfig)
     if args.resume is not None:
         if args.preset is not None:
-            raise SystemExit("crestereo-pp train: --preset cannot be combined with --resume (the checkpoint has its config)")
+            raise SystemExit(
+                "crestereo-pp train: --preset cannot be combined with --resume (the checkpoint has its config)"
+            )
         config = replace(TrainConfig.from_dict(load_checkpoint(args.resume)["train_config"]), **overrides)
     else:
         config = preset(args.preset or "pretrain", **overrides)

@@ -69,7 +69,10 @@ class EvaluationReport:
 
     def table(self) -> str:
         """Plain-text table: one row per pair and method, then one mean row per method."""
-        header = f"{'pair':<34} {'method':<6} {'EPE':>7} {'bad-1%':>7} {'bad-2%':>7} {'bad-3%':>7} {'D1-all%':>8} {'time s':>8}"
+        header = (
+            f"{'pair':<34} {'method':<6} {'EPE':>7} {'bad-1%':>7} {'bad-2%':>7} {'bad-3%':>7}"
+            f" {'D1-all%':>8} {'time s':>8}"
+        )
         lines = [header, "-" * len(header)]
         rows = [(pair.name, pair.methods) for pair in self.pairs]
         rows.append((f"mean of {len(self.pairs)} pairs", {m: self.mean(m) for m in self.method_names}))
@@ -121,7 +124,9 @@ def evaluate(
         start = time.perf_counter()
         prediction = predictor.predict(sample.left, sample.right, two_pass=two_pass)
         seconds = time.perf_counter() - start
-        methods = {predictor.name: MethodResult(compute_metrics(prediction.disparity, sample.disparity, known), seconds)}
+        methods = {
+            predictor.name: MethodResult(compute_metrics(prediction.disparity, sample.disparity, known), seconds)
+        }
         disparities = {predictor.name: prediction.disparity}
         if baseline_sgbm:
             start = time.perf_counter()

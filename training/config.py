@@ -60,7 +60,9 @@ class TrainConfig:
     )
     crop_height: int = _knob(384, "training crop height in pixels (multiple of 32)")
     crop_width: int = _knob(512, "training crop width in pixels (multiple of 32)")
-    max_disparity: float | None = _knob(None, "largest disparity (px) of the procedural scenes [192 * crop_width / 512]")
+    max_disparity: float | None = _knob(
+        None, "largest disparity (px) of the procedural scenes [192 * crop_width / 512]"
+    )
     real_scale_range: tuple[float, float] = _knob(
         (0.8, 1.25), "random rescale range of real pairs before cropping (raised where a pair is smaller than the crop)"
     )
@@ -69,13 +71,17 @@ class TrainConfig:
     lr: float = _knob(4e-4, "peak learning rate")
     betas: tuple[float, float] = _knob((0.9, 0.999), "Adam betas")
     weight_decay: float = _knob(0.0, "decoupled weight decay (AdamW); 0 is plain Adam")
-    schedule: Schedule = _knob("one-cycle", "lr schedule after warm-up: cosine (one-cycle) or linear decay to 0, or constant")
+    schedule: Schedule = _knob(
+        "one-cycle", "lr schedule after warm-up: cosine (one-cycle) or linear decay to 0, or constant"
+    )
     warmup_fraction: float = _knob(0.01, "fraction of the schedule spent warming the lr up linearly from 0")
     gamma: float = _knob(0.8, "sequence-loss decay: prediction i of n has weight gamma^(n-i)")
     loss_max_disparity: float = _knob(512.0, "ground truth at or above this (px) is ignored by the loss")
     grad_clip: float = _knob(1.0, "clip the gradient norm to this (0: no clipping)")
     max_steps: int = _knob(150_000, "train until this optimiser step (counted across resumes)")
-    schedule_steps: int | None = _knob(None, "length of the lr schedule in steps [max_steps]; longer lets a run stop early and resume")
+    schedule_steps: int | None = _knob(
+        None, "length of the lr schedule in steps [max_steps]; longer lets a run stop early and resume"
+    )
     max_minutes: float | None = _knob(None, "stop after this many minutes of this run, saving a checkpoint")
     precision: Precision = _knob("auto", "auto: bf16 autocast on CUDA, fp32 on CPU")
     device: str = _knob("auto", "auto (cuda if available, else cpu), cpu, cuda, cuda:N")

@@ -82,7 +82,7 @@ def plan_step(config: TrainConfig, real_sizes: Sequence[int], step: int, rank: i
     synthetic_count = 0
     real: list[RealDraw] = []
     real_source = 0
-    for source, count in zip(config.sources, counts):
+    for source, count in zip(config.sources, counts, strict=True):
         if source.path == SYNTHETIC:
             synthetic_count += int(count)
             continue
@@ -191,7 +191,7 @@ class TrainingData:
             num_workers=self.config.num_workers if self.real_datasets else 0,
         )
         sizes = [len(d) for d in self.real_datasets]
-        for step, real in zip(range(start_step, self.config.max_steps), loader):
+        for step, real in zip(range(start_step, self.config.max_steps), loader, strict=True):
             plan = plan_step(self.config, sizes, step, self.rank)
             parts = []
             if plan.synthetic_count:

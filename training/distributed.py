@@ -66,7 +66,7 @@ class DistributedContext:
 
 
 def resolve_device(name: str, local_rank: int) -> torch.device:
-    """"auto" is cuda:LOCAL_RANK when CUDA is available, else cpu; "cuda" also takes LOCAL_RANK."""
+    """ "auto" is cuda:LOCAL_RANK when CUDA is available, else cpu; "cuda" also takes LOCAL_RANK."""
     if name == "auto":
         name = "cuda" if torch.cuda.is_available() else "cpu"
     device = torch.device(name)

@@ -36,7 +36,6 @@ class CsvLog:
             csv.DictWriter(f, fieldnames=self.columns).writerow({k: _format(v) for k, v in row.items()})
 
 
-
 def read_csv(path: Path) -> list[dict[str, str]]:
     """Rows of a CSV file with a header, as dicts of strings; [] when the file does not exist."""
     if not path.is_file():
@@ -66,7 +65,12 @@ def plot_curves(
     width, height, margin_left, margin_bottom, margin = 900, 500, 80, 50, 20
     canvas = np.full((height, width, 3), 255, np.uint8)
     plot_w, plot_h = width - margin_left - margin, height - margin_bottom - margin
-    points = [(x, y) for xs, ys in series.values() for x, y in zip(xs, ys) if math.isfinite(y) and (y > 0 or not log_y)]
+    points = [
+        (x, y)
+        for xs, ys in series.values()
+        for x, y in zip(xs, ys, strict=True)
+        if math.isfinite(y) and (y > 0 or not log_y)
+    ]
     if not points:
         cv2.imwrite(str(path), canvas)
         return
@@ -91,7 +95,9 @@ def plot_curves(
         cv2.line(canvas, (margin_left, y_pixel), (margin_left + plot_w, y_pixel), grey, 1)
         x_value = x_low + fraction * (x_high - x_low)
         y_value = y_low + fraction * (y_high - y_low)
-        cv2.putText(canvas, f"{x_value:.4g}", (x_pixel - 20, height - margin_bottom + 20), font, 0.4, black, 1, cv2.LINE_AA)
+        cv2.putText(
+            canvas, f"{x_value:.4g}", (x_pixel - 20, height - margin_bottom + 20), font, 0.4, black, 1, cv2.LINE_AA
+        )
         y_text = f"{10**y_value:.3g}" if log_y else f"{y_value:.3g}"
         cv2.putText(canvas, y_text, (5, y_pixel + 4), font, 0.4, black, 1, cv2.LINE_AA)
     cv2.rectangle(canvas, (margin_left, margin), (margin_left + plot_w, margin + plot_h), black, 1)

@@ -65,131 +65,185 @@ def train(
     device = resolve_device(config.device, context.local_rank)
     context.start(device)
     try:
-        return _train(config, context, device, resume, init_weights, progress)
+        return Trainer(config, context, device, resume, init_weights).run(progress)
     finally:
         context.stop()
 
 
-def _train(
-    config: TrainConfig,
-    context: DistributedContext,
-    device: torch.device,
-    resume: Path | None,
-    init_weights: Path | None,
-    progress: bool,
-) -> TrainResult:
-    source = load_checkpoint(resume or init_weights) if (resume or init_weights) else None
-    model_config = ModelConfig.from_dict(dict(source["config"])) if source and "config" in source else ModelConfig.preset(config.model)
-    torch.manual_seed(config.seed)
-    network = CREStereoPP(model_config).to(device)
-    optimizer = torch.optim.AdamW(network.parameters(), lr=config.lr, betas=config.betas, weight_decay=config.weight_decay)
-    scheduler = build_scheduler(optimizer, config.schedule_length, config.schedule, config.warmup_fraction)
-    history = TrainingHistory.from_dict(source.get("training") if source else None)
-    start_step = 0
-    if source is not None:
-        network.load_state_dict({name: tensor.float() for name, tensor in source["model"].items()})
-    if resume is not None:
-        optimizer.load_state_dict(source["optimizer"])
-        scheduler.load_state_dict(source["scheduler"])
-        follow_config(optimizer, scheduler, config)
-        start_step = int(source["step"])
-        restore_rng_state(source["rng"])
-    if start_step >= config.max_steps:
-        raise ValueError(f"nothing to do: the run is at step {start_step} and max_steps is {config.max_steps}")
+class Trainer:
+    """One process's training state: network, optimiser, schedule, history and (rank 0) logs."""
 
-    pairs_per_step = config.batch_size * context.world_size
-    record = RunRecord(
-        started=dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
-        origin="resume" if resume else "init-weights" if init_weights else "scratch",
-        model=config.model,
-        device=torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
-        processes=context.world_size,
-        first_step=start_step,
-        last_step=start_step,
-    )
-    prior_minutes = history.total_minutes
-    history.runs.append(record)
-    out_dir = Path(config.out_dir)
-    checkpoint_path = out_dir / CHECKPOINT_NAME
-    kept_rows = start_step if resume else None
-    log = CsvLog(out_dir / "log.csv", LOG_COLUMNS, kept_rows) if context.is_main else None
-    validation_log = CsvLog(out_dir / "validation.csv", VALIDATION_COLUMNS, kept_rows) if context.is_main and config.val_data else None
-    model = DistributedDataParallel(network, device_ids=[device.index] if device.type == "cuda" else None) if context.is_distributed else network
-    use_bf16 = config.precision == "bf16" or (config.precision == "auto" and device.type == "cuda")
+    def __init__(
+        self,
+        config: TrainConfig,
+        context: DistributedContext,
+        device: torch.device,
+        resume: Path | None,
+        init_weights: Path | None,
+    ) -> None:
+        self.config, self.context, self.device = config, context, device
+        source = load_checkpoint(resume or init_weights) if (resume or init_weights) else None
+        self.model_config = (
+            ModelConfig.from_dict(dict(source["config"]))
+            if source and "config" in source
+            else ModelConfig.preset(config.model)
+        )
+        torch.manual_seed(config.seed)
+        self.network = CREStereoPP(self.model_config).to(device)
+        self.optimizer = torch.optim.AdamW(
+            self.network.parameters(), lr=config.lr, betas=config.betas, weight_decay=config.weight_decay
+        )
+        self.scheduler = build_scheduler(
+            self.optimizer, config.schedule_length, config.schedule, config.warmup_fraction
+        )
+        self.history = TrainingHistory.from_dict(source.get("training") if source else None)
+        self.start_step = 0
+        if source is not None:
+            self.network.load_state_dict({name: tensor.float() for name, tensor in source["model"].items()})
+        if resume is not None:
+            self.optimizer.load_state_dict(source["optimizer"])
+            self.scheduler.load_state_dict(source["scheduler"])
+            follow_config(self.optimizer, self.scheduler, config)
+            self.start_step = int(source["step"])
+            restore_rng_state(source["rng"])
+        if self.start_step >= config.max_steps:
+            raise ValueError(f"nothing to do: the run is at step {self.start_step} and max_steps is {config.max_steps}")
 
-    bar = tqdm(
-        total=config.max_steps * pairs_per_step,
-        initial=start_step * pairs_per_step,
-        unit="pair",
-        desc=f"train {config.model}",
-        disable=not (progress and context.is_main),
-        dynamic_ncols=True,
-    )
-    run_start = window_start = time.monotonic()
-    window_sums = torch.zeros(2, device=device)  # loss, train EPE summed over the window's steps
-    window_steps = 0
-    step = start_step
-    out_of_time = False
-    network.train()
-    for batch in TrainingData(config, context.rank, device).batches(start_step):
-        lr = optimizer.param_groups[0]["lr"]
-        with torch.autocast(device.type, dtype=torch.bfloat16, enabled=use_bf16):
-            output = model(batch.left, batch.right)
+        self.pairs_per_step = config.batch_size * context.world_size
+        self.prior_minutes = self.history.total_minutes
+        self.record = RunRecord(
+            started=dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
+            origin="resume" if resume else "init-weights" if init_weights else "scratch",
+            model=config.model,
+            device=torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
+            processes=context.world_size,
+            first_step=self.start_step,
+            last_step=self.start_step,
+        )
+        self.history.runs.append(self.record)
+        self.out_dir = Path(config.out_dir)
+        kept_rows = self.start_step if resume else None
+        self.log = CsvLog(self.out_dir / "log.csv", LOG_COLUMNS, kept_rows) if context.is_main else None
+        self.validation_log = (
+            CsvLog(self.out_dir / "validation.csv", VALIDATION_COLUMNS, kept_rows)
+            if context.is_main and config.val_data
+            else None
+        )
+        device_ids = [device.index] if device.type == "cuda" else None
+        self.model = (
+            DistributedDataParallel(self.network, device_ids=device_ids) if context.is_distributed else self.network
+        )
+        self.use_bf16 = config.precision == "bf16" or (config.precision == "auto" and device.type == "cuda")
+
+    def run(self, progress: bool) -> TrainResult:
+        """Train from start_step until max_steps or the time budget; log, checkpoint, return."""
+        config = self.config
+        bar = tqdm(
+            total=config.max_steps * self.pairs_per_step,
+            initial=self.start_step * self.pairs_per_step,
+            unit="pair",
+            desc=f"train {config.model}",
+            disable=not (progress and self.context.is_main),
+            dynamic_ncols=True,
+        )
+        run_start = window_start = time.monotonic()
+        window_sums = torch.zeros(2, device=self.device)  # loss and train EPE, summed over the window's steps
+        window_steps = 0
+        step = self.start_step
+        out_of_time = False
+        self.network.train()
+        for batch in TrainingData(config, self.context.rank, self.device).batches(self.start_step):
+            lr = self.optimizer.param_groups[0]["lr"]
+            window_sums += self.train_step(batch)
+            window_steps += 1
+            step += 1
+            bar.update(self.pairs_per_step)
+
+            run_minutes = (time.monotonic() - run_start) / 60.0
+            out_of_time = self.context.any(
+                config.max_minutes is not None and run_minutes >= config.max_minutes, self.device
+            )
+            finished = out_of_time or step == config.max_steps
+            if step % config.log_every == 0 or finished:
+                mean_loss, mean_epe = (self.context.mean(window_sums) / window_steps).tolist()
+                rate = window_steps * self.pairs_per_step / max(time.monotonic() - window_start, 1e-9)
+                bar.set_postfix(loss=f"{mean_loss:.3f}", epe=f"{mean_epe:.2f}", lr=f"{lr:.2e}")
+                if self.log is not None:
+                    self.log.append(
+                        dict(
+                            step=step,
+                            pairs_seen=step * self.pairs_per_step,
+                            minutes=self.prior_minutes + run_minutes,
+                            loss=mean_loss,
+                            train_epe=mean_epe,
+                            lr=lr,
+                            pairs_per_second=rate,
+                        )
+                    )
+                self.record.final_loss = mean_loss
+                window_sums.zero_()
+                window_steps = 0
+                window_start = time.monotonic()
+            if (step % config.checkpoint_every == 0 or finished) and self.context.is_main:
+                self.save(step, run_minutes)
+            if out_of_time:
+                break
+        bar.close()
+        return TrainResult(step, self.out_dir / CHECKPOINT_NAME, out_of_time, self.network)
+
+    def train_step(self, batch: TrainingBatch) -> torch.Tensor:
+        """One optimiser step on `batch`; returns (loss, train EPE in px), detached, on the device."""
+        config = self.config
+        with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.use_bf16):
+            output = self.model(batch.left, batch.right)
         predictions = [[p.float() for p in stage] for stage in output.predictions]
         loss = sequence_loss(predictions, batch.disparity, batch.valid, config.gamma, config.loss_max_disparity)
-        optimizer.zero_grad(set_to_none=True)
+        self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         if config.grad_clip > 0:
-            torch.nn.utils.clip_grad_norm_(network.parameters(), config.grad_clip)
-        optimizer.step()
-        scheduler.step()
-        step += 1
-        window_sums += torch.stack([loss.detach(), end_point_error(predictions[-1][-1].detach(), batch)])
-        window_steps += 1
-        bar.update(pairs_per_step)
+            torch.nn.utils.clip_grad_norm_(self.network.parameters(), config.grad_clip)
+        self.optimizer.step()
+        self.scheduler.step()
+        return torch.stack([loss.detach(), end_point_error(predictions[-1][-1].detach(), batch)])
 
-        run_minutes = (time.monotonic() - run_start) / 60.0
-        minutes = prior_minutes + run_minutes
-        out_of_time = context.any(config.max_minutes is not None and run_minutes >= config.max_minutes, device)
-        finished = out_of_time or step == config.max_steps
-        if step % config.log_every == 0 or finished:
-            mean_loss, mean_epe = (context.mean(window_sums) / window_steps).tolist()
-            rate = window_steps * pairs_per_step / max(time.monotonic() - window_start, 1e-9)
-            bar.set_postfix(loss=f"{mean_loss:.3f}", epe=f"{mean_epe:.2f}", lr=f"{lr:.2e}")
-            if log is not None:
-                row = dict(step=step, pairs_seen=step * pairs_per_step, minutes=minutes, loss=mean_loss, train_epe=mean_epe, lr=lr, pairs_per_second=rate)
-                log.append(row)
-            record.final_loss = mean_loss
-            window_sums.zero_()
-            window_steps = 0
-            window_start = time.monotonic()
-        if (step % config.checkpoint_every == 0 or finished) and context.is_main:
-            record.last_step, record.pairs, record.minutes = step, (step - start_step) * pairs_per_step, run_minutes
-            if config.val_data:
-                record.validation = validate(network, config, device)
-                validation_log.append(dict(step=step, pairs_seen=step * pairs_per_step, minutes=minutes, **record.validation))
-            save_atomically(
-                {
-                    "model": network.state_dict(),
-                    "config": model_config.to_dict(),
-                    "model_name": config.model,
-                    "train_config": config.to_dict(),
-                    "optimizer": optimizer.state_dict(),
-                    "scheduler": scheduler.state_dict(),
-                    "step": step,
-                    "rng": rng_state(),
-                    "training": history.to_dict(),
-                },
-                checkpoint_path,
+    def save(self, step: int, run_minutes: float) -> None:
+        """Rank 0: validate (when configured), then write the checkpoint and the curves."""
+        record = self.record
+        record.last_step, record.pairs, record.minutes = (
+            step,
+            (step - self.start_step) * self.pairs_per_step,
+            run_minutes,
+        )
+        if self.validation_log is not None:
+            record.validation = validate(self.network, self.config, self.device)
+            self.validation_log.append(
+                dict(
+                    step=step,
+                    pairs_seen=step * self.pairs_per_step,
+                    minutes=self.prior_minutes + run_minutes,
+                    **record.validation,
+                )
             )
-            draw_curves(out_dir)
-        if out_of_time:
-            break
-    bar.close()
-    return TrainResult(step, checkpoint_path, out_of_time, network)
+        save_atomically(
+            {
+                "model": self.network.state_dict(),
+                "config": self.model_config.to_dict(),
+                "model_name": self.config.model,
+                "train_config": self.config.to_dict(),
+                "optimizer": self.optimizer.state_dict(),
+                "scheduler": self.scheduler.state_dict(),
+                "step": step,
+                "rng": rng_state(),
+                "training": self.history.to_dict(),
+            },
+            self.out_dir / CHECKPOINT_NAME,
+        )
+        draw_curves(self.out_dir)
 
 
-def follow_config(optimizer: torch.optim.Optimizer, scheduler: torch.optim.lr_scheduler.LambdaLR, config: TrainConfig) -> None:
+def follow_config(
+    optimizer: torch.optim.Optimizer, scheduler: torch.optim.lr_scheduler.LambdaLR, config: TrainConfig
+) -> None:
     """After loading an optimiser and scheduler state saved under another config, apply this
     config's lr, betas and weight decay (so that e.g. `--resume ... --lr 1e-4` takes effect)."""
     scheduler.base_lrs = [config.lr] * len(optimizer.param_groups)
@@ -218,10 +272,16 @@ def draw_curves(out_dir: Path) -> None:
     validation.csv (dev bad-2 % and EPE against step) when validation ran."""
     rows = read_csv(out_dir / "log.csv")
     steps = [int(r["step"]) for r in rows]
-    series = {name: (steps, [float(r[column]) for r in rows]) for name, column in (("loss", "loss"), ("train EPE px", "train_epe"))}
+    series = {
+        name: (steps, [float(r[column]) for r in rows])
+        for name, column in (("loss", "loss"), ("train EPE px", "train_epe"))
+    }
     plot_curves(series, out_dir / "loss_curve.png", "step", "loss / EPE (px), log scale", log_y=True)
     validation = read_csv(out_dir / "validation.csv")
     if validation:
         steps = [int(r["step"]) for r in validation]
-        series = {name: (steps, [float(r[column]) for r in validation]) for name, column in (("dev bad-2 %", "bad2"), ("dev EPE px", "epe"))}
+        series = {
+            name: (steps, [float(r[column]) for r in validation])
+            for name, column in (("dev bad-2 %", "bad2"), ("dev EPE px", "epe"))
+        }
         plot_curves(series, out_dir / "validation_curve.png", "step", "dev metric")

@@ -17,7 +17,9 @@ def write_shifted_pair(folder: Path, disparity: int, height: int = 64, width: in
     (left x matches right x - disparity); the leftmost `disparity` columns have no match and
     their ground truth is unknown (+inf)."""
     rng = np.random.default_rng(seed)
-    texture = cv2.resize(rng.integers(0, 256, (height, width // 2 + disparity, 3), dtype=np.uint8), (width + disparity, height))
+    texture = cv2.resize(
+        rng.integers(0, 256, (height, width // 2 + disparity, 3), dtype=np.uint8), (width + disparity, height)
+    )
     right = texture[:, disparity:]
     left = texture[:, :width]  # left(x) = texture(x) = right(x - disparity)
     ground_truth = np.full((height, width), float(disparity), np.float32)

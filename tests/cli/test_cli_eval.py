@@ -20,12 +20,37 @@ pytestmark = pytest.mark.filterwarnings("ignore:no weights at:RuntimeWarning")
 def test_eval_prints_per_pair_and_mean_rows_and_writes_json_and_sheets(pairs_dir, tmp_path, capsys):
     out, sheets = tmp_path / "report.json", tmp_path / "sheets"
 
-    status = main(["eval", str(pairs_dir), "--model", "lite", "--device", "cpu", "--baseline", "sgbm",
-                   "--json", str(out), "--sheets", str(sheets)])
+    status = main(
+        [
+            "eval",
+            str(pairs_dir),
+            "--model",
+            "lite",
+            "--device",
+            "cpu",
+            "--baseline",
+            "sgbm",
+            "--json",
+            str(out),
+            "--sheets",
+            str(sheets),
+        ]
+    )
 
     assert status == 0
     table = capsys.readouterr().out
-    for text in ("EPE", "bad-1%", "bad-2%", "bad-3%", "D1-all%", "time s", "shift4", "shift9", "mean of 2 pairs", "sgbm"):
+    for text in (
+        "EPE",
+        "bad-1%",
+        "bad-2%",
+        "bad-3%",
+        "D1-all%",
+        "time s",
+        "shift4",
+        "shift9",
+        "mean of 2 pairs",
+        "sgbm",
+    ):
         assert text in table
     report = json.loads(out.read_text())
     assert [p["name"] for p in report["pairs"]] == ["shift4", "shift9"]

@@ -20,8 +20,21 @@ def test_one_pair_to_pfm_with_uncertainty_and_colour(pairs_dir, tmp_path):
     pair = pairs_dir / "shift4"
     out, uncertainty, colour = tmp_path / "d.pfm", tmp_path / "u.npy", tmp_path / "c.png"
 
-    status = main(["predict", str(pair / "left.png"), str(pair / "right.png"), "-o", str(out),
-                   "--uncertainty", str(uncertainty), "--color", str(colour), "--device", "cpu"])
+    status = main(
+        [
+            "predict",
+            str(pair / "left.png"),
+            str(pair / "right.png"),
+            "-o",
+            str(out),
+            "--uncertainty",
+            str(uncertainty),
+            "--color",
+            str(colour),
+            "--device",
+            "cpu",
+        ]
+    )
 
     assert status == 0
     disparity = read_pfm(out)
@@ -56,7 +69,10 @@ def test_two_folders_pair_images_by_name_and_write_a_folder(tmp_path, pairs_dir)
         (rights / f"{name}.png").symlink_to(pairs_dir / name / "right.png")
     out = tmp_path / "out"
 
-    assert main(["predict", str(lefts), str(rights), "-o", str(out), "--format", "npy", "--color", str(tmp_path / "c")]) == 0
+    assert (
+        main(["predict", str(lefts), str(rights), "-o", str(out), "--format", "npy", "--color", str(tmp_path / "c")])
+        == 0
+    )
 
     assert sorted(p.name for p in out.iterdir()) == ["shift4.npy", "shift9.npy"]
     assert sorted(p.name for p in (tmp_path / "c").iterdir()) == ["shift4.png", "shift9.png"]
@@ -65,9 +81,24 @@ def test_two_folders_pair_images_by_name_and_write_a_folder(tmp_path, pairs_dir)
 def test_globs_pair_in_sorted_order_and_mirror_the_folders_of_the_left_images(pairs_dir, tmp_path):
     out = tmp_path / "out"
     result = subprocess.run(
-        [sys.executable, "-m", "cli.main", "predict", f"{pairs_dir}/*/left.png", f"{pairs_dir}/*/right.png",
-         "-o", str(out), "--uncertainty", str(tmp_path / "u"), "--device", "cpu"],
-        cwd=REPO, capture_output=True, text=True, timeout=300,
+        [
+            sys.executable,
+            "-m",
+            "cli.main",
+            "predict",
+            f"{pairs_dir}/*/left.png",
+            f"{pairs_dir}/*/right.png",
+            "-o",
+            str(out),
+            "--uncertainty",
+            str(tmp_path / "u"),
+            "--device",
+            "cpu",
+        ],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=300,
     )
     assert result.returncode == 0, result.stderr
     assert read_pfm(out / "shift4" / "left.pfm").shape == (64, 96)
@@ -97,6 +128,20 @@ def test_an_unknown_output_extension_is_refused(pairs_dir, tmp_path, capsys):
 def test_predict_on_a_real_pair_keeps_its_size(small_stereo_dev, tmp_path):
     pair = next(small_stereo_dev.iterdir())
     out = tmp_path / "d.pfm"
-    assert main(["predict", str(pair / "left.png"), str(pair / "right.png"), "-o", str(out), "--two-pass", "--device", "cpu"]) == 0
+    assert (
+        main(
+            [
+                "predict",
+                str(pair / "left.png"),
+                str(pair / "right.png"),
+                "-o",
+                str(out),
+                "--two-pass",
+                "--device",
+                "cpu",
+            ]
+        )
+        == 0
+    )
     left = cv2.imread(str(pair / "left.png"))
     assert read_pfm(out).shape == left.shape[:2]

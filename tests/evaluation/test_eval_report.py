@@ -72,7 +72,14 @@ def test_sgbm_rows_sit_beside_the_model_and_means_are_per_method(samples):
 
 
 def test_one_sheet_per_pair_with_a_row_per_method(samples, tmp_path):
-    evaluate(samples, OffsetPredictor(samples, 0.0), dataset_name="mem", baseline_sgbm=True, sheets_dir=tmp_path, progress=False)
+    evaluate(
+        samples,
+        OffsetPredictor(samples, 0.0),
+        dataset_name="mem",
+        baseline_sgbm=True,
+        sheets_dir=tmp_path,
+        progress=False,
+    )
     sheet = cv2.imread(str(tmp_path / "a.png"))
     assert sheet.shape[1] == 3 * PANEL_WIDTH
     panel_height = 24 + round(48 * PANEL_WIDTH / 80)
@@ -81,7 +88,9 @@ def test_one_sheet_per_pair_with_a_row_per_method(samples, tmp_path):
 
 def test_a_pair_without_ground_truth_is_an_error():
     sample = shifted_sample("empty", 3, 0)
-    sample = StereoSample("empty", sample.left, sample.right, np.full((48, 80), np.inf, np.float32), np.zeros((48, 80), bool))
+    sample = StereoSample(
+        "empty", sample.left, sample.right, np.full((48, 80), np.inf, np.float32), np.zeros((48, 80), bool)
+    )
     with pytest.raises(ValueError, match="no valid ground-truth pixel"):
         evaluate([sample], OffsetPredictor([sample], 0.0), dataset_name="mem", progress=False)
 

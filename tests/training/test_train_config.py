@@ -11,7 +11,14 @@ from training.config import PRESETS, SYNTHETIC, DataSource, TrainConfig, preset
 
 def test_pretrain_preset_is_the_papers_first_stage():
     c = PRESETS["pretrain"]
-    assert (c.lr, c.betas, c.crop_height, c.crop_width, c.gamma, c.max_steps) == (4e-4, (0.9, 0.999), 384, 512, 0.8, 150_000)
+    assert (c.lr, c.betas, c.crop_height, c.crop_width, c.gamma, c.max_steps) == (
+        4e-4,
+        (0.9, 0.999),
+        384,
+        512,
+        0.8,
+        150_000,
+    )
     assert c.weight_decay == 0.0  # plain Adam
 
 
@@ -44,7 +51,9 @@ def test_a_source_weight_must_be_positive_and_numeric():
         DataSource.parse("a=b")
 
 
-@pytest.mark.parametrize("bad", [dict(crop_height=100), dict(sources=()), dict(batch_size=0), dict(real_scale_range=(1.2, 0.8))])
+@pytest.mark.parametrize(
+    "bad", [dict(crop_height=100), dict(sources=()), dict(batch_size=0), dict(real_scale_range=(1.2, 0.8))]
+)
 def test_invalid_configs_are_rejected(bad):
     with pytest.raises(ValueError):
         TrainConfig(**bad)
@@ -59,8 +68,23 @@ def test_every_field_is_a_command_line_option_and_only_given_ones_override():
     parser = argparse.ArgumentParser()
     add_dataclass_options(parser, TrainConfig)
     args = parser.parse_args(
-        ["--source", "synthetic=0.3", "--source", "/d=0.7", "--crop-height", "64", "--betas", "0.8", "0.9",
-         "--max-minutes", "2.5", "--precision", "bf16", "--val-data", "/dev"]
+        [
+            "--source",
+            "synthetic=0.3",
+            "--source",
+            "/d=0.7",
+            "--crop-height",
+            "64",
+            "--betas",
+            "0.8",
+            "0.9",
+            "--max-minutes",
+            "2.5",
+            "--precision",
+            "bf16",
+            "--val-data",
+            "/dev",
+        ]
     )
     assert given_options(args, TrainConfig) == {
         "sources": (DataSource(SYNTHETIC, 0.3), DataSource("/d", 0.7)),

@@ -12,7 +12,9 @@ from training.config import SYNTHETIC, DataSource, TrainConfig
 from training.data import RealPairsByStep, TrainingData, augment_real_pair, plan_step
 
 
-def constant_pair(height: int, width: int, disparity: float, known_fraction: float = 1.0, seed: int = 0) -> StereoSample:
+def constant_pair(
+    height: int, width: int, disparity: float, known_fraction: float = 1.0, seed: int = 0
+) -> StereoSample:
     """A random RGB pair whose ground truth is `disparity` on a random `known_fraction` of pixels."""
     rng = np.random.default_rng(seed)
     image = rng.integers(0, 256, (height, width, 3), dtype=np.uint8)
@@ -22,7 +24,12 @@ def constant_pair(height: int, width: int, disparity: float, known_fraction: flo
 
 
 def mixture(weights: dict[str, float], batch_size: int = 4) -> TrainConfig:
-    return TrainConfig(sources=tuple(DataSource(p, w) for p, w in weights.items()), batch_size=batch_size, crop_height=32, crop_width=64)
+    return TrainConfig(
+        sources=tuple(DataSource(p, w) for p, w in weights.items()),
+        batch_size=batch_size,
+        crop_height=32,
+        crop_width=64,
+    )
 
 
 def test_a_step_plan_depends_only_on_seed_step_and_rank():

@@ -23,9 +23,20 @@ def free_port() -> int:
 
 def train_as_rank(rank: int, port: int, out_dir: str) -> None:
     """What torchrun does for each process: set the rendezvous variables, then run the command."""
-    os.environ.update(RANK=str(rank), LOCAL_RANK=str(rank), WORLD_SIZE=str(WORLD_SIZE), MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port))
+    os.environ.update(
+        RANK=str(rank), LOCAL_RANK=str(rank), WORLD_SIZE=str(WORLD_SIZE), MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port)
+    )
     torch.set_num_threads(1)
-    config = TrainConfig(crop_height=64, crop_width=96, batch_size=1, max_steps=2, log_every=1, num_workers=0, device="cpu", out_dir=out_dir)
+    config = TrainConfig(
+        crop_height=64,
+        crop_width=96,
+        batch_size=1,
+        max_steps=2,
+        log_every=1,
+        num_workers=0,
+        device="cpu",
+        out_dir=out_dir,
+    )
     result = train(config, progress=False)
     torch.save(result.network.state_dict(), Path(out_dir) / f"rank{rank}.pt")
 
@@ -41,4 +52,10 @@ def test_two_ranks_complete_and_end_with_identical_trained_weights(tmp_path):
     assert not all(torch.equal(rank0[name], initial[name]) for name in rank0)
     rows = read_csv(tmp_path / "log.csv")  # written by rank 0 only, counting both ranks' pairs
     assert [int(r["pairs_seen"]) for r in rows] == [2, 4]
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["checkpoint.pt", "log.csv", "loss_curve.png", "rank0.pt", "rank1.pt"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        "checkpoint.pt",
+        "log.csv",
+        "loss_curve.png",
+        "rank0.pt",
+        "rank1.pt",
+    ]

@@ -29,6 +29,12 @@ def test_floats_are_logged_exactly(tmp_path):
 
 def test_curves_are_drawn_to_a_png(tmp_path):
     path = tmp_path / "curve.png"
-    plot_curves({"loss": ([1, 2, 3], [3.0, 2.0, 1.5]), "epe": ([1, 2, 3], [2.0, 1.0, float("nan")])}, path, "step", "px", log_y=True)
+    plot_curves(
+        {"loss": ([1, 2, 3], [3.0, 2.0, 1.5]), "epe": ([1, 2, 3], [2.0, 1.0, float("nan")])},
+        path,
+        "step",
+        "px",
+        log_y=True,
+    )
     image = cv2.imread(str(path))
     assert image is not None and image.shape == (500, 900, 3) and image.min() < 128

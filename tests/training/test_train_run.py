@@ -23,7 +23,9 @@ def textured_pair(seed: int, disparity: float = 3.0) -> StereoSample:
     rng = np.random.default_rng(seed)
     texture = rng.integers(0, 256, (64, 96 + int(disparity), 3), dtype=np.uint8)
     truth = np.full((64, 96), disparity, np.float32)
-    return StereoSample(f"pair{seed}", texture[:, :96].copy(), texture[:, int(disparity) :].copy(), truth, np.ones((64, 96), bool))
+    return StereoSample(
+        f"pair{seed}", texture[:, :96].copy(), texture[:, int(disparity) :].copy(), truth, np.ones((64, 96), bool)
+    )
 
 
 @pytest.fixture
@@ -38,8 +40,17 @@ def real_pairs(monkeypatch) -> DataSource:
 def tiny(out_dir: Path, **overrides) -> TrainConfig:
     """Lite at 64x96, one pair per step, every step logged, fp32 on the CPU."""
     values = dict(
-        crop_height=64, crop_width=96, batch_size=1, max_steps=2, log_every=1, checkpoint_every=1000,
-        num_workers=0, device="cpu", out_dir=str(out_dir), warmup_fraction=0.0, real_scale_range=(1.0, 1.0),
+        crop_height=64,
+        crop_width=96,
+        batch_size=1,
+        max_steps=2,
+        log_every=1,
+        checkpoint_every=1000,
+        num_workers=0,
+        device="cpu",
+        out_dir=str(out_dir),
+        warmup_fraction=0.0,
+        real_scale_range=(1.0, 1.0),
     )
     return TrainConfig(**{**values, **overrides})
 
@@ -50,11 +61,39 @@ def losses(out_dir: Path) -> list[float]:
 
 def test_train_command_runs_steps_on_procedural_scenes_and_leaves_checkpoint_log_and_curve(tmp_path):
     out = tmp_path / "run"
-    status = main(["train", "--crop-height", "64", "--crop-width", "96", "--batch-size", "1", "--max-steps", "2",
-                   "--log-every", "1", "--device", "cpu", "--out-dir", str(out), "--no-progress"])
+    status = main(
+        [
+            "train",
+            "--crop-height",
+            "64",
+            "--crop-width",
+            "96",
+            "--batch-size",
+            "1",
+            "--max-steps",
+            "2",
+            "--log-every",
+            "1",
+            "--device",
+            "cpu",
+            "--out-dir",
+            str(out),
+            "--no-progress",
+        ]
+    )
     assert status == 0
     checkpoint = load_checkpoint(out / "checkpoint.pt")
-    assert {"model", "config", "model_name", "train_config", "optimizer", "scheduler", "step", "rng", "training"} <= set(checkpoint)
+    assert {
+        "model",
+        "config",
+        "model_name",
+        "train_config",
+        "optimizer",
+        "scheduler",
+        "step",
+        "rng",
+        "training",
+    } <= set(checkpoint)
     assert checkpoint["step"] == 2 and checkpoint["model_name"] == "lite"
     assert TrainConfig.from_dict(checkpoint["train_config"]).sources == (DataSource("synthetic"),)
     rows = read_csv(out / "log.csv")
@@ -104,7 +143,9 @@ def test_init_weights_start_a_fresh_run_that_carries_the_history(tmp_path, real_
     weights = tmp_path / "a.pt"
     assert main(["export", str(tmp_path / "a" / "checkpoint.pt"), "-o", str(weights)]) == 0
     # lr 0: the weights cannot move, so they must come out as they went in
-    result = train(tiny(tmp_path / "b", sources=(real_pairs,), max_steps=2, lr=0.0), init_weights=weights, progress=False)
+    result = train(
+        tiny(tmp_path / "b", sources=(real_pairs,), max_steps=2, lr=0.0), init_weights=weights, progress=False
+    )
 
     assert result.step == 2
     start = load_checkpoint(weights)["model"]
@@ -120,7 +161,9 @@ def test_validation_at_checkpoints_is_logged(tmp_path, real_pairs):
     assert [int(r["step"]) for r in rows] == [1, 2]
     assert all(float(r["epe"]) >= 0 and 0 <= float(r["bad2"]) <= 100 for r in rows)
     assert (tmp_path / "validation_curve.png").is_file()
-    assert load_checkpoint(tmp_path / "checkpoint.pt")["training"]["runs"][-1]["validation"]["bad2"] == float(rows[-1]["bad2"])
+    assert load_checkpoint(tmp_path / "checkpoint.pt")["training"]["runs"][-1]["validation"]["bad2"] == float(
+        rows[-1]["bad2"]
+    )
 
 
 def test_fp16_export_halves_the_file_and_predicts_like_fp32(tmp_path, real_pairs):

@@ -11,7 +11,9 @@ def test_warmup_ramps_linearly_to_the_peak():
     assert [learning_rate_factor(s, 100, "one-cycle", 0.1) for s in (0, 4, 9)] == pytest.approx([0.1, 0.5, 1.0])
 
 
-@pytest.mark.parametrize(("schedule", "middle", "end"), [("one-cycle", 0.5, 0.0), ("linear", 0.5, 0.0), ("constant", 1.0, 1.0)])
+@pytest.mark.parametrize(
+    ("schedule", "middle", "end"), [("one-cycle", 0.5, 0.0), ("linear", 0.5, 0.0), ("constant", 1.0, 1.0)]
+)
 def test_decay_after_warmup(schedule, middle, end):
     # no warm-up, 100 steps: step 50 is half-way; the factor reaches `end` after the last step
     assert learning_rate_factor(50, 100, schedule, 0.0) == pytest.approx(middle)
