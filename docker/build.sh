@@ -40,9 +40,17 @@ index=${PIP_INDEX_URL:-$(pip_config index-url)}
 index=${index:-https://pypi.org/simple}
 
 # --network host: pip in the build reaches the index exactly as this host does.
-docker build --network host \
-    --build-arg "BASE_IMAGE=$base" \
-    --build-arg "TORCH_VERSION=$torch_version" \
-    --build-arg "TORCH_INDEX_URL=${torch_index:-$index}" \
-    --build-arg "PIP_INDEX_URL=$index" \
-    -f "$root/docker/Dockerfile" -t "$image" "$@" "$root"
+args=(--network host
+      --build-arg "BASE_IMAGE=$base"
+      --build-arg "TORCH_VERSION=$torch_version"
+      --build-arg "TORCH_INDEX_URL=${torch_index:-$index}"
+      --build-arg "PIP_INDEX_URL=$index"
+      -f "$root/docker/Dockerfile")
+docker build "${args[@]}" -t "$image" "$@" "$root"
+
+# The legacy builder keeps its layer cache in untagged images, and a rebuild leaves the previous
+# ones behind. Tag the dependency stage (torch and the rest: the slow part, all cached here) so
+# that it stays, then drop what is untagged and unused.
+docker build "${args[@]}" --quiet --target deps -t "${image%:*}:deps-cache" "$root" >/dev/null
+docker image prune --force >/dev/null
+docker image inspect --format "image $image: {{.Size}} bytes" "$image"
