@@ -50,3 +50,11 @@ def test_compose_passes_every_service_setting() -> None:
     compose = (DOCKER / "compose.yaml").read_text()
     passed = set(re.findall(r"^\s+- (CRESTEREO_\w+)\s*$", compose, flags=re.MULTILINE))
     assert passed == expected, f"add {expected - passed}, remove {passed - expected}"
+
+
+def test_container_readme_lists_every_service_setting() -> None:
+    settings = pytest.importorskip("service.settings")
+    readme = (DOCKER / "README.md").read_text()
+    missing = [settings.ENV_PREFIX + name.upper() for name in settings.Settings.model_fields
+               if f"`{settings.ENV_PREFIX}{name.upper()}`" not in readme]
+    assert not missing, f"docker/README.md does not document {missing}"
