@@ -11,6 +11,12 @@ base=${BASE_IMAGE:-crestereo-local/python:3.11-slim-bookworm}
 torch_version=${TORCH_VERSION:-2.13.0+cpu}
 extras=$root/docker/build-extras
 
+# One build at a time on this engine (several checkouts may run the test suite at once): the
+# cache pruning below must not race another build's intermediate images.
+if { exec 9>>/var/tmp/crestereo-docker-build.lock; } 2>/dev/null; then
+    flock 9
+fi
+
 "$root/docker/make-base-image.sh" "$base"
 
 pip_config() { python3 -m pip config get "global.$1" 2>/dev/null || true; }

@@ -26,7 +26,8 @@ import pytest
 ROOT = Path(__file__).resolve().parents[2]
 IMAGE = os.environ.get("CRESTEREO_TEST_IMAGE", "crestereo-pp:test")
 CONTAINER_PORT = 8000
-STEREO_DEV = ROOT.parent / "shared" / "data" / "stereo-dev"
+STEREO_DEV = next((path for path in (ROOT.parent / "shared" / "data" / "stereo-dev",
+                                      Path("/work/shared/data/stereo-dev")) if path.is_dir()), None)
 PAIR = "middlebury2003_teddy"  # 450x375, sent at half size
 CPUS = 1  # fewer than the machine's cores, so the quota (not the core count) sets the threads
 DRAIN_TIMEOUT_S = 5.0
@@ -112,7 +113,7 @@ def ready(container: tuple[str, str]) -> tuple[str, str]:
 def _stereo_pair() -> tuple[bytes, bytes, tuple[int, int]]:
     """A real pair from stereo-dev at half size when present, else a generated textured pair
     (the right view is the left one shifted by 8 px); PNG bytes and (height, width)."""
-    if (STEREO_DEV / PAIR).is_dir():
+    if STEREO_DEV is not None and (STEREO_DEV / PAIR).is_dir():
         left, right = (cv2.imread(str(STEREO_DEV / PAIR / f"{side}.png")) for side in ("left", "right"))
         left, right = (cv2.resize(img, None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA)
                        for img in (left, right))
