@@ -215,15 +215,12 @@ class SceneGenerator:
     def render(self, scene: Scene) -> SyntheticBatch:
         """Render both views of ``scene`` exactly, without photometric changes."""
         x, y = self._x, self._y
-        a, b, c = (part[..., None, None] for part in scene.plane.unbind(-1))  # (B, S, 1, 1)
         left_disparity, left_surface, _ = _nearest_surface(scene, x, y)
         left = _shade(scene, left_surface, x.expand_as(left_disparity), y)
-        right_disparity, right_surface, right_x_left = _nearest_surface(
-            scene, (x + b * y + c) / (1 - a), y
-        )
+        _, right_surface, right_x_left = _nearest_surface(scene, _seen_from_right(scene, x, y), y)
         right = _shade(scene, right_surface, right_x_left, y)
         x_match = x - left_disparity
-        match_disparity, _, _ = _nearest_surface(scene, (x_match + b * y + c) / (1 - a), y)
+        match_disparity, _, _ = _nearest_surface(scene, _seen_from_right(scene, x_match, y), y)
         occluded = (match_disparity > left_disparity + _OCCLUSION_TOLERANCE) | (x_match < 0)
         return SyntheticBatch(
             left=left,
@@ -246,8 +243,9 @@ class SceneGenerator:
         radius = scale * width * draw.log_uniform(shape, *cfg.size)
         aspect = 2 ** draw.uniform(shape, -1, 1)
         bar = draw.chance(shape, cfg.bar_probability)
-        radius_x = torch.where(bar, scale * width * draw.uniform(shape, 0.1, 0.5), radius * aspect.sqrt())
-        radius_y = torch.where(bar, scale * draw.uniform(shape, 1.0, 4.0), radius / aspect.sqrt())
+        bar_length, bar_width = width * draw.uniform(shape, 0.1, 0.5), draw.uniform(shape, 1.0, 4.0)
+        radius_x = torch.where(bar, scale * bar_length, radius * aspect.sqrt())
+        radius_y = torch.where(bar, scale * bar_width, radius / aspect.sqrt())
         angle = draw.uniform(shape, 0, 2 * math.pi)
         round_shape = draw.chance(shape, cfg.round_probability) & ~bar
         sides = torch.where(round_shape, MAX_SIDES, draw.integers(shape, 3, 8))
@@ -261,9 +259,8 @@ class SceneGenerator:
              draw.uniform(shape, 0.15, 0.5), draw.uniform(shape, 0.15, 0.5)], dim=-1
         )
         has_hole = draw.chance(shape, cfg.hole_probability) & ~bar
-        present = torch.arange(shape[1], device=self.device) <= draw.integers(
-            (batch_size, 1), cfg.min_surfaces, cfg.surfaces
-        )  # the background and U{min_surfaces..surfaces} foreground surfaces
+        surface_count = draw.integers((batch_size, 1), cfg.min_surfaces, cfg.surfaces)
+        present = torch.arange(shape[1], device=self.device) <= surface_count  # and the background
 
         # The background (surface 0) is centred on the frame and covers everything.
         centre_x[:, 0], centre_y[:, 0] = (width - 1) / 2, (height - 1) / 2
@@ -318,6 +315,7 @@ class SceneGenerator:
         ramp_size = draw.uniform(shape, -cfg.shading, cfg.shading) / (2 * extent)
         ramp_x, ramp_y = ramp_size * torch.cos(ramp_angle), ramp_size * torch.sin(ramp_angle)
         ramp = torch.stack([ramp_x, ramp_y, -ramp_x * centre_x - ramp_y * centre_y], dim=-1)
+        texture = draw.integers(shape, 0, cfg.texture_count - 1)
 
         return Scene(
             plane=plane,
@@ -328,7 +326,7 @@ class SceneGenerator:
             hole=hole,
             has_hole=has_hole,
             present=present,
-            texture=draw.integers(shape, 0, cfg.texture_count - 1),
+            texture=texture,
             to_texture=to_texture,
             base=base,
             contrast=contrast,
@@ -358,10 +356,20 @@ def _affine(linear: torch.Tensor, centre_x: torch.Tensor, centre_y: torch.Tensor
     return torch.cat([linear, -(linear @ centre)], dim=-1)
 
 
-def _apply(affine: torch.Tensor, x: torch.Tensor, y: torch.Tensor) -> tuple[torch.Tensor, ...]:
+def _apply(
+    affine: torch.Tensor, x: torch.Tensor, y: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Apply (B, S, 2, 3) affine maps to points: x broadcastable to (B, S, H, W), y (1, 1, H, 1)."""
     m = affine[..., None, None]  # (B, S, 2, 3, 1, 1)
-    return tuple(m[:, :, row, 0] * x + (m[:, :, row, 1] * y + m[:, :, row, 2]) for row in (0, 1))
+    u, v = (m[:, :, row, 0] * x + (m[:, :, row, 1] * y + m[:, :, row, 2]) for row in (0, 1))
+    return u, v
+
+
+def _seen_from_right(scene: Scene, x_right: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """(B, S, H, W): for each surface, the left-view x of its point seen at right-view x_right,
+    i.e. x_l solving x_l - (a*x_l + b*y + c) = x_right. x_right broadcastable to (B, 1, H, W) px."""
+    a, b, c = (part[..., None, None] for part in scene.plane.unbind(-1))
+    return (x_right + (b * y + c)) / (1 - a)
 
 
 def _nearest_surface(
@@ -387,27 +395,27 @@ def _covers(scene: Scene, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
     # The polygon's sector holding each point, then the side of that sector's edge line it is on.
     sides = scene.sides[..., None, None].to(u.dtype)
     sector_angle = torch.remainder(torch.atan2(v, u) - scene.phase[..., None, None], 2 * math.pi)
-    sector = torch.minimum((sector_angle * (sides / (2 * math.pi))).long(), scene.sides[..., None, None] - 1)
-    edges = _polygon_edges(scene).view(batch, surfaces, MAX_SIDES, 3)
+    sector = (sector_angle * (sides / (2 * math.pi))).long()  # in [0, sides]: sides is edge 0 again
+    edges = _polygon_edges(scene)
     flat_sector = sector.view(batch, surfaces, -1)
     normal_u, normal_v, offset = (
         torch.gather(edges[..., k], 2, flat_sector).view_as(u) for k in range(3)
     )
     inside = normal_u * u + normal_v * v <= offset
     u0, v0, ru, rv = (part[..., None, None] for part in scene.hole.unbind(-1))
-    in_hole = ((u - u0) / ru).square() + ((v - v0) / rv).square() < 1
+    in_hole = ((u - u0) * (1 / ru)).square() + ((v - v0) * (1 / rv)).square() < 1
     return inside & ~(in_hole & scene.has_hole[..., None, None]) & scene.present[..., None, None]
 
 
 def _polygon_edges(scene: Scene) -> torch.Tensor:
-    """(B, S, MAX_SIDES, 3): edge j from vertex j to vertex j+1 as its outward normal (nu, nv) and
-    offset h; a point of sector j is inside when nu*u + nv*v <= h."""
-    index = torch.arange(MAX_SIDES, device=scene.sides.device)
+    """(B, S, MAX_SIDES + 1, 3): edge j, from vertex j to vertex j+1 (indices modulo sides), as its
+    outward normal (nu, nv) and offset h; a point of sector j is inside when nu*u + nv*v <= h."""
+    index = torch.arange(MAX_SIDES + 2, device=scene.sides.device)
     sides = scene.sides[..., None]
-    angle = scene.phase[..., None] + 2 * math.pi * index / sides
-    vertex = scene.radii[..., None] * torch.stack([torch.cos(angle), torch.sin(angle)], dim=-1)
-    following = torch.remainder(index + 1, sides)  # (B, S, MAX_SIDES)
-    next_vertex = torch.gather(vertex, 2, following[..., None].expand_as(vertex))
+    angle = scene.phase[..., None] + 2 * math.pi * index / sides  # (B, S, MAX_SIDES + 2)
+    radius = torch.gather(scene.radii, 2, torch.remainder(index, sides))
+    vertex = radius[..., None] * torch.stack([torch.cos(angle), torch.sin(angle)], dim=-1)
+    vertex, next_vertex = vertex[:, :, :-1], vertex[:, :, 1:]
     step = next_vertex - vertex
     normal = torch.stack([step[..., 1], -step[..., 0]], dim=-1)
     offset = (normal * vertex).sum(-1, keepdim=True)
@@ -421,35 +429,42 @@ def _shade(scene: Scene, surface: torch.Tensor, x_left: torch.Tensor, y: torch.T
     Returns (B, 3, H, W) float32 RGB in [0, 255].
     """
     batch, surfaces = scene.sides.shape
-    textures, size = scene.textures.shape[1], scene.textures.shape[2]
-    per_surface = torch.cat(
-        [scene.to_texture.flatten(2), scene.base, scene.contrast[..., None], scene.ramp], dim=-1
-    ).flatten(0, 1)  # (B*S, 13)
-    batch_index = torch.arange(batch, device=surface.device).view(batch, 1, 1, 1)
+    batch_index = torch.arange(batch, device=surface.device).view(batch, 1, 1, 1).expand_as(surface)
     flat_surface = (batch_index * surfaces + surface).flatten()
-    params = per_surface.index_select(0, flat_surface)  # (N, 13), N = B*H*W
+
+    def at_pixels(values: torch.Tensor) -> torch.Tensor:
+        """(B, S, ...) per-surface values -> (N, ...) values of each pixel's surface, N = B*H*W."""
+        return values.flatten(0, 1).index_select(0, flat_surface)
+
     x = x_left.flatten()
-    y = y.expand_as(x_left).flatten()
-    tex_u = params[:, 0] * x + params[:, 1] * y + params[:, 2]
-    tex_v = params[:, 3] * x + params[:, 4] * y + params[:, 5]
-    slot = (batch_index * textures + scene.texture.flatten().index_select(0, flat_surface).view_as(surface))
-    texels = scene.textures.reshape(-1, 3)
-    first_texel = slot.flatten() * size * size
-    u_floor, v_floor = torch.floor(tex_u), torch.floor(tex_v)
-    u_weight, v_weight = (tex_u - u_floor)[:, None], (tex_v - v_floor)[:, None]
-    u0 = torch.remainder(u_floor.long(), size)
-    v0 = torch.remainder(v_floor.long(), size)
+    point = torch.stack([x, y.expand_as(x_left).flatten(), torch.ones_like(x)], dim=-1)  # (N, 3)
+    texel_u, texel_v = (at_pixels(scene.to_texture) * point[:, None, :]).sum(-1).unbind(-1)
+    slot = batch_index.flatten() * scene.textures.shape[1] + at_pixels(scene.texture)
+    texture = _sample_wrapped(scene.textures.flatten(0, 1), slot, texel_u, texel_v)  # (N, 3)
+    shading = (at_pixels(scene.ramp) * point).sum(-1, keepdim=True)
+    colour = at_pixels(scene.base) + at_pixels(scene.contrast)[:, None] * texture + shading
+    return colour.clamp(0, 255).view(batch, *surface.shape[2:], 3).permute(0, 3, 1, 2).contiguous()
+
+
+def _sample_wrapped(
+    textures: torch.Tensor, slot: torch.Tensor, u: torch.Tensor, v: torch.Tensor
+) -> torch.Tensor:
+    """Bilinear samples of periodic textures: textures (N_t, T, T, 3); slot, u, v (N,) with u the
+    column and v the row in texels (any real value: the textures wrap). Returns (N, 3)."""
+    size = textures.shape[1]
+    texels = textures.reshape(-1, 3)
+    u_floor, v_floor = torch.floor(u), torch.floor(v)
+    u_weight, v_weight = (u - u_floor)[:, None], (v - v_floor)[:, None]
+    u0, v0 = torch.remainder(u_floor.long(), size), torch.remainder(v_floor.long(), size)
     u1, v1 = torch.remainder(u0 + 1, size), torch.remainder(v0 + 1, size)
+    first = slot * size * size
 
     def texel(row: torch.Tensor, column: torch.Tensor) -> torch.Tensor:
-        return texels.index_select(0, first_texel + row * size + column)
+        return texels.index_select(0, first + row * size + column)
 
-    texture = (1 - v_weight) * ((1 - u_weight) * texel(v0, u0) + u_weight * texel(v0, u1)) + v_weight * (
-        (1 - u_weight) * texel(v1, u0) + u_weight * texel(v1, u1)
-    )
-    shading = params[:, 10] * x + params[:, 11] * y + params[:, 12]
-    colour = params[:, 6:9] + params[:, 9:10] * texture + shading[:, None]
-    return colour.clamp(0, 255).view(batch, *surface.shape[2:], 3).permute(0, 3, 1, 2).contiguous()
+    top = (1 - u_weight) * texel(v0, u0) + u_weight * texel(v0, u1)
+    bottom = (1 - u_weight) * texel(v1, u0) + u_weight * texel(v1, u1)
+    return (1 - v_weight) * top + v_weight * bottom
 
 
 def _texture_bank(batch_size: int, cfg: SceneConfig, draw: _Draw) -> torch.Tensor:

@@ -96,11 +96,12 @@ def make_simple(root: Path, names: list[str]) -> None:
         write_pfm(root / name / "disp.pfm", disparity)
 
 
+KITTI_NAMES = ["000000_10", "000001_10"]
 LAYOUT_FIXTURES = {
     "middlebury2014": (make_middlebury2014, ["Adirondack", "Motorcycle"]),
     "eth3d": (make_eth3d, ["delivery_area_1l", "electro_1s"]),
-    "kitti2012": (kitti_maker("colored_0", "colored_1", "disp_occ", "disp_noc"), ["000000_10", "000001_10"]),
-    "kitti2015": (kitti_maker("image_2", "image_3", "disp_occ_0", "disp_noc_0"), ["000000_10", "000001_10"]),
+    "kitti2012": (kitti_maker("colored_0", "colored_1", "disp_occ", "disp_noc"), KITTI_NAMES),
+    "kitti2015": (kitti_maker("image_2", "image_3", "disp_occ_0", "disp_noc_0"), KITTI_NAMES),
     "sceneflow": (make_sceneflow, ["TRAIN/A/0000/0006", "TRAIN/C/0001/0010"]),
     "simple": (make_simple, ["pair_a", "pair_b"]),
 }
@@ -149,7 +150,11 @@ def test_non_occluded_mask_is_none_where_the_layout_has_none(tmp_path: Path, lay
 
 
 def test_sceneflow_reader_accepts_any_nesting_and_prefers_the_clean_pass(tmp_path: Path) -> None:
-    names = ["TEST/B/0150/0007", "driving/15mm_focallength/scene_forwards/fast/0001", "a_rain_of_stones_x2/0000"]
+    names = [
+        "TEST/B/0150/0007",  # FlyingThings3D
+        "15mm_focallength/scene_forwards/fast/0001",  # Driving
+        "a_rain_of_stones_x2/0000",  # Monkaa
+    ]
     make_sceneflow(tmp_path, names)
     (tmp_path / "frames_finalpass").mkdir()
     assert sorted(sample.name for sample in open_dataset(tmp_path, "sceneflow")) == sorted(names)
@@ -240,12 +245,14 @@ def warp_mae(sample: StereoSample, disparity: np.ndarray) -> float:
     """Mean abs grey difference between left and right warped by ``disparity`` (bilinear), over
     valid-GT pixels whose match lands inside the right image."""
     gray_left, gray_right = (
-        cv2.cvtColor(image, cv2.COLOR_RGB2GRAY).astype(np.float32) for image in (sample.left, sample.right)
+        cv2.cvtColor(image, cv2.COLOR_RGB2GRAY).astype(np.float32)
+        for image in (sample.left, sample.right)
     )
     height, width = disparity.shape
     x_match = np.arange(width, dtype=np.float32)[None, :] - disparity
     rows = np.repeat(np.arange(height, dtype=np.float32)[:, None], width, 1)
-    warped = cv2.remap(gray_right, np.where(sample.valid, x_match, 0).astype(np.float32), rows, cv2.INTER_LINEAR)
+    map_x = np.where(sample.valid, x_match, 0).astype(np.float32)
+    warped = cv2.remap(gray_right, map_x, rows, cv2.INTER_LINEAR)
     inside = sample.valid & (x_match >= 0) & (x_match <= width - 1)
     return float(np.abs(warped - gray_left)[inside].mean())
 
@@ -270,7 +277,8 @@ def test_stereo_dev_right_warped_by_ground_truth_matches_left() -> None:
     """Same check as the pairs' meta.json: the GT warp error is the documented one, and far below
     the error with zero disparity."""
     for sample in open_dataset(STEREO_DEV):
-        documented = json.loads((STEREO_DEV / sample.name / "meta.json").read_text())["sanity_warp_check"]
+        meta = json.loads((STEREO_DEV / sample.name / "meta.json").read_text())
+        documented = meta["sanity_warp_check"]
         with_gt = warp_mae(sample, sample.disparity)
         assert with_gt == pytest.approx(documented["mae_gt_disp"], abs=0.05), sample.name
         assert with_gt < 0.4 * warp_mae(sample, np.zeros_like(sample.disparity)), sample.name

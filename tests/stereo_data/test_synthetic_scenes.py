@@ -175,7 +175,10 @@ def one_square_scene() -> Scene:
     no_texture = pair([0.0] * 6, [0.0] * 6).view(1, 2, 2, 3)
     return Scene(
         plane=pair([0, 0, 10], [0, 0, 30]),
-        to_shape=torch.stack([torch.zeros(2, 3), torch.tensor([[1 / 30, 0, -129.5 / 30], [0, 1 / 20, -39.5 / 20]])])[None],
+        # Background: everywhere. Square: u = (x - 129.5) / 30, v = (y - 39.5) / 20.
+        to_shape=torch.tensor(
+            [[[[0.0, 0, 0], [0, 0, 0]], [[1 / 30, 0, -129.5 / 30], [0, 1 / 20, -39.5 / 20]]]]
+        ),
         sides=torch.tensor([[4, 4]]),
         phase=torch.full((1, 2), math.pi / 4),
         radii=torch.full((1, 2, MAX_SIDES), math.sqrt(2)),  # corners at (+-1, +-1) in the shape frame
@@ -199,7 +202,8 @@ def test_occluded_pixels_are_exactly_those_whose_match_is_hidden_or_out_of_frame
     assert torch.equal(batch.disparity[0, 0], torch.where(in_square, 30.0, 10.0))
     assert torch.equal(batch.left[0, 0], torch.where(in_square, 200.0, 50.0))
     # The right view shows the square 30 px to the left, over columns 70..129.
-    assert torch.equal(batch.right[0, 0], torch.where(square_rows & (columns >= 70) & (columns <= 129), 200.0, 50.0))
+    in_right_square = square_rows & (columns >= 70) & (columns <= 129)
+    assert torch.equal(batch.right[0, 0], torch.where(in_right_square, 200.0, 50.0))
     # Background pixels 80..99 match right pixels 70..89, which the square hides; columns 0..9
     # match x - 10 < 0, out of the right frame.
     hidden = square_rows & (columns >= 80) & (columns <= 99)
