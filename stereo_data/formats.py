@@ -70,7 +70,7 @@ def read_pfm(path: PathLike) -> np.ndarray:
     dtype = np.dtype("<f4" if scale < 0 else ">f4")
     values = np.frombuffer(payload, dtype=dtype, count=count)
     shape = (height, width, channels) if channels == 3 else (height, width)
-    return np.ascontiguousarray(values.reshape(shape)[::-1]).astype(np.float32, copy=False)
+    return values.reshape(shape)[::-1].astype(np.float32)  # a native-endian, writable copy
 
 
 def write_pfm(path: PathLike, array: np.ndarray, *, little_endian: bool = True) -> None:

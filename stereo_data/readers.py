@@ -103,16 +103,18 @@ def _load(files: SampleFiles, layout: _Layout) -> StereoSample:
     disparity = layout.read_disparity(files.disparity)
     if disparity.ndim != 2:
         raise FormatError(f"{str(files.disparity)!r}: disparity must be HxW, got {disparity.shape}")
-    disparity[~np.isfinite(disparity)] = np.inf  # nan also means unknown
-    valid = np.isfinite(disparity)
     nonoccluded = None
     if files.nonoccluded is not None and layout.read_nonoccluded is not None:
-        nonoccluded = layout.read_nonoccluded(files.nonoccluded) & valid
+        nonoccluded = layout.read_nonoccluded(files.nonoccluded)
     shapes = {left.shape[:2], right.shape[:2], disparity.shape}
     if nonoccluded is not None:
         shapes.add(nonoccluded.shape)
     if len(shapes) != 1:
         raise FormatError(f"sample {files.name!r}: images and ground truth differ in size {shapes}")
+    disparity[~np.isfinite(disparity)] = np.inf  # nan also means unknown
+    valid = np.isfinite(disparity)
+    if nonoccluded is not None:
+        nonoccluded &= valid
     return StereoSample(files.name, left, right, disparity, valid, nonoccluded)
 
 

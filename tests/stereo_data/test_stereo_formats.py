@@ -46,6 +46,13 @@ def test_pfm_reader_follows_the_format_rows_bottom_to_top(
     np.testing.assert_array_equal(read_pfm(tmp_path / "a.pfm"), expected)
 
 
+def test_read_pfm_returns_a_writable_native_endian_array(tmp_path: Path) -> None:
+    write_pfm(tmp_path / "a.pfm", np.ones((1, 3), np.float32))  # one row: no flip copy
+    array = read_pfm(tmp_path / "a.pfm")
+    array[0, 0] = 5.0  # a caller may edit what it read
+    assert array.dtype == np.dtype("float32") and array.dtype.isnative
+
+
 def test_pfm_writer_stores_rows_bottom_to_top_little_endian(tmp_path: Path) -> None:
     write_pfm(tmp_path / "a.pfm", np.array([[1, 2], [3, 4]], dtype=np.float32))
     data = (tmp_path / "a.pfm").read_bytes()

@@ -197,10 +197,22 @@ def test_dataset_supports_negative_indices_and_slices(tmp_path: Path) -> None:
 
 
 def test_sample_with_mismatched_sizes_is_rejected(tmp_path: Path) -> None:
+    make_simple(tmp_path / "simple", ["a"])
+    write_rgb(tmp_path / "simple" / "a" / "right.png", np.zeros((HEIGHT + 1, WIDTH, 3), np.uint8))
+    make_middlebury2014(tmp_path / "middlebury", ["Adirondack"])
+    write_gray(tmp_path / "middlebury" / "Adirondack" / "mask0nocc.png", np.zeros((2, 2), np.uint8))
+    for root in (tmp_path / "simple", tmp_path / "middlebury"):
+        with pytest.raises(FormatError, match="differ in size"):
+            open_dataset(root)[0]
+
+
+def test_nan_ground_truth_counts_as_unknown(tmp_path: Path) -> None:
     make_simple(tmp_path, ["a"])
-    write_rgb(tmp_path / "a" / "right.png", np.zeros((HEIGHT + 1, WIDTH, 3), dtype=np.uint8))
-    with pytest.raises(FormatError, match="differ in size"):
-        open_dataset(tmp_path)[0]
+    disparity = pair(0)[2]
+    disparity[2, 2] = np.nan
+    write_pfm(tmp_path / "a" / "disp.pfm", disparity)
+    sample = open_dataset(tmp_path)[0]
+    assert sample.disparity[2, 2] == np.inf and not sample.valid[2, 2]
 
 
 def test_unrecognised_folder_error_lists_the_supported_layouts(tmp_path: Path) -> None:
