@@ -83,6 +83,8 @@ class Trainer:
     ) -> None:
         self.config, self.context, self.device = config, context, device
         source = load_checkpoint(resume or init_weights) if (resume or init_weights) else None
+        if source is not None and source.get("model_name", config.model) != config.model:
+            raise ValueError(f"{resume or init_weights} holds {source['model_name']!r} weights, not {config.model!r}")
         self.model_config = (
             ModelConfig.from_dict(dict(source["config"]))
             if source and "config" in source
@@ -269,7 +271,7 @@ def validate(network: CREStereoPP, config: TrainConfig, device: torch.device) ->
 
 def draw_curves(out_dir: Path) -> None:
     """loss_curve.png from log.csv (loss and train EPE against step); validation_curve.png from
-    validation.csv (dev bad-2 % and EPE against step) when validation ran."""
+    validation.csv (dev bad-2 % and EPE against cumulative training minutes) when validation ran."""
     rows = read_csv(out_dir / "log.csv")
     steps = [int(r["step"]) for r in rows]
     series = {
@@ -279,9 +281,9 @@ def draw_curves(out_dir: Path) -> None:
     plot_curves(series, out_dir / "loss_curve.png", "step", "loss / EPE (px), log scale", log_y=True)
     validation = read_csv(out_dir / "validation.csv")
     if validation:
-        steps = [int(r["step"]) for r in validation]
+        minutes = [float(r["minutes"]) for r in validation]
         series = {
-            name: (steps, [float(r[column]) for r in validation])
+            name: (minutes, [float(r[column]) for r in validation])
             for name, column in (("dev bad-2 %", "bad2"), ("dev EPE px", "epe"))
         }
-        plot_curves(series, out_dir / "validation_curve.png", "step", "dev metric")
+        plot_curves(series, out_dir / "validation_curve.png", "cumulative training minutes", "dev metric")

@@ -155,6 +155,12 @@ def test_init_weights_start_a_fresh_run_that_carries_the_history(tmp_path, real_
     assert history["total_steps"] == 3 and history["total_pairs"] == 3
 
 
+def test_weights_of_another_model_are_refused(tmp_path, real_pairs):
+    train(tiny(tmp_path / "a", sources=(real_pairs,), max_steps=1), progress=False)
+    with pytest.raises(ValueError, match="holds 'lite' weights, not 'full'"):
+        train(tiny(tmp_path / "b", model="full", sources=(real_pairs,)), init_weights=tmp_path / "a" / "checkpoint.pt")
+
+
 def test_validation_at_checkpoints_is_logged(tmp_path, real_pairs):
     train(tiny(tmp_path, sources=(real_pairs,), max_steps=2, checkpoint_every=1, val_data="/in-memory"), progress=False)
     rows = read_csv(tmp_path / "validation.csv")
