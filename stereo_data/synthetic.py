@@ -518,14 +518,13 @@ def _texel_grid(size: int, device: torch.device) -> tuple[torch.Tensor, torch.Te
     return coordinates.view(1, 1, 1, -1), coordinates.view(1, 1, -1, 1)  # u (columns), v (rows)
 
 
-def _dead_leaves(shape: tuple[int, int], size: int, draw: _Draw, discs: int = 32) -> torch.Tensor:
+def _dead_leaves(shape: tuple[int, int], size: int, draw: _Draw, discs: int = 64) -> torch.Tensor:
     """(B, K, T, T, 3) dead leaves: discs of random colours painted over each other (wrapping),
-    radii from the scale-invariant density r^-3 on [1.5, T/4] texels."""
+    radii log-uniform on [2, T/3] texels, enough of them to cover nearly all of the texture."""
     u, v = _texel_grid(size, draw.device)
     centre_u = draw.uniform((discs, *shape, 1, 1), 0, size).unbind(0)
     centre_v = draw.uniform((discs, *shape, 1, 1), 0, size).unbind(0)
-    low, high = 1.5**-2, (size / 4) ** -2
-    radius = (low + draw.uniform((discs, *shape, 1, 1), 0, 1) * (high - low)) ** -0.5
+    radius = draw.log_uniform((discs, *shape, 1, 1), 2.0, max(size / 3, 2.0))
     top = torch.zeros((*shape, size, size), dtype=torch.long, device=draw.device)  # 0: no disc yet
     for disc in range(discs):
         du = torch.remainder(u - centre_u[disc] + size / 2, size) - size / 2
