@@ -30,6 +30,7 @@ __all__ = ["PhotometricConfig", "SceneConfig", "Scene", "SyntheticBatch", "Scene
 MAX_SIDES = 24
 """Polygons have 3..MAX_SIDES vertices; a MAX_SIDES-gon with equal radii stands for an ellipse."""
 _OCCLUSION_TOLERANCE = 1e-3  # px: a surface must be this much nearer to hide a match
+_SURFACES_PER_PASS = 8  # the z-buffer evaluates this many surfaces at once (memory vs. speed)
 
 
 @dataclass(frozen=True)
@@ -143,6 +144,12 @@ class Scene:
     ramp: torch.Tensor
     textures: torch.Tensor
 
+    def surfaces(self, part: slice) -> Scene:
+        """The same scenes with only the surfaces ``part`` (sharing the texture bank)."""
+        return Scene(
+            **{name: value if name == "textures" else value[:, part] for name, value in vars(self).items()}
+        )
+
 
 @dataclass
 class SyntheticBatch:
@@ -215,12 +222,12 @@ class SceneGenerator:
     def render(self, scene: Scene) -> SyntheticBatch:
         """Render both views of ``scene`` exactly, without photometric changes."""
         x, y = self._x, self._y
-        left_disparity, left_surface, _ = _nearest_surface(scene, x, y)
+        left_disparity, left_surface, _ = _nearest_surface(scene, x, y, "left")
         left = _shade(scene, left_surface, x.expand_as(left_disparity), y)
-        _, right_surface, right_x_left = _nearest_surface(scene, _seen_from_right(scene, x, y), y)
+        _, right_surface, right_x_left = _nearest_surface(scene, x, y, "right")
         right = _shade(scene, right_surface, right_x_left, y)
         x_match = x - left_disparity
-        match_disparity, _, _ = _nearest_surface(scene, _seen_from_right(scene, x_match, y), y)
+        match_disparity, _, _ = _nearest_surface(scene, x_match, y, "right")
         occluded = (match_disparity > left_disparity + _OCCLUSION_TOLERANCE) | (x_match < 0)
         return SyntheticBatch(
             left=left,
@@ -373,19 +380,34 @@ def _seen_from_right(scene: Scene, x_right: torch.Tensor, y: torch.Tensor) -> to
 
 
 def _nearest_surface(
-    scene: Scene, x_left: torch.Tensor, y: torch.Tensor
+    scene: Scene, x: torch.Tensor, y: torch.Tensor, view: str
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The nearest surface at each query point.
+    """The nearest surface at each query point of one view (z-buffer: the largest disparity wins).
 
-    x_left: (B, S, H, W) or broadcastable, the left-view x of each surface's candidate point, px.
+    x: query x in the ``view`` ("left" or "right") image, px, broadcastable to (B, 1, H, W).
     y: (1, 1, H, 1) rows, px.
-    Returns the winner's disparity (B, 1, H, W) px, its index (B, 1, H, W) int64 and its x_left.
+    Returns the winner's disparity (B, 1, H, W) px, its index (B, 1, H, W) int64, and the left-view
+    x of the winner's point (B, 1, H, W) px. Surfaces are processed a few at a time, which bounds
+    memory; ties go to the lowest index.
     """
-    a, b, c = (part[..., None, None] for part in scene.plane.unbind(-1))
-    disparity = a * x_left + (b * y + c)
-    covered = _covers(scene, x_left, y)
-    nearest, index = torch.where(covered, disparity, -math.inf).max(dim=1, keepdim=True)
-    return nearest, index, torch.gather(x_left.expand_as(disparity), 1, index)
+    surfaces = scene.sides.shape[1]
+    chunk = math.ceil(surfaces / math.ceil(surfaces / _SURFACES_PER_PASS))
+    nearest = index = x_nearest = None
+    for first in range(0, surfaces, chunk):
+        part = scene.surfaces(slice(first, first + chunk))
+        x_left = x if view == "left" else _seen_from_right(part, x, y)
+        a, b, c = (value[..., None, None] for value in part.plane.unbind(-1))
+        disparity = torch.where(_covers(part, x_left, y), a * x_left + (b * y + c), -math.inf)
+        part_nearest, part_index = disparity.max(dim=1, keepdim=True)
+        part_x = torch.gather(x_left.expand_as(disparity), 1, part_index)
+        if nearest is None:
+            nearest, index, x_nearest = part_nearest, part_index + first, part_x
+        else:
+            nearer = part_nearest > nearest
+            nearest = torch.where(nearer, part_nearest, nearest)
+            index = torch.where(nearer, part_index + first, index)
+            x_nearest = torch.where(nearer, part_x, x_nearest)
+    return nearest, index, x_nearest
 
 
 def _covers(scene: Scene, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
