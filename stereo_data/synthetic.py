@@ -146,9 +146,8 @@ class Scene:
 
     def surfaces(self, part: slice) -> Scene:
         """The same scenes with only the surfaces ``part`` (sharing the texture bank)."""
-        return Scene(
-            **{name: value if name == "textures" else value[:, part] for name, value in vars(self).items()}
-        )
+        fields = vars(self).items()
+        return Scene(**{name: v if name == "textures" else v[:, part] for name, v in fields})
 
 
 @dataclass
