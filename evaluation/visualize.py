@@ -53,7 +53,7 @@ def disparity_panels(
     error = np.where(valid & np.isfinite(ground_truth), np.abs(prediction - ground_truth), np.inf)
     return [
         Panel(f"{name} disparity", colorize(prediction, 0.0, disparity_max)),
-        Panel(f"{name} |error| 0-{ERROR_SCALE_PX:g} px", colorize(error, 0.0, ERROR_SCALE_PX, cv2.COLORMAP_INFERNO)),
+        Panel(f"{name} |error| 0-{ERROR_SCALE_PX:g} px", colorize(error, 0.0, ERROR_SCALE_PX, cv2.COLORMAP_PLASMA)),
     ]
 
 
