@@ -19,7 +19,7 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         description=(
             "Evaluate on every pair of DATA_DIR (Middlebury 2014, ETH3D, KITTI 2012/2015, SceneFlow "
             "or NAME/{left.png,right.png,disp.pfm}). bad-N: percent of valid ground-truth pixels "
-            "with |error| > N px; D1-all: error > 3 px and > 5 %% of the true disparity."
+            "with |error| > N px; D1-all: error > 3 px and > 5 % of the true disparity."
         ),
     )
     parser.add_argument("data_dir", type=Path, metavar="DATA_DIR")

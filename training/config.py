@@ -55,7 +55,7 @@ class TrainConfig:
     model: Literal["lite", "full"] = _knob("lite", "network preset to train")
     sources: tuple[DataSource, ...] = _knob(
         (DataSource(SYNTHETIC),),
-        "a training source (repeat for a mixture); PATH 'synthetic' is the procedural generator",
+        "a training source (repeat for a mixture; replaces the default); PATH 'synthetic' is the procedural generator",
         metavar="PATH[=WEIGHT]",
     )
     crop_height: int = _knob(384, "training crop height in pixels (multiple of 32)")
