@@ -64,10 +64,15 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     parser.set_defaults(run=run)
 
 
+def is_single_pair(left: str, right: str) -> bool:
+    """True when LEFT and RIGHT name two image files (then OUT names a file, not a folder)."""
+    return Path(left).is_file() and Path(right).is_file()
+
+
 def find_pairs(left: str, right: str) -> list[PairPaths]:
     """Pairs named by LEFT and RIGHT: two files, two folders (matched by file name), or two globs
     (matched in sorted order). Stems are relative to the folder holding all left images."""
-    if Path(left).is_file() and Path(right).is_file():
+    if is_single_pair(left, right):
         return [PairPaths(Path(left), Path(right), Path(Path(left).stem))]
     if Path(left).is_dir() and Path(right).is_dir():
         lefts = {p.name: p for p in Path(left).iterdir() if p.suffix.lower() in IMAGE_SUFFIXES}
@@ -116,7 +121,7 @@ def write_uncertainty(path: Path, uncertainty: np.ndarray) -> None:
 
 def run(args: argparse.Namespace) -> int:
     pairs = find_pairs(args.left, args.right)
-    single = Path(args.left).is_file()
+    single = is_single_pair(args.left, args.right)
     predictor = load_model(args.model, args.weights, resolve_device(args.device, 0))
     for pair in tqdm(pairs, desc=f"predict {args.model}", unit="pair", disable=single):
         prediction = predictor.predict(
