@@ -112,7 +112,7 @@ class JobResult:
 @dataclass(eq=False)
 class _Job:
     key: BatchKey
-    left: np.ndarray  # float32 HxWx3 RGB in [0, 255]
+    left: np.ndarray  # uint8 HxWx3 RGB
     right: np.ndarray
     deadline: float | None  # time.monotonic() by which the answer is due
     is_disconnected: Callable[[], Awaitable[bool]]
@@ -134,7 +134,7 @@ class Admission:
     async def run(self, left: np.ndarray, right: np.ndarray, *, two_pass: bool,
                   deadline: float | None, is_disconnected: Callable[[], Awaitable[bool]],
                   request_id: str | None = None) -> JobResult:
-        """Queue a decoded pair (float32 HxWx3 RGB in [0, 255]) and wait for its result."""
+        """Queue a decoded pair (uint8 HxWx3 RGB) and wait for its result."""
         height, width = left.shape[:2]
         job = _Job(batch_key(self.model, two_pass, height, width), left, right, deadline,
                    is_disconnected, request_id)
@@ -370,7 +370,7 @@ def compute_batch(predictor: Predictor, key: BatchKey, lefts: Sequence[np.ndarra
 
 
 def _to_batch_tensor(images: Sequence[np.ndarray], key: BatchKey) -> torch.Tensor:
-    """Bx3xHxW float32 tensor of HxWx3 images, each replicate-padded at the bottom and right."""
+    """Bx3xHxW uint8 tensor of HxWx3 images, each replicate-padded at the bottom and right."""
     padded = [np.pad(image, ((0, key.height - image.shape[0]), (0, key.width - image.shape[1]),
                              (0, 0)), mode="edge") for image in images]
     return torch.from_numpy(np.stack(padded)).permute(0, 3, 1, 2).contiguous()

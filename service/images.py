@@ -9,8 +9,9 @@ from __future__ import annotations
 import struct
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
+
+from stereo_data.formats import FormatError, decode_image
 
 
 class ImageError(ValueError):
@@ -52,32 +53,19 @@ def read_header(data: bytes) -> ImageHeader:
 
 
 def decode_rgb(data: bytes, header: ImageHeader) -> np.ndarray:
-    """Decode to float32 HxWx3 RGB in [0, 255]; 16-bit samples are scaled by 255/65535, grayscale
-    is repeated over the three channels and alpha is dropped. EXIF orientation is ignored: a
-    rectified pair must stay as captured."""
-    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
-    if image is None:
-        raise ImageError(f"cannot decode the {header.format} data", unsupported=False)
+    """Decode to uint8 HxWx3 RGB with the project's decoder (`stereo_data.formats.decode_image`:
+    16-bit scaled to 8, grayscale repeated, alpha dropped, EXIF orientation ignored), checking
+    that the pixels have the size the header announced."""
+    try:
+        image = decode_image(data)
+    except FormatError as exc:
+        raise ImageError(f"cannot decode the {header.format} data ({exc})", unsupported=False) \
+            from None
     if image.shape[:2] != (header.height, header.width):
         raise ImageError(
             f"decoded size {image.shape[1]}x{image.shape[0]} differs from the header's "
             f"{header.width}x{header.height}", unsupported=False)
-    if image.dtype == np.uint8:
-        scale = 1.0
-    elif image.dtype == np.uint16:
-        scale = 255.0 / 65535.0
-    else:
-        raise ImageError(f"{image.dtype} samples are not supported; send 8- or 16-bit images",
-                         unsupported=True)
-    if image.ndim == 2:
-        rgb = cv2.cvtColor(image, cv2.COLOR_GRAY2RGB)
-    elif image.shape[2] == 3:
-        rgb = cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
-    elif image.shape[2] == 4:
-        rgb = cv2.cvtColor(image, cv2.COLOR_BGRA2RGB)
-    else:
-        raise ImageError(f"{image.shape[2]}-channel images are not supported", unsupported=True)
-    return rgb.astype(np.float32) * np.float32(scale)
+    return image
 
 
 def _png_header(data: bytes) -> ImageHeader:

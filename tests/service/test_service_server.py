@@ -1,0 +1,147 @@
+"""The service as deployed: a real uvicorn process on a free loopback port."""
+
+from __future__ import annotations
+
+import base64
+import json
+import signal
+import time
+from concurrent.futures import ThreadPoolExecutor
+
+import cv2
+import httpx
+import numpy as np
+import pytest
+
+from stereo_data.formats import read_image, read_pfm
+from service_helpers import (
+    STEREO_DEV,
+    Server,
+    encode,
+    metric_total,
+    pair_files,
+    quiet_load_model,
+    run_uvicorn,
+    stereo_pair,
+)
+
+REAL_PAIR = STEREO_DEV / "middlebury2003_teddy"
+SCALE = 4  # the real pair is downscaled by this factor to keep the test fast on a small CPU
+
+
+def disparity_of(response: httpx.Response) -> np.ndarray:
+    payload = response.json()["disparity"]
+    return np.frombuffer(base64.b64decode(payload["data"]), "<f4").reshape(payload["shape"])
+
+
+def post_concurrently(server: Server, pairs: list[dict], concurrency: int) -> list[httpx.Response]:
+    limits = httpx.Limits(max_connections=concurrency)
+    with httpx.Client(base_url=server.base_url, timeout=120, limits=limits) as client, \
+            ThreadPoolExecutor(concurrency) as pool:
+        return list(pool.map(lambda files: client.post("/disparity", files=files), pairs))
+
+
+def metrics(server: Server) -> str:
+    return httpx.get(server.base_url + "/metrics").text
+
+
+@pytest.mark.skipif(not REAL_PAIR.is_dir(), reason=f"real stereo pair not found at {REAL_PAIR}")
+def test_a_real_pair_over_http_gives_the_library_result_at_the_image_size(default_server):
+    left, right = (read_image(REAL_PAIR / name) for name in ("left.png", "right.png"))
+    height, width = left.shape[0] // SCALE, left.shape[1] // SCALE
+    left, right = (cv2.resize(image, (width, height), interpolation=cv2.INTER_AREA)
+                   for image in (left, right))
+    response = httpx.post(default_server.base_url + "/disparity", files=pair_files(left, right),
+                          timeout=120)
+    assert response.status_code == 200, response.text
+    disparity = disparity_of(response)
+    assert disparity.shape == (height, width)
+    assert np.isfinite(disparity).all() and disparity.min() >= 0
+    direct = quiet_load_model("lite").predict(left, right)
+    np.testing.assert_allclose(disparity, direct.disparity, rtol=1e-4, atol=1e-3)
+    if response.json()["weights"] != "random-init":  # trained weights: better than no disparity
+        truth = cv2.resize(read_pfm(REAL_PAIR / "disp.pfm"), (width, height),
+                           interpolation=cv2.INTER_NEAREST) / SCALE
+        valid = np.isfinite(truth)
+        assert np.abs(disparity - truth)[valid].mean() < np.abs(truth)[valid].mean()
+
+
+def test_eight_concurrent_requests_run_in_batches_and_match_the_single_result(default_server):
+    left, right = stereo_pair()
+    single = httpx.post(default_server.base_url + "/disparity", files=pair_files(left, right),
+                        timeout=120)
+    before = metrics(default_server)
+    responses = post_concurrently(default_server, [pair_files(left, right)] * 8, concurrency=8)
+    after = metrics(default_server)
+    assert single.status_code == 200 and single.json()["batch_size"] == 1
+    assert [r.status_code for r in responses] == [200] * 8
+    batch_sizes = [r.json()["batch_size"] for r in responses]
+    assert max(batch_sizes) > 1
+    for response in responses:
+        np.testing.assert_allclose(disparity_of(response), disparity_of(single),
+                                   rtol=1e-4, atol=1e-3)
+    batches = (metric_total(after, "crestereo_batch_size_count")
+               - metric_total(before, "crestereo_batch_size_count"))
+    batched_requests = (metric_total(after, "crestereo_batch_size_sum")
+                        - metric_total(before, "crestereo_batch_size_sum"))
+    assert batched_requests == 8 and batches < 8
+
+
+def test_a_full_queue_answers_503_with_retry_after_over_http(tmp_path):
+    pair = pair_files(*stereo_pair(96, 128))
+    with run_uvicorn(tmp_path, max_queue="1", max_batch_size="1") as server:
+        responses = post_concurrently(server, [pair] * 8, concurrency=8)
+        exposition = metrics(server)
+    statuses = sorted(r.status_code for r in responses)
+    assert set(statuses) == {200, 503} and statuses.count(200) >= 2
+    for response in responses:
+        if response.status_code == 503:
+            assert response.json()["error"]["code"] == "queue_full"
+            assert int(response.headers["retry-after"]) >= 1
+    assert metric_total(exposition, "crestereo_rejected_total", reason="queue_full") == \
+        statuses.count(503)
+
+
+def test_sigterm_drains_the_queue_without_losing_a_request(tmp_path):
+    pair = pair_files(*stereo_pair(96, 128))
+    with run_uvicorn(tmp_path, max_batch_size="1") as server, ThreadPoolExecutor(8) as pool:
+        with httpx.Client(base_url=server.base_url, timeout=120) as client:
+            futures = [pool.submit(client.post, "/disparity", files=pair) for _ in range(8)]
+            deadline = time.monotonic() + 60
+            while True:  # until the server has admitted all eight (dispatched + still queued)
+                exposition = metrics(server)
+                queued = metric_total(exposition, "crestereo_queue_depth", model="lite")
+                admitted = metric_total(exposition, "crestereo_queue_wait_seconds_count") + queued
+                if admitted == 8:
+                    break
+                assert time.monotonic() < deadline, exposition
+                time.sleep(0.005)
+            server.process.send_signal(signal.SIGTERM)
+            responses = [future.result() for future in futures]
+            exit_code = server.process.wait(timeout=60)
+            with pytest.raises(httpx.TransportError):
+                client.get("/health/ready")
+    assert queued >= 1, "the queue was empty at SIGTERM: nothing was drained"
+    assert [r.status_code for r in responses] == [200] * 8
+    assert exit_code in (0, -signal.SIGTERM)
+    logged = [json.loads(line) for line in server.log().splitlines() if line.startswith("{")]
+    assert any(line["message"] == "draining" for line in logged)
+
+
+def test_a_load_of_hundreds_of_requests_is_all_answered_and_memory_settles(default_server):
+    pair = pair_files(*stereo_pair(32, 32))
+
+    def resident_mib() -> float:
+        return metric_total(metrics(default_server), "process_resident_memory_bytes") / 2**20
+
+    rounds = []
+    for _ in range(3):
+        responses = post_concurrently(default_server, [pair] * 80, concurrency=16)
+        rounds.append((sorted({r.status_code for r in responses}), resident_mib()))
+    for statuses, _ in rounds:
+        assert set(statuses) <= {200, 503}
+    for response in responses:
+        if response.status_code == 503:
+            assert response.json()["error"]["code"] == "queue_full"
+    (_, warm), (_, middle), (_, final) = rounds
+    assert final - middle < 32, f"resident memory grew: {warm:.0f} -> {middle:.0f} -> {final:.0f} MiB"

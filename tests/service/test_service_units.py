@@ -1,0 +1,157 @@
+"""Settings, CPU quota, image headers and decoding, result encodings."""
+
+from __future__ import annotations
+
+import os
+import re
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from pydantic import ValidationError
+
+from service.cpu import cgroup_cpu_quota, usable_cpus
+from service.encoding import depth_from_disparity, encode_png16, encode_preview
+from service.images import ImageError, decode_rgb, read_header
+from service.settings import Settings
+from service_helpers import REPO, encode, stereo_pair
+
+# --- settings ----------------------------------------------------------------------------------
+
+
+def test_settings_default_to_serving_both_models_without_an_api_key():
+    settings = Settings.from_env({})
+    assert settings.models == ("lite", "full")
+    assert settings.api_key is None and settings.weights == {}
+
+
+def test_settings_come_from_crestereo_environment_variables():
+    settings = Settings.from_env({
+        "CRESTEREO_MODELS": "lite", "CRESTEREO_MAX_BATCH_SIZE": "4",
+        "CRESTEREO_WEIGHTS": "lite=/w/lite.pt, full=/w/full.pt", "CRESTEREO_API_KEY": "k",
+        "CRESTEREO_MAX_WAIT_MS": "2.5", "OTHER_MAX_BATCH_SIZE": "99"})
+    assert settings.models == ("lite",) and settings.max_batch_size == 4
+    assert settings.weights == {"lite": Path("/w/lite.pt"), "full": Path("/w/full.pt")}
+    assert settings.api_key == "k" and settings.max_wait_ms == 2.5
+
+
+@pytest.mark.parametrize("environ", [
+    {"CRESTEREO_MODELS": "lite,huge"}, {"CRESTEREO_MAX_BATCH_SIZE": "0"},
+    {"CRESTEREO_WEIGHTS": "lite"}, {"CRESTEREO_MODELS": ""}])
+def test_invalid_settings_stop_the_service_from_starting(environ):
+    with pytest.raises(ValidationError):
+        Settings.from_env(environ)
+
+
+def test_readme_documents_every_setting_with_its_default():
+    readme = (REPO / "service" / "README.md").read_text()
+    rows = dict(re.findall(r"^\| `(CRESTEREO_[A-Z_]+)` \| ([^|]+) \|", readme, re.MULTILINE))
+    defaults = Settings()
+    expected = {"CRESTEREO_" + name.upper(): documented_default(getattr(defaults, name))
+                for name in Settings.model_fields}
+    assert {name: cell.strip() for name, cell in rows.items()} == expected
+
+
+def documented_default(value: object) -> str:
+    if value is None or value == {}:
+        return "(none)"
+    if isinstance(value, tuple):
+        return "`" + ",".join(value) + "`"
+    if isinstance(value, float) and value.is_integer():
+        return f"`{int(value)}`"
+    return f"`{value}`"
+
+
+# --- CPU quota ---------------------------------------------------------------------------------
+
+
+def test_cpu_quota_is_read_from_cgroup_v2(tmp_path):
+    (tmp_path / "cpu.max").write_text("250000 100000\n")
+    assert cgroup_cpu_quota(tmp_path) == 2.5
+    (tmp_path / "cpu.max").write_text("max 100000\n")
+    assert cgroup_cpu_quota(tmp_path) is None
+
+
+def test_cpu_quota_is_read_from_cgroup_v1(tmp_path):
+    (tmp_path / "cpu").mkdir()
+    (tmp_path / "cpu" / "cpu.cfs_period_us").write_text("100000\n")
+    (tmp_path / "cpu" / "cpu.cfs_quota_us").write_text("150000\n")
+    assert cgroup_cpu_quota(tmp_path) == 1.5
+    (tmp_path / "cpu" / "cpu.cfs_quota_us").write_text("-1\n")
+    assert cgroup_cpu_quota(tmp_path) is None
+
+
+def test_usable_cpus_round_the_quota_down_and_fall_back_to_the_cores(tmp_path):
+    cores = len(os.sched_getaffinity(0))
+    assert usable_cpus(tmp_path) == cores  # no cgroup files: the cores we may run on
+    (tmp_path / "cpu.max").write_text("50000 100000\n")
+    assert usable_cpus(tmp_path) == 1
+    (tmp_path / "cpu.max").write_text(f"{(cores + 8) * 100000} 100000\n")
+    assert usable_cpus(tmp_path) == cores
+
+
+# --- images ------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("ext", [".png", ".jpg", ".bmp", ".tiff"])
+def test_header_gives_format_and_size_of_every_supported_format(ext):
+    left, _ = stereo_pair(40, 72)
+    header = read_header(encode(left, ext))
+    assert (header.width, header.height) == (72, 40)
+    assert header.format == {".png": "PNG", ".jpg": "JPEG", ".bmp": "BMP", ".tiff": "TIFF"}[ext]
+
+
+@pytest.mark.parametrize(("image", "expected"), [
+    (np.full((40, 72), 200, np.uint8), 200),                       # grayscale, 8-bit
+    (np.full((40, 72, 3), 65535, np.uint16), 255),                 # colour, 16-bit
+    (np.dstack([np.full((40, 72, 3), 10, np.uint8), np.zeros((40, 72), np.uint8)]), 10),  # alpha
+])
+def test_decoding_gives_8_bit_rgb(image, expected):
+    data = cv2.imencode(".png", image)[1].tobytes()
+    rgb = decode_rgb(data, read_header(data))
+    assert rgb.shape == (40, 72, 3) and rgb.dtype == np.uint8
+    assert (rgb == expected).all()
+
+
+def test_decoding_keeps_rgb_channel_order():
+    image = np.zeros((40, 72, 3), np.uint8)
+    image[..., 0] = 255  # red
+    data = encode(image)
+    assert decode_rgb(data, read_header(data))[0, 0].tolist() == [255, 0, 0]
+
+
+def test_unknown_and_truncated_files_are_told_apart():
+    with pytest.raises(ImageError) as unknown:
+        read_header(b"GIF89a....")
+    with pytest.raises(ImageError) as truncated:
+        read_header(b"\x89PNG\r\n\x1a\n\x00\x00")
+    assert unknown.value.unsupported and not truncated.value.unsupported
+
+
+# --- encodings ---------------------------------------------------------------------------------
+
+
+def test_depth_is_focal_times_baseline_over_disparity_and_inf_where_disparity_is_not_positive():
+    depth = depth_from_disparity(np.array([[10.0, 0.0, -1.0]], np.float32), 700.0, 0.5)
+    assert depth.dtype == np.float32
+    assert depth.tolist() == [[35.0, np.inf, np.inf]]
+
+
+def test_png16_scales_values_and_marks_invalid_pixels_zero():
+    values = np.array([[1.5, 0.0, np.inf, 1000.0, 1e-4]], np.float32)
+    decoded = cv2.imdecode(np.frombuffer(encode_png16(values, 256.0), np.uint8),
+                           cv2.IMREAD_UNCHANGED)
+    assert decoded.dtype == np.uint16
+    assert decoded.tolist() == [[384, 0, 0, 65535, 1]]  # valid values never round to 0
+
+
+def test_preview_puts_disparity_left_of_uncertainty_on_fixed_scales():
+    disparity = np.array([[0.0, 192.0, 400.0]], np.float32)
+    uncertainty = np.array([[0.0, 1.0, 0.5]], np.float32)
+    preview = cv2.imdecode(np.frombuffer(encode_preview(disparity, uncertainty), np.uint8),
+                           cv2.IMREAD_COLOR)
+    assert preview.shape == (1, 6, 3)
+    assert (preview[0, 1] == preview[0, 2]).all()  # disparity clipped at 192 px
+    turbo = cv2.applyColorMap(np.array([[0, 255]], np.uint8), cv2.COLORMAP_TURBO)
+    assert (preview[0, :2] == turbo[0]).all()
