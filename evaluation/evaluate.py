@@ -153,7 +153,9 @@ def evaluation_sheet(
     rows = [
         [
             Panel(f"{sample.name} left", sample.left),
-            Panel(f"ground truth 0-{disparity_max:.0f} px (black: unknown)", colorize(ground_truth, 0.0, disparity_max)),
+            Panel(
+                f"ground truth 0-{disparity_max:.0f} px (black: unknown)", colorize(ground_truth, 0.0, disparity_max)
+            ),
             Panel("uncertainty 0-1", colorize(uncertainty, 0.0, 1.0, cv2.COLORMAP_VIRIDIS)),
         ]
     ]
