@@ -290,6 +290,7 @@ async def test_after_the_drain_timeout_queued_requests_get_503():
 
 
 async def test_the_worker_runs_torch_with_the_configured_threads():
+    process_threads = torch.get_num_threads()  # the app sets them process-wide: restore after
     async with serve_asgi(lite_settings(threads=1)) as h:
         seen: list[int] = []
         inner_predict = h.predictors["lite"]._inner.predict
@@ -301,5 +302,6 @@ async def test_the_worker_runs_torch_with_the_configured_threads():
         h.predictors["lite"]._inner.predict = recording_predict
         response = await h.client.post("/disparity", files=pair_files(*stereo_pair()))
         health = (await h.client.get("/health")).json()
+    torch.set_num_threads(process_threads)
     assert response.status_code == 200
     assert seen == [1] and health["batching"]["torch_threads"] == 1

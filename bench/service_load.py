@@ -1,0 +1,177 @@
+"""Load benchmark of the HTTP service: throughput and latency, dynamic batching on versus off.
+
+    python bench/service_load.py [--sizes 256x512 384x1248] [--concurrency 1 4 16]
+                                 [--requests 12] [--max-batch-size 8] [--threads 0]
+
+Starts `uvicorn service.app:create_app --factory` on a free loopback port twice, lite model only:
+batching on (`CRESTEREO_MAX_BATCH_SIZE=--max-batch-size`) and off (`=1`), otherwise the service's
+defaults (`--threads` sets `CRESTEREO_THREADS`; 0 = the CPU quota). For each image size and
+concurrency C, after two warm-up requests, C client threads send max(--requests, 2 C) requests in
+all, back to back; the table gives requests/s, client-side p50/p95/p99 latency and the mean batch
+size the server reported (`X-Batch-Size`). Inputs are random smooth textures whose right view is
+the left shifted by 8 px; answers are requested as npz (binary, cheap to encode and parse).
+It ends with the issue's two goals: at 256x512 and concurrency 16, batching gives >= 1.3x the
+throughput of no batching; at concurrency 1, the batching server's p50 is within 10 % of the
+unbatched one. Client and server share the machine: read the numbers with that in mind.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import socket
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import httpx
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@dataclass(frozen=True)
+class Cell:
+    batching: bool
+    size: tuple[int, int]
+    concurrency: int
+    requests: int
+    seconds: float
+    latencies_ms: list[float]
+    batch_sizes: list[int]
+
+    @property
+    def throughput(self) -> float:
+        return self.requests / self.seconds
+
+    def percentile(self, q: float) -> float:
+        return float(np.percentile(self.latencies_ms, q))
+
+
+def stereo_pair_files(height: int, width: int, shift: int = 8) -> dict[str, tuple[str, bytes]]:
+    rng = np.random.default_rng(0)
+    coarse = rng.integers(0, 256, (height // 8 + 1, (width + shift) // 8 + 1, 3), dtype=np.uint8)
+    texture = cv2.resize(coarse, (width + shift, height), interpolation=cv2.INTER_CUBIC)
+    left, right = texture[:, shift:], texture[:, :width]
+    return {name: (f"{name}.png", cv2.imencode(".png", image)[1].tobytes())
+            for name, image in (("left", left), ("right", right))}
+
+
+def free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+def start_server(max_batch_size: int, threads: int, log_dir: Path) -> tuple[subprocess.Popen, str]:
+    port = free_port()
+    env = {**os.environ, "CRESTEREO_MODELS": "lite", "CRESTEREO_MAX_BATCH_SIZE": str(max_batch_size),
+           "CRESTEREO_THREADS": str(threads), "CRESTEREO_LOG_LEVEL": "warning",
+           "PYTHONWARNINGS": "ignore::RuntimeWarning"}
+    log = (log_dir / f"uvicorn-batch{max_batch_size}.log").open("wb")
+    process = subprocess.Popen(
+        [sys.executable, "-m", "uvicorn", "service.app:create_app", "--factory",
+         "--host", "127.0.0.1", "--port", str(port), "--log-level", "warning"],
+        cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT)
+    base_url = f"http://127.0.0.1:{port}"
+    deadline = time.monotonic() + 120
+    while True:
+        if process.poll() is not None or time.monotonic() > deadline:
+            process.kill()
+            raise RuntimeError(f"uvicorn did not become ready; see {log.name}")
+        try:
+            if httpx.get(base_url + "/health/ready").status_code == 200:
+                return process, base_url
+        except httpx.TransportError:
+            pass
+        time.sleep(0.2)
+
+
+def run_cell(base_url: str, files: dict, concurrency: int, requests: int) -> tuple[float, list[float], list[int]]:
+    """Send `requests` requests from `concurrency` threads; wall seconds, latencies, batch sizes."""
+    limits = httpx.Limits(max_connections=concurrency)
+    with httpx.Client(base_url=base_url, timeout=600, limits=limits) as client:
+        def one(_: int) -> tuple[float, int]:
+            started = time.perf_counter()
+            response = client.post("/disparity", params={"format": "npz"}, files=files)
+            response.raise_for_status()
+            return (time.perf_counter() - started) * 1000, int(response.headers["x-batch-size"])
+
+        started = time.perf_counter()
+        with ThreadPoolExecutor(concurrency) as pool:
+            results = list(pool.map(one, range(requests)))
+        seconds = time.perf_counter() - started
+    return seconds, [latency for latency, _ in results], [batch for _, batch in results]
+
+
+def measure(batching: bool, args: argparse.Namespace, log_dir: Path) -> list[Cell]:
+    process, base_url = start_server(args.max_batch_size if batching else 1, args.threads, log_dir)
+    cells = []
+    try:
+        for height, width in args.sizes:
+            files = stereo_pair_files(height, width)
+            run_cell(base_url, files, 1, 2)  # warm-up
+            for concurrency in args.concurrency:
+                requests = max(args.requests, 2 * concurrency)
+                seconds, latencies, batches = run_cell(base_url, files, concurrency, requests)
+                cell = Cell(batching, (height, width), concurrency, requests, seconds, latencies,
+                            batches)
+                cells.append(cell)
+                print(row(cell), flush=True)
+    finally:
+        process.terminate()
+        process.wait(timeout=60)
+    return cells
+
+
+def row(cell: Cell) -> str:
+    height, width = cell.size
+    return (f"| {'on' if cell.batching else 'off'} | {height}x{width} | {cell.concurrency} | "
+            f"{cell.requests} | {cell.throughput:.2f} | {cell.percentile(50):.0f} | "
+            f"{cell.percentile(95):.0f} | {cell.percentile(99):.0f} | "
+            f"{statistics.mean(cell.batch_sizes):.2f} |")
+
+
+def parse_size(text: str) -> tuple[int, int]:
+    height, width = text.lower().split("x")
+    return int(height), int(width)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--sizes", nargs="+", type=parse_size, default=[(256, 512), (384, 1248)],
+                        help="HEIGHTxWIDTH image sizes")
+    parser.add_argument("--concurrency", nargs="+", type=int, default=[1, 4, 16])
+    parser.add_argument("--requests", type=int, default=12,
+                        help="requests per cell (at least 2 x concurrency)")
+    parser.add_argument("--max-batch-size", type=int, default=8, help="with batching on")
+    parser.add_argument("--threads", type=int, default=0, help="CRESTEREO_THREADS (0 = CPU quota)")
+    args = parser.parse_args()
+
+    print(f"lite model; server and client on this machine ({os.cpu_count()} CPUs); latency in ms")
+    print("| batching | size | concurrency | requests | req/s | p50 | p95 | p99 | mean batch |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    with tempfile.TemporaryDirectory() as log_dir:
+        cells = {(c.batching, c.size, c.concurrency): c
+                 for batching in (True, False) for c in measure(batching, args, Path(log_dir))}
+
+    key = (256, 512)
+    if key in args.sizes and 16 in args.concurrency:
+        gain = cells[True, key, 16].throughput / cells[False, key, 16].throughput
+        print(f"\n256x512, concurrency 16: batching throughput = {gain:.2f}x no batching "
+              f"(goal >= 1.3x: {'met' if gain >= 1.3 else 'NOT met'})")
+    for size in args.sizes:
+        if 1 in args.concurrency:
+            ratio = cells[True, size, 1].percentile(50) / cells[False, size, 1].percentile(50)
+            print(f"{size[0]}x{size[1]}, concurrency 1: batching p50 = {ratio:.2f}x no batching "
+                  f"(goal <= 1.10x: {'met' if ratio <= 1.10 else 'NOT met'})")
+
+
+if __name__ == "__main__":
+    main()
