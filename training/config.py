@@ -76,6 +76,9 @@ class TrainConfig:
     )
     warmup_fraction: float = _knob(0.01, "fraction of the schedule spent warming the lr up linearly from 0")
     gamma: float = _knob(0.8, "sequence-loss decay: prediction i of n has weight gamma^(n-i)")
+    train_iters: tuple[int, int, int] | None = _knob(
+        None, "ARM iterations at 1/16, 1/8, 1/4 in training (fewer = faster steps) [the model's own]"
+    )
     loss_max_disparity: float = _knob(512.0, "ground truth at or above this (px) is ignored by the loss")
     grad_clip: float = _knob(1.0, "clip the gradient norm to this (0: no clipping)")
     max_steps: int = _knob(150_000, "train until this optimiser step (counted across resumes)")
@@ -125,8 +128,8 @@ class TrainConfig:
         converted = dict(values)
         if "sources" in converted:
             converted["sources"] = tuple(DataSource(**s) for s in converted["sources"])
-        for name in ("real_scale_range", "betas"):
-            if name in converted:
+        for name in ("real_scale_range", "betas", "train_iters"):
+            if converted.get(name) is not None:
                 converted[name] = tuple(converted[name])
         return cls(**converted)
 

@@ -197,7 +197,7 @@ class Trainer:
         """One optimiser step on `batch`; returns (loss, train EPE in px), detached, on the device."""
         config = self.config
         with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.use_bf16):
-            output = self.model(batch.left, batch.right)
+            output = self.model(batch.left, batch.right, iters=config.train_iters)
         predictions = [[p.float() for p in stage] for stage in output.predictions]
         loss = sequence_loss(predictions, batch.disparity, batch.valid, config.gamma, config.loss_max_disparity)
         self.optimizer.zero_grad(set_to_none=True)
