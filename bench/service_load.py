@@ -93,7 +93,8 @@ def start_server(max_batch_size: int, threads: int, log_dir: Path) -> tuple[subp
         time.sleep(0.2)
 
 
-def run_cell(base_url: str, files: dict, concurrency: int, requests: int) -> tuple[float, list[float], list[int]]:
+def run_cell(base_url: str, files: dict, concurrency: int,
+             requests: int) -> tuple[float, list[float], list[int]]:
     """Send `requests` requests from `concurrency` threads; wall seconds, latencies, batch sizes."""
     limits = httpx.Limits(max_connections=concurrency)
     with httpx.Client(base_url=base_url, timeout=600, limits=limits) as client:

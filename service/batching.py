@@ -15,6 +15,7 @@ only the batch it happened in.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import math
 import time
@@ -237,9 +238,13 @@ class Batcher:
     # --- scheduler --------------------------------------------------------------------------
 
     async def _schedule(self) -> None:
-        while True:
-            batch = await self._next_batch()
-            await self._execute(batch)
+        try:
+            while True:
+                batch = await self._next_batch()
+                await self._execute(batch)
+        except Exception:  # a bug: liveness turns 503 (see `is_running`) so the process restarts
+            logger.exception("batch scheduler stopped")
+            raise
 
     async def _next_batch(self) -> list[_Job]:
         while True:
@@ -249,10 +254,8 @@ class Batcher:
                 if await self._drop_unservable(batch):
                     continue  # the batch changed: choose again, with the requests still here
                 return batch
-            try:
+            with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(self._changed.wait(), wait_s)
-            except TimeoutError:
-                pass
 
     def _choose(self, now: float) -> tuple[list[_Job], float | None]:
         """The batch to run now, or none and how long to wait (None: until something changes)."""

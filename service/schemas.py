@@ -79,6 +79,16 @@ class Timings(BaseModel):
 class DisparityResponse(BaseModel):
     """Body of a `format=json` answer; the same facts come as `X-*` headers in every format."""
 
+    model_config = ConfigDict(json_schema_extra={"examples": [{
+        "model": "lite", "weights": "9f2c4e1a7b3d5c60",
+        "image_size": {"width": 2, "height": 1}, "batch_size": 3,
+        "timings": {"queue_ms": 12.5, "compute_ms": 481.3},
+        "disparity": {"dtype": "float32", "byte_order": "little", "shape": [1, 2],
+                      "data": "AAAgQQAAJEE="},
+        "uncertainty": {"dtype": "float32", "byte_order": "little", "shape": [1, 2],
+                        "data": "zczMPc3MTD4="},
+        "depth": None}]})
+
     model: ModelName
     weights: str = Field(description="First 16 hex digits of the weights' sha256, or `random-init`.")
     image_size: ImageSize
@@ -119,6 +129,14 @@ class BatchingConfig(BaseModel):
 
 
 class HealthResponse(BaseModel):
+    model_config = ConfigDict(json_schema_extra={"examples": [{
+        "status": "ready",
+        "models": {"lite": {"loaded": True, "parameters": 629624, "weights": "9f2c4e1a7b3d5c60"},
+                   "full": {"loaded": True, "parameters": 5442712, "weights": "random-init"}},
+        "queue_depth": {"lite": 3, "full": 0},
+        "batching": {"max_batch_size": 8, "max_batch_pixels": 131072, "max_wait_ms": 10.0,
+                     "max_queue": 32, "torch_threads": 2}}]})
+
     status: ServiceState
     models: dict[str, ModelStatus]
     queue_depth: dict[str, int] = Field(
@@ -127,4 +145,6 @@ class HealthResponse(BaseModel):
 
 
 class ProbeResponse(BaseModel):
-    status: str
+    model_config = ConfigDict(json_schema_extra={"examples": [{"status": "ready"}]})
+
+    status: str = Field(description="`alive` / `dead` (liveness); the service state (readiness).")

@@ -38,8 +38,9 @@ class Settings(BaseModel):
     )
     max_batch_size: int = Field(8, ge=1, description="Most requests computed together in one batch.")
     max_batch_pixels: int = Field(
-        2_000_000, ge=1, description="Most padded pixels (batch size x height x width) in one batch; "
-        "a single larger image still runs, alone."
+        131_072, ge=1, description="Most padded pixels (batch size x height x width) in one batch; "
+        "a single larger image still runs, alone. The default suits a small CPU, where batching "
+        "pays only while images are small (see service/README.md)."
     )
     max_wait_ms: float = Field(
         10.0, ge=0, description="Longest a partial batch is held back while more requests are being "

@@ -113,7 +113,8 @@ RESPONSES: dict[int | str, dict[str, Any]] = {
         "queue_full": "queue full; retry in 2 s",
         "deadline_exceeded": "deadline passed while waiting for the result",
         "loading": "models are still loading",
-        "draining": "server is shutting down"}, _RETRY_AFTER),
+        "draining": "server is shutting down",
+        "unavailable": "models failed to load; see the server log"}, _RETRY_AFTER),
 }
 
 UPLOAD_BODY = {
@@ -168,9 +169,8 @@ async def estimate_disparity(
     except QueueFull as exc:
         raise ApiError(503, "queue_full", str(exc), reject_reason="queue_full",
                        headers={"Retry-After": str(exc.retry_after_s)}) from None
-    except Draining as exc:
-        raise ApiError(503, "draining", str(exc), reject_reason="not_ready",
-                       headers={"Retry-After": "1"}) from None
+    except Draining as exc:  # SIGTERM came after the check in `_batcher_for`, or drain timed out
+        raise _draining(str(exc)) from None
     except DeadlineExceeded as exc:
         raise ApiError(503, "deadline_exceeded", str(exc), reject_reason="deadline",
                        headers={"Retry-After": str(batcher.retry_after(options.model))}) from None
@@ -184,16 +184,23 @@ async def estimate_disparity(
 
 
 def _batcher_for(runtime: ServiceRuntime, model: str) -> Batcher:
-    if runtime.state in ("loading", "failed") or runtime.batcher is None:
-        raise ApiError(503, "loading", f"models are {runtime.state}", reject_reason="not_ready",
-                       headers={"Retry-After": "5"})
+    if runtime.state == "failed":
+        raise ApiError(503, "unavailable", "models failed to load; see the server log",
+                       reject_reason="not_ready", headers={"Retry-After": "60"})
     if runtime.state == "draining":
-        raise ApiError(503, "draining", "server is shutting down", reject_reason="not_ready",
-                       headers={"Retry-After": "1"})
+        raise _draining("server is shutting down")
+    if runtime.state == "loading" or runtime.batcher is None:
+        raise ApiError(503, "loading", "models are still loading", reject_reason="not_ready",
+                       headers={"Retry-After": "5"})
     if model not in runtime.predictors:
         raise ApiError(422, "model_not_loaded", f"model `{model}` is not loaded by this server "
                        f"(loaded: {', '.join(runtime.predictors)})", reject_reason="bad_input")
     return runtime.batcher
+
+
+def _draining(message: str) -> ApiError:
+    return ApiError(503, "draining", message, reject_reason="not_ready",
+                    headers={"Retry-After": "1"})
 
 
 def _bad_input(status: int, code: str, message: str) -> ApiError:
@@ -230,7 +237,7 @@ async def _read_images(request: Request) -> tuple[bytes, bytes]:
 
 def _check_headers(settings: Settings, left: bytes, right: bytes) -> ImageHeader:
     """Dimension checks from the file headers, before any pixel is decoded."""
-    headers = {name: _read_header(name, data) for name, data in zip(IMAGE_FIELDS, (left, right))}
+    headers = {name: _read_header(name, data) for name, data in zip(IMAGE_FIELDS, (left, right), strict=True)}
     for name, header in headers.items():
         if header.pixels > settings.max_image_pixels:
             raise _bad_input(413, "image_too_large", f"{name} image has {header.pixels} pixels; "
@@ -254,7 +261,7 @@ def _read_header(name: str, data: bytes) -> ImageHeader:
 
 def _decode_pair(left: bytes, right: bytes) -> tuple[np.ndarray, np.ndarray]:
     decoded = []
-    for name, data in zip(IMAGE_FIELDS, (left, right)):
+    for name, data in zip(IMAGE_FIELDS, (left, right), strict=True):
         try:
             decoded.append(decode_rgb(data, read_header(data)))
         except ImageError as exc:

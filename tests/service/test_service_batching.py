@@ -19,6 +19,7 @@ import pytest
 import torch
 
 from service.logs import JsonFormatter
+from service.settings import Settings
 from service_helpers import (
     Harness,
     lite_settings,
@@ -113,6 +114,34 @@ async def test_batches_respect_max_batch_size_and_never_mix_shapes():
     sizes = {name: r.json()["batch_size"] for name, r in requests.responses.items()}
     assert sizes == {"busy": 1, "s1": 2, "s2": 2, "l1": 1, "s3": 1}
     assert gated.calls == [1, 2, 1, 1]
+
+
+async def test_lite_and_full_never_share_a_batch():
+    pair = stereo_pair()
+    async with serve_asgi(Settings()) as h:  # the default settings serve both models
+        lite, full = h.predictors["lite"], h.predictors["full"]
+        lite.gate.clear()
+        async with anyio.create_task_group() as tg:
+            requests = Requests(h, tg)
+            requests.post("busy", *pair)
+            await eventually(lambda: lite.calls == [1])
+            requests.post("lite", *pair)
+            await eventually(lambda: requests_queued(h) == 1)
+            requests.post("full", *pair, params={"model": "full"})
+            await eventually(lambda: requests_queued(h) == 2)
+            lite.gate.set()
+        health = (await h.client.get("/health")).json()
+    assert set(health["models"]) == {"lite", "full"}
+    assert health["models"]["full"]["parameters"] > health["models"]["lite"]["parameters"]
+    assert (lite.calls, full.calls) == ([1, 1], [1])
+    for name in ("lite", "full"):
+        response = requests.responses[name]
+        assert response.status_code == 200
+        assert (response.json()["model"], response.json()["batch_size"]) == (name, 1)
+
+
+def requests_queued(h: Harness) -> int:
+    return sum(h.app.state.runtime.batcher.queue_depths().values())
 
 
 async def test_a_full_queue_answers_503_with_retry_after():
@@ -235,7 +264,7 @@ async def test_while_models_load_health_and_readiness_are_503_and_liveness_is_20
     assert health["models"]["lite"]["loaded"] is True
     assert health["models"]["lite"]["parameters"] == h.predictors["lite"].num_parameters
     assert health["queue_depth"] == {"lite": 0}
-    assert health["batching"] == {"max_batch_size": 8, "max_batch_pixels": 2_000_000,
+    assert health["batching"] == {"max_batch_size": 8, "max_batch_pixels": 131_072,
                                   "max_wait_ms": 10.0, "max_queue": 32,
                                   "torch_threads": health["batching"]["torch_threads"]}
 
@@ -246,6 +275,8 @@ async def test_models_that_fail_to_load_make_the_process_not_live():
         await eventually(lambda: h.app.state.runtime.state == "failed")
         live = await h.client.get("/health/live")
         ready = await h.client.get("/health/ready")
+        refused = await h.client.post("/disparity", files=pair_files(*stereo_pair()))
+    assert (refused.status_code, refused.json()["error"]["code"]) == (503, "unavailable")
     assert (live.status_code, live.json()) == (503, {"status": "dead"})
     assert (ready.status_code, ready.json()) == (503, {"status": "failed"})
 

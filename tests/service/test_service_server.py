@@ -17,7 +17,6 @@ from stereo_data.formats import read_image, read_pfm
 from service_helpers import (
     STEREO_DEV,
     Server,
-    encode,
     metric_total,
     pair_files,
     quiet_load_model,
@@ -104,23 +103,23 @@ def test_a_full_queue_answers_503_with_retry_after_over_http(tmp_path):
 
 def test_sigterm_drains_the_queue_without_losing_a_request(tmp_path):
     pair = pair_files(*stereo_pair(96, 128))
-    with run_uvicorn(tmp_path, max_batch_size="1") as server, ThreadPoolExecutor(8) as pool:
-        with httpx.Client(base_url=server.base_url, timeout=120) as client:
-            futures = [pool.submit(client.post, "/disparity", files=pair) for _ in range(8)]
-            deadline = time.monotonic() + 60
-            while True:  # until the server has admitted all eight (dispatched + still queued)
-                exposition = metrics(server)
-                queued = metric_total(exposition, "crestereo_queue_depth", model="lite")
-                admitted = metric_total(exposition, "crestereo_queue_wait_seconds_count") + queued
-                if admitted == 8:
-                    break
-                assert time.monotonic() < deadline, exposition
-                time.sleep(0.005)
-            server.process.send_signal(signal.SIGTERM)
-            responses = [future.result() for future in futures]
-            exit_code = server.process.wait(timeout=60)
-            with pytest.raises(httpx.TransportError):
-                client.get("/health/ready")
+    with run_uvicorn(tmp_path, max_batch_size="1") as server, ThreadPoolExecutor(8) as pool, \
+            httpx.Client(base_url=server.base_url, timeout=120) as client:
+        futures = [pool.submit(client.post, "/disparity", files=pair) for _ in range(8)]
+        deadline = time.monotonic() + 60
+        while True:  # until the server has admitted all eight (dispatched + still queued)
+            exposition = metrics(server)
+            queued = metric_total(exposition, "crestereo_queue_depth", model="lite")
+            admitted = metric_total(exposition, "crestereo_queue_wait_seconds_count") + queued
+            if admitted == 8:
+                break
+            assert time.monotonic() < deadline, exposition
+            time.sleep(0.005)
+        server.process.send_signal(signal.SIGTERM)
+        responses = [future.result() for future in futures]
+        exit_code = server.process.wait(timeout=60)
+        with pytest.raises(httpx.TransportError):
+            client.get("/health/ready")
     assert queued >= 1, "the queue was empty at SIGTERM: nothing was drained"
     assert [r.status_code for r in responses] == [200] * 8
     assert exit_code in (0, -signal.SIGTERM)
