@@ -35,14 +35,16 @@ class JsonFormatter(logging.Formatter):
 
 
 def configure_logging(level: str) -> None:
-    """JSON logs for the `service` loggers and uvicorn's server log; uvicorn's own access log is
-    turned off because the service writes a JSON access line per request."""
+    """JSON logs for the `service` loggers, Python warnings and uvicorn's server log; uvicorn's
+    own access log is turned off because the service writes a JSON access line per request."""
     handler = logging.StreamHandler(sys.stderr)
     handler.setFormatter(JsonFormatter())
-    service_logger = logging.getLogger("service")
-    service_logger.handlers = [handler]
-    service_logger.setLevel(level.upper())
-    service_logger.propagate = False
+    for name in ("service", "py.warnings"):  # py.warnings: Python warnings, e.g. random weights
+        logger = logging.getLogger(name)
+        logger.handlers = [handler]
+        logger.setLevel(level.upper())
+        logger.propagate = False
+    logging.captureWarnings(True)
     for uvicorn_handler in logging.getLogger("uvicorn.error").handlers + logging.getLogger(
             "uvicorn").handlers:
         uvicorn_handler.setFormatter(JsonFormatter())
