@@ -140,5 +140,7 @@ class ContentAwareWarp(nn.Module):
         x = xs + kx - neighbour_disparities(disparity) + offsets  # (B, G, 9, h, w)
         y = (ys + ky).expand_as(x)
         sampled = deformable_sample(right, x, y).reshape(b, c * KERNEL_POINTS, h * w)
-        out = torch.matmul(self.weight.reshape(c, c * KERNEL_POINTS), sampled)
-        return (out + self.bias.view(1, c, 1)).view(b, c, h, w)
+        # sum over (c_in, k) of W * sampled: a 1x1 conv1d, which (unlike a broadcast matmul) needs
+        # no transposed copy of the (B, C*9, h*w) samples
+        out = F.conv1d(sampled, self.weight.reshape(c, c * KERNEL_POINTS, 1), self.bias)
+        return out.view(b, c, h, w)
