@@ -8,3 +8,9 @@ crestereo-pp eval ../shared/data/stereo-dev --model lite --baseline sgbm --json 
 crestereo-pp predict left.png right.png -o disp.pfm --uncertainty u.pfm --color disp.png
 crestereo-pp predict 'seq/left/*.png' 'seq/right/*.png' -o out/ --format png
 """
+
+import os
+
+# Sleeping OpenMP waits, as in the service (see service/__init__.py): spinning threads run 10-50x
+# slower on a shared or oversubscribed CPU. Must be set before torch loads; the environment wins.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
