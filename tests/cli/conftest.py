@@ -8,7 +8,7 @@ import pytest
 
 from stereo_data.formats import write_pfm
 
-STEREO_DEV = Path(__file__).resolve().parents[3] / "shared" / "data" / "stereo-dev"
+from shared_data import STEREO_DEV
 SMALL_STEREO_DEV_PAIR = "middlebury2001_tsukuba"  # 384x288, the smallest pair: keeps CPU tests fast
 
 
@@ -43,7 +43,7 @@ def pairs_dir(tmp_path: Path) -> Path:
 def small_stereo_dev(tmp_path: Path) -> Path:
     """A folder holding only the smallest real stereo-dev pair (linked), or a skip."""
     if not (STEREO_DEV / SMALL_STEREO_DEV_PAIR).is_dir():
-        pytest.skip(f"real pairs not available: {STEREO_DEV} does not exist (it sits beside the repository)")
+        pytest.skip(f"real pairs not available: {STEREO_DEV} does not exist (see tests/shared_data.py)")
     root = tmp_path / "stereo-dev-small"
     root.mkdir()
     (root / SMALL_STEREO_DEV_PAIR).symlink_to(STEREO_DEV / SMALL_STEREO_DEV_PAIR)

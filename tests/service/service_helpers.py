@@ -26,9 +26,9 @@ from model import load_model
 from service.app import create_app
 from service.batching import Predictor
 from service.settings import Settings
+from shared_data import STEREO_DEV  # noqa: F401  (re-exported for the server tests)
 
 REPO = Path(__file__).resolve().parents[2]
-STEREO_DEV = REPO.parent / "shared" / "data" / "stereo-dev"
 HEIGHT, WIDTH = 64, 96
 
 

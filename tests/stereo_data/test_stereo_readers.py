@@ -1,7 +1,6 @@
 """Spec of stereo_data.readers: each on-disk layout, auto-detection, laziness, the real dev pairs."""
 
 import json
-import os
 from collections.abc import Callable
 from pathlib import Path
 
@@ -10,6 +9,7 @@ import numpy as np
 import pytest
 
 from stereo_data.formats import FormatError, write_kitti_disparity, write_pfm
+from shared_data import STEREO_DEV
 from stereo_data.readers import LAYOUTS, StereoSample, open_dataset
 
 HEIGHT, WIDTH = 6, 10
@@ -235,21 +235,8 @@ def test_explicit_layout_that_does_not_match_is_an_error(tmp_path: Path) -> None
 
 # --- The real development pairs (/work/shared/data/stereo-dev, or $STEREO_DEV) ---------------------
 
-REPO = Path(__file__).resolve().parents[2]
-STEREO_DEV = next(
-    (
-        path
-        for path in (
-            Path(os.environ.get("STEREO_DEV", "/nonexistent")),
-            REPO / "shared" / "data" / "stereo-dev",
-            REPO.parent / "shared" / "data" / "stereo-dev",
-        )
-        if path.is_dir()
-    ),
-    None,
-)
 needs_stereo_dev = pytest.mark.skipif(
-    STEREO_DEV is None, reason="stereo-dev pairs not found (set STEREO_DEV to the folder)"
+    not STEREO_DEV.is_dir(), reason=f"stereo-dev pairs not found at {STEREO_DEV} (set STEREO_DEV to the folder)"
 )
 
 
