@@ -48,16 +48,25 @@ def synthetic_pair(height=64, width=96, disparity=5.0, seed=0):
     return left.contiguous(), right.contiguous(), gt
 
 
+def overfit(net: CREStereoPP, optimiser: torch.optim.Optimizer, steps: int) -> list[float]:
+    """Train ``net`` on one synthetic pair for ``steps`` steps; the loss of each step."""
+    left, right, gt = synthetic_pair()
+    valid = torch.ones_like(gt, dtype=torch.bool)
+    losses = []
+    for _ in range(steps):
+        optimiser.zero_grad()
+        loss = sequence_loss(net(left, right).predictions, gt, valid)
+        loss.backward()
+        optimiser.step()
+        losses.append(loss.item())
+    return losses
+
+
 def test_gradients_reach_every_parameter_through_the_loss():
     torch.manual_seed(0)
     net = CREStereoPP(ModelConfig.preset("lite")).train()
-    left, right, gt = synthetic_pair()
-    valid = torch.ones_like(gt, dtype=torch.bool)
-    optimiser = torch.optim.SGD(net.parameters(), lr=1e-3)
-    for _ in range(2):  # the offset CNN's last layer starts at zero and blocks gradients upstream of it
-        optimiser.zero_grad()
-        sequence_loss(net(left, right).predictions, gt, valid).backward()
-        optimiser.step()
+    # two steps: the offset CNN's last layer starts at zero and blocks gradients upstream of it
+    overfit(net, torch.optim.SGD(net.parameters(), lr=1e-3), steps=2)
     silent = [n for n, p in net.named_parameters() if p.grad is None or not p.grad.abs().sum() > 0]
     assert silent == []
 
@@ -65,16 +74,7 @@ def test_gradients_reach_every_parameter_through_the_loss():
 def test_loss_decreases_when_overfitting_one_synthetic_pair():
     torch.manual_seed(0)
     net = CREStereoPP(ModelConfig.preset("lite")).train()
-    left, right, gt = synthetic_pair()
-    valid = torch.ones_like(gt, dtype=torch.bool)
-    optimiser = torch.optim.Adam(net.parameters(), lr=4e-4)
-    losses = []
-    for _ in range(30):
-        optimiser.zero_grad()
-        loss = sequence_loss(net(left, right).predictions, gt, valid)
-        loss.backward()
-        optimiser.step()
-        losses.append(loss.item())
+    losses = overfit(net, torch.optim.Adam(net.parameters(), lr=4e-4), steps=30)
     print(f"\nloss: first {losses[0]:.3f}, last {losses[-1]:.3f}")
     assert sum(losses[-5:]) / 5 < 0.5 * sum(losses[:5]) / 5
 
