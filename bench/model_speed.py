@@ -92,7 +92,7 @@ def main() -> None:
     rate = matmul_gflops()
     print(f"torch {torch.__version__}, {torch.get_num_threads()} intra-op threads")
     print(f"fp32 matmul (2048^3): {rate:.1f} GFLOP/s\n")
-    header = f"| model | size | median latency (s) | GFLOP | GFLOP/s | of matmul | peak RSS (MiB) | RSS increase (MiB) |"
+    header = "| model | size | median latency (s) | GFLOP | GFLOP/s | of matmul | peak RSS (MiB) | RSS increase (MiB) |"
     print(header)
     print("|" + "---|" * 8)
     profiles = []
