@@ -67,8 +67,6 @@ def test_a_real_pair_over_http_gives_the_library_result_at_the_image_size(defaul
 
 
 @pytest.mark.skipif(not REAL_PAIR.is_dir(), reason=f"real stereo pair not found at {REAL_PAIR}")
-@pytest.mark.xfail(strict=True, reason="the interim CPU-trained weights do worse than zero disparity "
-                   "here (model/MODEL_CARD.md); better weights turn this into a pass, then drop the mark")
 def test_the_served_disparity_of_a_real_pair_beats_predicting_zero_disparity(default_server):
     left, right, response = post_downscaled_real_pair(default_server)
     height, width = left.shape[:2]
