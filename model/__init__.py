@@ -9,7 +9,7 @@ Disparity is positive everywhere, in pixels of the left image (the right match i
 
 from .config import ModelConfig
 from .inference import Prediction, StereoPredictor, load_model
-from .loss import sequence_loss
+from .loss import matching_loss, sequence_loss
 from .network import CREStereoPP, NetworkOutput
 
 __all__ = [
@@ -19,5 +19,6 @@ __all__ = [
     "Prediction",
     "StereoPredictor",
     "load_model",
+    "matching_loss",
     "sequence_loss",
 ]

@@ -30,11 +30,14 @@ class NetworkOutput:
         uncertainty: (B, 1, H, W) U of the last iteration in [0, 1], bilinearly upsampled.
         predictions: per stage, per iteration, (B, 1, H, W) full-resolution disparities for the
             loss (paper eq. 6); empty unless the network is in training mode.
+        features: (left, right) FEM features (B, C, H/4, W/4) for training-only losses
+            (``model.loss.matching_loss``); None unless the network is in training mode.
     """
 
     disparity: Tensor
     uncertainty: Tensor
     predictions: list[list[Tensor]] = field(default_factory=list)
+    features: tuple[Tensor, Tensor] | None = None
 
 
 class CREStereoPP(nn.Module):
@@ -103,7 +106,9 @@ class CREStereoPP(nn.Module):
         assert uncertainty is not None  # every stage runs at least one iteration
         final = predictions[-1][-1] if self.training else self.full_resolution(disparity, hidden, height, width)
         full_uncertainty = F.interpolate(uncertainty, size=(height, width), mode="bilinear", align_corners=False)
-        return NetworkOutput(final, full_uncertainty, predictions if self.training else [])
+        if not self.training:
+            return NetworkOutput(final, full_uncertainty)
+        return NetworkOutput(final, full_uncertainty, predictions, (left_features, right_features))
 
     def full_resolution(self, disparity: Tensor, hidden: Tensor, height: int, width: int) -> Tensor:
         """Convex-upsample a stage's disparity x4, then (coarse stages) resize bilinearly to H x W."""

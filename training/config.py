@@ -80,6 +80,9 @@ class TrainConfig:
         None, "ARM iterations at 1/16, 1/8, 1/4 in training (fewer = faster steps) [the model's own]"
     )
     loss_max_disparity: float = _knob(512.0, "ground truth at or above this (px) is ignored by the loss")
+    matching_weight: float = _knob(
+        0.0, "weight of the training-only feature matching loss (model.loss.matching_loss); 0: off"
+    )
     grad_clip: float = _knob(1.0, "clip the gradient norm to this (0: no clipping)")
     max_steps: int = _knob(150_000, "train until this optimiser step (counted across resumes)")
     schedule_steps: int | None = _knob(
@@ -108,6 +111,11 @@ class TrainConfig:
         low, high = self.real_scale_range
         if not 0 < low <= high:
             raise ValueError(f"real_scale_range must be 0 < low <= high, got {self.real_scale_range}")
+
+    @property
+    def scene_max_disparity(self) -> float:
+        """Largest disparity of the procedural scenes (px): max_disparity or its default."""
+        return self.max_disparity or 192.0 * self.crop_width / 512.0
 
     @property
     def schedule_length(self) -> int:

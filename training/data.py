@@ -138,40 +138,58 @@ def augment_real_pair(
     )
 
 
-class RealPairsByStep(Dataset):
-    """Map-style dataset whose item `step` is that step's real pairs (a CPU TrainingBatch, or
-    None when the step has none), so a DataLoader can prepare steps ahead in workers."""
+class HostPartsByStep(Dataset):
+    """Map-style dataset whose item `step` is the part of that step's batch made on the host (a
+    CPU TrainingBatch, or None when there is none): the procedural scenes when `generator` is
+    given (a CPU generator), then the real pairs. A DataLoader with workers thus prepares the next
+    steps in other processes while the current one trains."""
 
-    def __init__(self, config: TrainConfig, datasets: Sequence[Sequence[StereoSample]], rank: int) -> None:
+    def __init__(
+        self,
+        config: TrainConfig,
+        datasets: Sequence[Sequence[StereoSample]],
+        rank: int,
+        generator: SceneGenerator | None = None,
+    ) -> None:
         self.config = config
         self.datasets = datasets
         self.rank = rank
+        self.generator = generator
 
     def __len__(self) -> int:
         return self.config.max_steps
 
     def __getitem__(self, step: int) -> TrainingBatch | None:
         plan = plan_step(self.config, [len(d) for d in self.datasets], step, self.rank)
-        if not plan.real:
-            return None
         c = self.config
-        return TrainingBatch.concatenate(
-            [
-                augment_real_pair(
-                    self.datasets[draw.source][draw.index],
-                    c.crop_height,
-                    c.crop_width,
-                    c.real_scale_range,
-                    c.color_jitter,
-                    draw.seed,
-                )
-                for draw in plan.real
-            ]
-        )
+        parts = [synthetic_part(self.generator, plan)] if self.generator is not None and plan.synthetic_count else []
+        parts += [
+            augment_real_pair(
+                self.datasets[draw.source][draw.index],
+                c.crop_height,
+                c.crop_width,
+                c.real_scale_range,
+                c.color_jitter,
+                draw.seed,
+            )
+            for draw in plan.real
+        ]
+        return TrainingBatch.concatenate(parts) if parts else None
+
+
+def synthetic_part(generator: SceneGenerator, plan: StepPlan) -> TrainingBatch:
+    """The procedural scenes of a step, on the generator's device (0 disparity where unknown)."""
+    scenes = generator.generate(batch_size=plan.synthetic_count, seed=plan.synthetic_seed)
+    disparity = torch.where(scenes.valid, scenes.disparity, torch.zeros_like(scenes.disparity))
+    return TrainingBatch(scenes.left, scenes.right, disparity, scenes.valid)
 
 
 class TrainingData:
-    """Iterates over the batches of steps [start_step, max_steps) of one rank, on `device`."""
+    """Iterates over the batches of steps [start_step, max_steps) of one rank, on `device`.
+
+    On a CPU device the procedural scenes are generated in the loader's worker processes with
+    everything else (config.num_workers; 0 = in this process), off the training step's critical
+    path; on a GPU they are generated on the GPU, in this process."""
 
     def __init__(self, config: TrainConfig, rank: int, device: torch.device) -> None:
         self.config = config
@@ -181,24 +199,25 @@ class TrainingData:
         scenes = SceneConfig(height=config.crop_height, width=config.crop_width, max_disparity=config.max_disparity)
         uses_scenes = any(s.path == SYNTHETIC for s in config.sources)
         self.generator = SceneGenerator(scenes, device=device) if uses_scenes else None
+        self.scenes_on_host = self.generator is not None and device.type == "cpu"
 
     def batches(self, start_step: int) -> Iterator[TrainingBatch]:
-        real_pairs = RealPairsByStep(self.config, self.real_datasets, self.rank)
+        host_parts = HostPartsByStep(
+            self.config, self.real_datasets, self.rank, self.generator if self.scenes_on_host else None
+        )
         loader = DataLoader(
-            real_pairs,
+            host_parts,
             batch_size=None,
             sampler=range(start_step, self.config.max_steps),
-            num_workers=self.config.num_workers if self.real_datasets else 0,
+            num_workers=self.config.num_workers if self.real_datasets or self.scenes_on_host else 0,
         )
         sizes = [len(d) for d in self.real_datasets]
-        for step, real in zip(range(start_step, self.config.max_steps), loader, strict=True):
+        for step, host_part in zip(range(start_step, self.config.max_steps), loader, strict=True):
             plan = plan_step(self.config, sizes, step, self.rank)
             parts = []
-            if plan.synthetic_count:
+            if plan.synthetic_count and not self.scenes_on_host:
                 assert self.generator is not None  # plan_step draws scenes only from a synthetic source
-                scenes = self.generator.generate(batch_size=plan.synthetic_count, seed=plan.synthetic_seed)
-                disparity = torch.where(scenes.valid, scenes.disparity, torch.zeros_like(scenes.disparity))
-                parts.append(TrainingBatch(scenes.left, scenes.right, disparity, scenes.valid))
-            if real is not None:
-                parts.append(real.to(self.device))
+                parts.append(synthetic_part(self.generator, plan))
+            if host_part is not None:
+                parts.append(host_part.to(self.device))
             yield TrainingBatch.concatenate(parts)

@@ -12,7 +12,7 @@ from torch.nn.parallel import DistributedDataParallel
 from tqdm import tqdm
 
 from evaluation.evaluate import evaluate
-from model import CREStereoPP, ModelConfig, StereoPredictor, sequence_loss
+from model import CREStereoPP, ModelConfig, StereoPredictor, matching_loss, sequence_loss
 from stereo_data.readers import open_dataset
 
 from .checkpoint import load_checkpoint, restore_rng_state, rng_state, save_atomically
@@ -200,6 +200,12 @@ class Trainer:
             output = self.model(batch.left, batch.right, iters=config.train_iters)
         predictions = [[p.float() for p in stage] for stage in output.predictions]
         loss = sequence_loss(predictions, batch.disparity, batch.valid, config.gamma, config.loss_max_disparity)
+        if config.matching_weight > 0:
+            assert output.features is not None  # the model is in training mode
+            left_features, right_features = (f.float() for f in output.features)
+            loss = loss + config.matching_weight * matching_loss(
+                left_features, right_features, batch.disparity, batch.valid, config.scene_max_disparity
+            )
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         if config.grad_clip > 0:

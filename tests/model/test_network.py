@@ -131,3 +131,14 @@ def test_input_that_is_not_a_multiple_of_32_is_refused_by_the_bare_network():
     net = CREStereoPP(ModelConfig.preset("lite")).eval()
     with pytest.raises(ValueError, match="multiple of 32"):
         net(torch.zeros(1, 3, 40, 64), torch.zeros(1, 3, 40, 64))
+
+
+def test_wide_horizontal_convs_equal_the_plain_convolution():
+    from model.update import WideHorizontalConv
+
+    torch.manual_seed(0)
+    conv = WideHorizontalConv(12, 8, (1, 15), padding=(0, 7), groups=2)
+    x = torch.randn(2, 12, 5, 40)
+    plain = torch.nn.functional.conv2d(x, conv.weight, conv.bias, padding=(0, 7), groups=2)
+    assert conv.weight.shape == (8, 6, 1, 15)  # state dicts are those of nn.Conv2d
+    torch.testing.assert_close(conv(x), plain, rtol=1e-5, atol=1e-5)

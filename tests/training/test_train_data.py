@@ -1,6 +1,7 @@
 """Training batches: the per-step mixture plan and the augmentation of real pairs."""
 
 from collections import Counter
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -9,7 +10,7 @@ import torch
 import training.data
 from stereo_data.readers import StereoSample
 from training.config import SYNTHETIC, DataSource, TrainConfig
-from training.data import RealPairsByStep, TrainingData, augment_real_pair, plan_step
+from training.data import HostPartsByStep, TrainingData, augment_real_pair, plan_step
 
 
 def constant_pair(
@@ -84,9 +85,9 @@ def test_colour_jitter_changes_the_two_views_independently_within_bounds():
     assert ((ratio_left > 0.75) & (ratio_left < 1.2)).all()  # gains in [0.8, 1.2], clipping at 255 only lowers
 
 
-def test_real_pairs_by_step_holds_only_the_real_part_of_each_batch():
+def test_host_parts_without_a_generator_hold_only_the_real_part_of_each_batch():
     config = mixture({SYNTHETIC: 1.0, "/a": 1.0}, batch_size=4)
-    pairs = RealPairsByStep(config, [[constant_pair(64, 96, 3.0)]], rank=0)
+    pairs = HostPartsByStep(config, [[constant_pair(64, 96, 3.0)]], rank=0)
     for step in range(5):
         plan = plan_step(config, [1], step, rank=0)
         part = pairs[step]
@@ -103,3 +104,12 @@ def test_training_data_mixes_sources_into_full_batches(monkeypatch):
     for batch in batches:
         assert batch.left.shape == (2, 3, 32, 64) and batch.valid.dtype == torch.bool
         assert torch.isfinite(batch.disparity).all()
+
+
+def test_procedural_scenes_made_in_loader_workers_equal_those_made_inline():
+    config = TrainConfig(batch_size=2, crop_height=32, crop_width=64, max_steps=3, max_disparity=16.0)
+    inline = list(TrainingData(replace(config, num_workers=0), rank=0, device=torch.device("cpu")).batches(1))
+    workers = list(TrainingData(replace(config, num_workers=1), rank=0, device=torch.device("cpu")).batches(1))
+    assert len(inline) == len(workers) == 2
+    for a, b in zip(inline, workers, strict=True):
+        assert torch.equal(a.left, b.left) and torch.equal(a.disparity, b.disparity)
