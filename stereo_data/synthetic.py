@@ -25,6 +25,8 @@ from dataclasses import dataclass, field
 import torch
 import torch.nn.functional as F
 
+from .photos import load_photos
+
 __all__ = ["PhotometricConfig", "SceneConfig", "Scene", "SyntheticBatch", "SceneGenerator"]
 
 MAX_SIDES = 24
@@ -75,6 +77,7 @@ class SceneConfig:
     noise_textures: int = 4  # 1/f^alpha noise: photo-like, fine detail, smooth gradients
     leaves_textures: int = 2  # dead leaves: random discs with sharp edges, scale invariant
     pattern_textures: int = 2  # stripes, checkers, grids, dots
+    photo_textures: int = 0  # crops of photographs (stereo_data.photos; needs scikit-image)
     texel_size: tuple[float, float] = (1.2, 5.0)  # unscaled px per texel, log-uniform
     contrast: tuple[float, float] = (6.0, 100.0)  # grey-level std of a surface's texture, log-uniform
     shading: float = 60.0  # at most this many grey levels of linear ramp across a surface
@@ -94,14 +97,14 @@ class SceneConfig:
             raise ValueError("need 1 <= min_surfaces <= surfaces")
         if self.log2_scale[0] > self.log2_scale[1] or self.size[0] > self.size[1]:
             raise ValueError("ranges must be (low, high)")
-        if self.noise_textures + self.leaves_textures + self.pattern_textures < 1:
+        if self.texture_count < 1:
             raise ValueError("need at least one texture")
         if 2 ** self.log2_scale[0] * self.texel_size[0] < 1:
             raise ValueError("the smallest texel must cover at least 1 output px (aliasing)")
 
     @property
     def texture_count(self) -> int:
-        return self.noise_textures + self.leaves_textures + self.pattern_textures
+        return self.noise_textures + self.leaves_textures + self.pattern_textures + self.photo_textures
 
 
 @dataclass
@@ -203,6 +206,7 @@ class SceneGenerator:
         self.device = torch.device(device)
         self._x = torch.arange(config.width, device=self.device, dtype=torch.float32).view(1, 1, 1, -1)
         self._y = torch.arange(config.height, device=self.device, dtype=torch.float32).view(1, 1, -1, 1)
+        self._photos = load_photos(config.texture_size, self.device) if config.photo_textures else []
 
     def generate(self, batch_size: int, seed: int) -> SyntheticBatch:
         """Draw, render and (if configured) photometrically augment ``batch_size`` pairs."""
@@ -337,7 +341,7 @@ class SceneGenerator:
             base=base,
             contrast=contrast,
             ramp=ramp,
-            textures=_texture_bank(batch_size, cfg, draw),
+            textures=_texture_bank(batch_size, cfg, draw, self._photos),
         )
 
 
@@ -488,14 +492,17 @@ def _sample_wrapped(
     return (1 - v_weight) * top + v_weight * bottom
 
 
-def _texture_bank(batch_size: int, cfg: SceneConfig, draw: _Draw) -> torch.Tensor:
-    """(B, K, T, T, 3) periodic textures, each standardised to zero mean and unit std.
+def _texture_bank(batch_size: int, cfg: SceneConfig, draw: _Draw, photos: list[torch.Tensor]) -> torch.Tensor:
+    """(B, K, T, T, 3) textures (procedural ones periodic), each standardised to zero mean and
+    unit std.
 
-    Slots [0, noise) are 1/f^alpha noise, then dead leaves, then patterns; leaves and patterns
-    carry some of their slot's noise on top, so that no texture is perfectly clean.
+    Slots [0, noise) are 1/f^alpha noise, then dead leaves, then patterns, then photo crops;
+    leaves and patterns carry some of their slot's noise on top, so that no texture is perfectly
+    clean. Photo crops wrap with a seam, which both views show alike.
     """
     size, count = cfg.texture_size, cfg.texture_count
-    noise = _standardise(_power_law_noise((batch_size, count), size, draw))
+    procedural = count - cfg.photo_textures
+    noise = _standardise(_power_law_noise((batch_size, procedural), size, draw))
     structured = torch.cat(
         [
             _dead_leaves((batch_size, cfg.leaves_textures), size, draw),
@@ -503,9 +510,32 @@ def _texture_bank(batch_size: int, cfg: SceneConfig, draw: _Draw) -> torch.Tenso
         ],
         dim=1,
     )
-    mix = draw.uniform((batch_size, count - cfg.noise_textures, 1, 1, 1), 0.0, 0.3)
+    mix = draw.uniform((batch_size, procedural - cfg.noise_textures, 1, 1, 1), 0.0, 0.3)
     textured = _standardise(structured) + mix * noise[:, cfg.noise_textures :]
-    return _standardise(torch.cat([noise[:, : cfg.noise_textures], textured], dim=1))
+    parts = [noise[:, : cfg.noise_textures], textured]
+    if cfg.photo_textures:
+        parts.append(_standardise(_photo_crops((batch_size, cfg.photo_textures), size, draw, photos)))
+    return _standardise(torch.cat(parts, dim=1))
+
+
+def _photo_crops(shape: tuple[int, int], size: int, draw: _Draw, photos: list[torch.Tensor]) -> torch.Tensor:
+    """(B, K, T, T, 3) random T x T crops of random photos, each turned by a random multiple of
+    90 degrees, mirrored at random and with its colour channels in a random order."""
+    count = shape[0] * shape[1]
+    which = draw.integers((count,), 0, len(photos) - 1).tolist()
+    corner = draw.uniform((count, 2), 0.0, 1.0).tolist()
+    turns = draw.integers((count,), 0, 3).tolist()
+    mirror = draw.chance((count,), 0.5).tolist()
+    channels = torch.argsort(draw.uniform((count, 3), 0.0, 1.0), dim=1)
+    crops = []
+    for n in range(count):
+        photo = photos[which[n]]
+        top = int(corner[n][0] * (photo.shape[0] - size))
+        left = int(corner[n][1] * (photo.shape[1] - size))
+        crop = torch.rot90(photo[top : top + size, left : left + size], turns[n], dims=(0, 1))
+        crop = crop.flip(1) if mirror[n] else crop
+        crops.append(crop[..., channels[n]])
+    return torch.stack(crops).view(*shape, size, size, 3)
 
 
 def _standardise(textures: torch.Tensor) -> torch.Tensor:

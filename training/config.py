@@ -63,6 +63,9 @@ class TrainConfig:
     max_disparity: float | None = _knob(
         None, "largest disparity (px) of the procedural scenes [192 * crop_width / 512]"
     )
+    photo_textures: int = _knob(
+        0, "procedural scenes: texture slots per scene filled with photo crops (needs scikit-image)"
+    )
     real_scale_range: tuple[float, float] = _knob(
         (0.8, 1.25), "random rescale range of real pairs before cropping (raised where a pair is smaller than the crop)"
     )

@@ -196,7 +196,12 @@ class TrainingData:
         self.rank = rank
         self.device = device
         self.real_datasets = [open_dataset(s.path) for s in config.sources if s.path != SYNTHETIC]
-        scenes = SceneConfig(height=config.crop_height, width=config.crop_width, max_disparity=config.max_disparity)
+        scenes = SceneConfig(
+            height=config.crop_height,
+            width=config.crop_width,
+            max_disparity=config.max_disparity,
+            photo_textures=config.photo_textures,
+        )
         uses_scenes = any(s.path == SYNTHETIC for s in config.sources)
         self.generator = SceneGenerator(scenes, device=device) if uses_scenes else None
         self.scenes_on_host = self.generator is not None and device.type == "cpu"
