@@ -3,6 +3,8 @@ PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 PORT ?= 8000
+# Loopback only by default; `make serve HOST=0.0.0.0` serves the network (then set CRESTEREO_API_KEY).
+HOST ?= 127.0.0.1
 
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -16,7 +18,7 @@ $(VENV)/.installed: pyproject.toml
 setup: $(VENV)/.installed
 
 serve: setup
-	$(VENV)/bin/uvicorn service.app:create_app --factory --host 0.0.0.0 --port $(PORT)
+	$(VENV)/bin/uvicorn service.app:create_app --factory --host $(HOST) --port $(PORT)
 
 test: setup
 	$(PY) -m pytest -q

@@ -11,3 +11,14 @@ import os
 # Sleeping waits avoid it. OpenMP reads this once, when torch loads, hence here, before any
 # import of torch; a value set in the environment wins.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+DEFAULT_MAX_IMAGE_PIXELS = 4_194_304
+"""Default of `Settings.max_image_pixels` (CRESTEREO_MAX_IMAGE_PIXELS)."""
+
+# The decoder's own cap, from the service's pixel limit: the file headers are checked before
+# decoding, but OpenCV's decoders read the headers themselves (libtiff, for one, takes the first
+# of two conflicting size tags), so this cap is what guarantees that no file expands beyond the
+# limit. OpenCV reads the variable once, at its first decode, hence here; a value set wins.
+os.environ.setdefault(
+    "OPENCV_IO_MAX_IMAGE_PIXELS", os.environ.get("CRESTEREO_MAX_IMAGE_PIXELS", str(DEFAULT_MAX_IMAGE_PIXELS))
+)

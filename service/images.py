@@ -80,15 +80,24 @@ _JPEG_SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0
 _JPEG_NO_LENGTH = {0x01, *range(0xD0, 0xD9)}
 
 
+_JPEG_MAX_SEGMENTS = 1024  # before the frame header; real files have a few dozen at most
+_JPEG_MAX_FILL = 1024  # fill bytes (0xFF) before the frame header; encoders write none or a few
+
+
 def _jpeg_header(data: bytes) -> ImageHeader:
-    offset = 2
-    while True:
+    """Walk the markers up to the frame header: at most _JPEG_MAX_SEGMENTS segments and
+    _JPEG_MAX_FILL fill bytes in all, so the walk is bounded whatever the file holds."""
+    offset, fill = 2, 0
+    for _ in range(_JPEG_MAX_SEGMENTS):
         if data[offset] != 0xFF:
             raise ImageError("corrupt JPEG marker sequence", unsupported=False)
-        marker = data[offset + 1]
-        if marker == 0xFF:  # fill byte
+        while data[offset + 1] == 0xFF:  # fill bytes
             offset += 1
-            continue
+            fill += 1
+            if fill > _JPEG_MAX_FILL:
+                raise ImageError(f"JPEG with more than {_JPEG_MAX_FILL} fill bytes before its "
+                                 "frame header", unsupported=False)
+        marker = data[offset + 1]
         if marker in _JPEG_NO_LENGTH:
             offset += 2
             continue
@@ -99,6 +108,8 @@ def _jpeg_header(data: bytes) -> ImageHeader:
             height, width = struct.unpack(">HH", data[offset + 5:offset + 9])
             return ImageHeader("JPEG", width, height)
         offset += 2 + length
+    raise ImageError(f"JPEG without a frame header in its first {_JPEG_MAX_SEGMENTS} segments",
+                     unsupported=False)
 
 
 def _bmp_header(data: bytes) -> ImageHeader:
@@ -122,6 +133,8 @@ def _tiff_header(data: bytes) -> ImageHeader:
     for entry in range(ifd + 2, ifd + 2 + 12 * count, 12):
         tag, kind = struct.unpack(order + "HH", data[entry:entry + 4])
         if tag in (_TIFF_WIDTH, _TIFF_HEIGHT):
+            if tag in sizes:  # decoders disagree on which one counts: refuse, never guess
+                raise ImageError("TIFF with a repeated width or height tag", unsupported=False)
             if kind not in (_TIFF_SHORT, _TIFF_LONG):
                 raise ImageError("TIFF size tag of an unexpected type", unsupported=False)
             value_format = order + ("H" if kind == _TIFF_SHORT else "I")

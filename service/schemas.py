@@ -5,6 +5,7 @@ from __future__ import annotations
 from enum import StrEnum
 from typing import Literal
 
+import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, model_validator
 
 from service.settings import ModelName
@@ -19,6 +20,9 @@ class OutputFormat(StrEnum):
     disparity_png16 = "disparity_png16"
     uncertainty_png16 = "uncertainty_png16"
     depth_png16 = "depth_png16"
+
+
+FLOAT32_MAX = float(np.finfo(np.float32).max)
 
 
 class DisparityOptions(BaseModel):
@@ -52,6 +56,9 @@ class DisparityOptions(BaseModel):
             raise ValueError("give both focal_px and baseline_m, or neither")
         if self.format is OutputFormat.depth_png16 and self.focal_px is None:
             raise ValueError("format=depth_png16 needs focal_px and baseline_m")
+        if self.focal_px is not None and self.baseline_m is not None and (
+                self.focal_px * self.baseline_m > FLOAT32_MAX):
+            raise ValueError(f"focal_px x baseline_m must be at most {FLOAT32_MAX:.4g} (depth is float32)")
         return self
 
 

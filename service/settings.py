@@ -14,6 +14,8 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from service import DEFAULT_MAX_IMAGE_PIXELS
+
 ENV_PREFIX = "CRESTEREO_"
 ModelName = Literal["lite", "full"]
 
@@ -54,7 +56,7 @@ class Settings(BaseModel):
         32 * 1024 * 1024, ge=1, description="Largest request body in bytes (413 beyond)."
     )
     max_image_pixels: int = Field(
-        4_194_304, ge=1, description="Largest image (width x height), checked from the file header "
+        DEFAULT_MAX_IMAGE_PIXELS, ge=1, description="Largest image (width x height), checked from the file header "
         "before decoding (413 beyond)."
     )
     min_image_side: int = Field(32, ge=1, description="Smallest image width or height (422 below).")

@@ -10,6 +10,7 @@ from fastapi import APIRouter, Depends, Header, Query, Request, Response
 from starlette.concurrency import run_in_threadpool
 from starlette.datastructures import UploadFile
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.requests import ClientDisconnect
 
 from service.batching import (
     Batcher,
@@ -157,9 +158,11 @@ async def estimate_disparity(
     """
     deadline = None if timeout_ms is None else time.monotonic() + timeout_ms / 1000
     request.state.model = options.model
+    _refuse_repeated_options(request)
     batcher = _batcher_for(runtime, options.model)
     left_bytes, right_bytes = await _read_images(request)
-    header = _check_headers(runtime.settings, left_bytes, right_bytes)
+    # header checks are pure Python over untrusted bytes: never on the event loop
+    header = await run_in_threadpool(_check_headers, runtime.settings, left_bytes, right_bytes)
     try:
         async with batcher.admit(options.model) as admission:
             left, right = await run_in_threadpool(_decode_pair, left_bytes, right_bytes)
@@ -175,12 +178,20 @@ async def estimate_disparity(
         raise ApiError(503, "deadline_exceeded", str(exc), reject_reason="deadline",
                        headers={"Retry-After": str(batcher.retry_after(options.model))}) from None
     except ClientDisconnected as exc:  # nobody reads this answer; it shows in logs and metrics
-        raise ApiError(499, "client_disconnected", str(exc), reject_reason="disconnect") from None
+        raise _client_gone(str(exc)) from None
     except InferenceFailed as exc:
         raise ApiError(500, "inference_failed", str(exc)) from None
     request.state.batch_size = result.batch_size
     predictor = runtime.predictors[options.model]
     return await run_in_threadpool(_render, options, predictor, header, result)
+
+
+def _refuse_repeated_options(request: Request) -> None:
+    """`?model=lite&model=full` is ambiguous: 422 rather than silently taking one of them."""
+    names = [name for name, _ in request.query_params.multi_items()]
+    repeated = sorted({name for name in names if names.count(name) > 1})
+    if repeated:
+        raise _bad_input(422, "invalid_request", f"query.{repeated[0]}: given more than once")
 
 
 def _batcher_for(runtime: ServiceRuntime, model: str) -> Batcher:
@@ -203,6 +214,10 @@ def _draining(message: str) -> ApiError:
                     headers={"Retry-After": "1"})
 
 
+def _client_gone(message: str) -> ApiError:
+    return ApiError(499, "client_disconnected", message, reject_reason="disconnect")
+
+
 def _bad_input(status: int, code: str, message: str) -> ApiError:
     reason = "too_large" if status == 413 else "bad_input"
     return ApiError(status, code, message, reject_reason=reason)
@@ -217,6 +232,8 @@ async def _read_images(request: Request) -> tuple[bytes, bytes]:
         form = await request.form(max_files=len(IMAGE_FIELDS) + 2, max_fields=16)
     except StarletteHTTPException as exc:  # malformed multipart body
         raise _bad_input(422, "invalid_multipart", str(exc.detail)) from None
+    except ClientDisconnect:  # gone mid-upload: nobody reads the answer; logged and counted as 499
+        raise _client_gone("client disconnected during the upload") from None
     try:
         unknown = sorted(set(form.keys()) - set(IMAGE_FIELDS))
         if unknown:

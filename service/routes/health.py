@@ -1,4 +1,5 @@
-"""Health: a detailed `/health`, and the liveness / readiness probes Kubernetes expects."""
+"""Health: a detailed `/health`, and the liveness / readiness probes Kubernetes expects. Each also
+answers HEAD (load balancers and `curl -I` send it), left out of the schema as GET's twin."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ from service.schemas import HealthResponse, ProbeResponse
 router = APIRouter(tags=["health"])
 
 
+@router.head("/health", include_in_schema=False)
 @router.get(
     "/health",
     summary="Models, queues and batching configuration",
@@ -24,6 +26,7 @@ async def health(runtime: RuntimeDep) -> JSONResponse:
     return JSONResponse(body.model_dump(), status_code=200 if body.status == "ready" else 503)
 
 
+@router.head("/health/live", include_in_schema=False)
 @router.get(
     "/health/live",
     summary="Liveness probe",
@@ -37,6 +40,7 @@ async def live(runtime: RuntimeDep) -> JSONResponse:
     return JSONResponse({"status": "alive" if alive else "dead"}, status_code=200 if alive else 503)
 
 
+@router.head("/health/ready", include_in_schema=False)
 @router.get(
     "/health/ready",
     summary="Readiness probe",

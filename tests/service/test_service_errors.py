@@ -74,6 +74,12 @@ CASES: list[tuple[str, dict[str, Any], int, str, str]] = [
     ("deadline header that is not a positive integer",
      {"files": PAIR, "headers": {"X-Request-Timeout-Ms": "soon"}}, 422, "invalid_request",
      "bad_input"),
+    ("query option given twice",
+     {"files": PAIR, "params": [("model", "lite"), ("model", "full")]}, 422, "invalid_request",
+     "bad_input"),
+    ("calibration whose depth overflows float32",
+     {"files": PAIR, "params": {"focal_px": 1e308, "baseline_m": 1e308}}, 422, "invalid_request",
+     "bad_input"),
     ("body that is not multipart",
      {"json": {"left": "x", "right": "y"}}, 415, "unsupported_media_type", "bad_input"),
 ]
@@ -144,3 +150,11 @@ async def test_unknown_paths_and_methods_get_json_errors():
 def test_bomb_file_is_small_but_would_decode_huge():
     assert len(BOMB) < 500_000
     assert np.frombuffer(BOMB[16:24], ">u4").tolist() == [30_000, 30_000]
+
+
+async def test_health_probes_answer_head_as_well_as_get():
+    async with serve_asgi() as h:
+        for path in ("/health", "/health/live", "/health/ready"):
+            head, get = await h.client.head(path), await h.client.get(path)
+            assert head.status_code == get.status_code == 200, path
+            assert head.content == b""
