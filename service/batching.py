@@ -190,9 +190,10 @@ class Batcher:
         """Admit nothing more; what is already admitted still runs."""
         self._draining = True
 
-    def fail_queued(self, error: BatchingError) -> None:
-        """Answer every queued (not yet running) request with `error`."""
-        self._fail(self._take_queued(), error)
+    def abandon(self, error: BatchingError) -> None:
+        """Answer every queued and computing request with `error`; a computing batch runs on,
+        but its result is dropped."""
+        self._fail([*self._running, *self._take_queued()], error)
 
     def _take_queued(self) -> list[_Job]:
         jobs = [job for queue in self._queues.values() for job in queue]

@@ -7,7 +7,6 @@ import logging
 import signal
 import threading
 from collections.abc import Callable, Coroutine
-from concurrent.futures import ThreadPoolExecutor
 from functools import partial
 from pathlib import Path
 from types import FrameType
@@ -18,6 +17,7 @@ from service.cpu import configure_torch_threads, usable_cpus
 from service.metrics import Metrics
 from service.schemas import BatchingConfig, HealthResponse, ModelStatus, ServiceState
 from service.settings import Settings
+from service.worker import DaemonWorker
 
 logger = logging.getLogger(__name__)
 
@@ -32,7 +32,7 @@ def weights_identity(predictor: Predictor) -> str:
 class ServiceRuntime:
     """Lifecycle: `start()` loads the models on the worker thread in the background (the service
     answers 503 `loading` meanwhile), then batching starts (`ready`). SIGTERM switches to
-    `draining`: nothing new is admitted and queued work has `drain_timeout_s` to finish."""
+    `draining`: nothing new is admitted and admitted work has `drain_timeout_s` to finish."""
 
     def __init__(self, settings: Settings, loader: ModelLoader) -> None:
         self.settings = settings
@@ -42,16 +42,15 @@ class ServiceRuntime:
         self.predictors: dict[str, Predictor] = {}
         self.batcher: Batcher | None = None
         self._loader = loader
-        self._executor: ThreadPoolExecutor | None = None
+        self._executor: DaemonWorker | None = None
         self._tasks: set[asyncio.Task[None]] = set()
         self._previous_sigterm: Callable[[int, FrameType | None], object] | None = None
 
     async def start(self) -> None:
         configure_torch_threads(self.torch_threads)
         # The single worker thread owns the CPU: it loads the models and computes every batch.
-        self._executor = ThreadPoolExecutor(
-            max_workers=1, thread_name_prefix="inference",
-            initializer=configure_torch_threads, initargs=(self.torch_threads,))
+        self._executor = DaemonWorker(
+            "inference", initializer=configure_torch_threads, initargs=(self.torch_threads,))
         self._spawn(self._load_models())
         self._hook_sigterm()
 
@@ -62,11 +61,12 @@ class ServiceRuntime:
         await asyncio.gather(*self._tasks, return_exceptions=True)
         if self.batcher is not None:
             await self.batcher.close()
-        if self._executor is not None:
-            await asyncio.to_thread(self._executor.shutdown)
+        if self._executor is not None:  # a batch abandoned at the drain timeout is not waited for
+            self._executor.shutdown(wait=False, cancel_futures=True)
 
     def begin_drain(self) -> None:
-        """Stop admitting work; fail what is still queued after `drain_timeout_s`."""
+        """Stop admitting work; after `drain_timeout_s`, answer what is still queued or computing
+        503 `draining` (a computing batch is abandoned), so that shutdown takes no longer."""
         if self.state == "draining":
             return
         logger.info("draining", extra={"drain_timeout_s": self.settings.drain_timeout_s})
@@ -124,7 +124,7 @@ class ServiceRuntime:
 
     async def _expire_drain(self, batcher: Batcher) -> None:
         await asyncio.sleep(self.settings.drain_timeout_s)
-        batcher.fail_queued(Draining("drain timeout reached before this request was computed"))
+        batcher.abandon(Draining("drain timeout reached before this request was computed"))
 
     def _spawn(self, coroutine: Coroutine[Any, Any, None]) -> None:
         task = asyncio.create_task(coroutine)

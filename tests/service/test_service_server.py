@@ -139,6 +139,24 @@ def test_sigterm_drains_the_queue_without_losing_a_request(tmp_path):
     assert any(line["message"] == "draining" for line in logged)
 
 
+def test_the_drain_timeout_bounds_shutdown_even_while_a_batch_computes(tmp_path):
+    pair = pair_files(*stereo_pair(1024, 1536))  # several seconds of lite on a small CPU
+    with run_uvicorn(tmp_path, drain_timeout_s="1") as server, ThreadPoolExecutor(1) as pool, \
+            httpx.Client(base_url=server.base_url, timeout=120) as client:
+        future = pool.submit(client.post, "/disparity", files=pair)
+        deadline = time.monotonic() + 60
+        while metric_total(metrics(server), "crestereo_queue_wait_seconds_count") < 1:  # computing
+            assert time.monotonic() < deadline
+            time.sleep(0.01)
+        signalled = time.monotonic()
+        server.process.send_signal(signal.SIGTERM)
+        response = future.result()
+        server.process.wait(timeout=60)
+        exited_after = time.monotonic() - signalled
+    assert (response.status_code, response.json()["error"]["code"]) == (503, "draining")
+    assert exited_after < 4.0, f"exited {exited_after:.1f} s after SIGTERM with a 1 s drain timeout"
+
+
 def test_a_load_of_hundreds_of_requests_is_all_answered_and_memory_settles(default_server):
     pair = pair_files(*stereo_pair(32, 32))
 
