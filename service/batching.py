@@ -162,8 +162,9 @@ class Batcher:
         self._queues: dict[str, deque[_Job]] = {name: deque() for name in predictors}
         self._pending: dict[str, int] = dict.fromkeys(predictors, 0)
         self._running: list[_Job] = []
-        self._batch_seconds: dict[str, float] = {}
+        self._running_since = 0.0
         self._seconds_per_pixel: dict[str, float] = {}
+        self._mean_pixels: dict[str, float] = {}  # padded pixels per request, running mean
         self._changed = asyncio.Event()
         self._draining = False
         self._task: asyncio.Task[None] | None = None
@@ -205,20 +206,46 @@ class Batcher:
         """Per model: requests admitted and not yet computing."""
         return dict(self._pending)
 
+    def work_ahead_s(self, model: str) -> float | None:
+        """Estimated seconds of compute ahead of a request of `model` admitted now: what remains
+        of the running batch, plus every queued request at its padded size and every request
+        still being received or decoded at the mean size seen so far, at the measured seconds
+        per pixel. None before any batch of the model has been measured."""
+        per_pixel = self._seconds_per_pixel.get(model)
+        if per_pixel is None:
+            return None
+        queued = self._queues[model]
+        decoding = self._pending[model] - len(queued)
+        pixels = sum(job.key.pixels for job in queued) + decoding * self._mean_pixels[model]
+        running = 0.0
+        if self._running and self._running[0].key.model == model:
+            batch_pixels = len(self._running) * self._running[0].key.pixels
+            running = max(0.0, batch_pixels * per_pixel - (time.monotonic() - self._running_since))
+        return running + pixels * per_pixel
+
     def retry_after(self, model: str) -> int:
-        """Seconds until the model's queue has likely room: the batches ahead times the mean
-        batch time (1 s before any batch has been measured)."""
-        batches_ahead = self._pending[model] / self._settings.max_batch_size + 1
-        return max(1, math.ceil(batches_ahead * self._batch_seconds.get(model, 1.0)))
+        """Seconds after which a retry likely finds the model's queue worked off: the work ahead
+        (`work_ahead_s`), or 1 s per admitted request before anything has been measured."""
+        ahead = self.work_ahead_s(model)
+        return max(1, math.ceil(self._pending[model] + 1 if ahead is None else ahead))
 
     @asynccontextmanager
-    async def admit(self, model: str) -> AsyncIterator[Admission]:
-        """Reserve a queue place for `model` before the request is decoded (raises `QueueFull` or
-        `Draining`); the place is given back when the batch starts or the request ends."""
+    async def admit(self, model: str, pixels: int | None = None,
+                    deadline: float | None = None) -> AsyncIterator[Admission]:
+        """Reserve a queue place for `model` before the request is decoded (raises `QueueFull`,
+        `Draining`, or `DeadlineExceeded` when the work ahead plus this request's `pixels`
+        cannot finish by `deadline`); the place is given back when the batch starts or the
+        request ends."""
         if self._draining:
             raise Draining("server is shutting down")
         if self._pending[model] >= self._settings.max_queue:
             raise QueueFull(self.retry_after(model))
+        ahead = self.work_ahead_s(model)
+        if deadline is not None and pixels is not None and ahead is not None:
+            finish = time.monotonic() + ahead + pixels * self._seconds_per_pixel[model]
+            if finish > deadline:
+                raise DeadlineExceeded(f"deadline cannot be met: about {finish - time.monotonic():.1f} s "
+                                       "of compute would be needed")
         admission = Admission(self, model)
         self._set_pending(model, +1)
         try:
@@ -319,7 +346,7 @@ class Batcher:
             job.dispatched = True
             self._metrics.queue_wait.labels(model=key.model).observe(started - job.enqueued_at)
         self._set_pending(key.model, -len(batch))  # their admissions no longer count them
-        self._running = batch
+        self._running, self._running_since = batch, started
         try:
             outputs = await asyncio.get_running_loop().run_in_executor(
                 self._executor, compute_batch, self._predictors[key.model], key,
@@ -344,7 +371,7 @@ class Batcher:
         self._metrics.compute.labels(model=key.model).observe(seconds)
         self._metrics.batch_size.labels(model=key.model).observe(size)
         per_pixel = seconds / (size * key.pixels)
-        for means, value in ((self._batch_seconds, seconds), (self._seconds_per_pixel, per_pixel)):
+        for means, value in ((self._mean_pixels, float(key.pixels)), (self._seconds_per_pixel, per_pixel)):
             previous = means.get(key.model)
             means[key.model] = value if previous is None else \
                 (1 - _EMA_WEIGHT) * previous + _EMA_WEIGHT * value

@@ -97,7 +97,7 @@ RESPONSES: dict[int | str, dict[str, Any]] = {
                     {"WWW-Authenticate": _header("`Bearer`.")}),
     413: _error_doc("The body or an image is larger than the server's limits.", {
         "body_too_large": "request body larger than 33554432 bytes",
-        "image_too_large": "left image has 8294400 pixels; the limit is 4194304"}),
+        "image_too_large": "left image has 8294400 pixels; the limit for model `lite` is 4194304"}),
     415: _error_doc("Not multipart/form-data, or an upload that is not a supported image.", {
         "unsupported_media_type": "left: not a PNG, JPEG, BMP or TIFF file"}),
     422: _error_doc("Invalid options, fields or images.", {
@@ -162,9 +162,10 @@ async def estimate_disparity(
     batcher = _batcher_for(runtime, options.model)
     left_bytes, right_bytes = await _read_images(request)
     # header checks are pure Python over untrusted bytes: never on the event loop
-    header = await run_in_threadpool(_check_headers, runtime.settings, left_bytes, right_bytes)
+    header = await run_in_threadpool(
+        _check_headers, runtime.settings, options.model, left_bytes, right_bytes)
     try:
-        async with batcher.admit(options.model) as admission:
+        async with batcher.admit(options.model, pixels=header.pixels, deadline=deadline) as admission:
             left, right = await run_in_threadpool(_decode_pair, left_bytes, right_bytes)
             result = await admission.run(
                 left, right, two_pass=options.two_pass, deadline=deadline,
@@ -252,13 +253,14 @@ async def _read_images(request: Request) -> tuple[bytes, bytes]:
         await form.close()
 
 
-def _check_headers(settings: Settings, left: bytes, right: bytes) -> ImageHeader:
+def _check_headers(settings: Settings, model: str, left: bytes, right: bytes) -> ImageHeader:
     """Dimension checks from the file headers, before any pixel is decoded."""
     headers = {name: _read_header(name, data) for name, data in zip(IMAGE_FIELDS, (left, right), strict=True)}
+    limit = settings.pixel_limit(model)
     for name, header in headers.items():
-        if header.pixels > settings.max_image_pixels:
+        if header.pixels > limit:
             raise _bad_input(413, "image_too_large", f"{name} image has {header.pixels} pixels; "
-                             f"the limit is {settings.max_image_pixels}")
+                             f"the limit for model `{model}` is {limit}")
         if min(header.width, header.height) < settings.min_image_side:
             raise _bad_input(422, "image_too_small", f"{name} is {header.width}x{header.height}; "
                              f"width and height must be at least {settings.min_image_side}")

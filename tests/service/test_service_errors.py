@@ -158,3 +158,22 @@ async def test_health_probes_answer_head_as_well_as_get():
             head, get = await h.client.head(path), await h.client.get(path)
             assert head.status_code == get.status_code == 200, path
             assert head.content == b""
+
+
+async def test_an_image_over_its_models_own_limit_is_refused_from_its_header():
+    async with serve_asgi(lite_settings(model_max_pixels={"lite": 1000})) as h:
+        response = await h.client.post("/disparity", files=PAIR)
+    assert (response.status_code, response.json()["error"]["code"]) == (413, "image_too_large")
+    assert "model `lite` is 1000" in response.json()["error"]["message"]
+    assert h.predictors["lite"].calls == []
+
+
+async def test_a_deadline_the_work_ahead_cannot_meet_is_refused_at_admission():
+    async with serve_asgi() as h:
+        assert (await h.client.post("/disparity", files=PAIR)).status_code == 200  # measured once
+        calls = list(h.predictors["lite"].calls)
+        refused = await h.client.post("/disparity", files=PAIR, headers={"X-Request-Timeout-Ms": "1"})
+    assert (refused.status_code, refused.json()["error"]["code"]) == (503, "deadline_exceeded")
+    assert "cannot be met" in refused.json()["error"]["message"]
+    assert int(refused.headers["retry-after"]) >= 1
+    assert h.predictors["lite"].calls == calls  # never computed

@@ -113,6 +113,27 @@ def test_a_full_queue_answers_503_with_retry_after_over_http(tmp_path):
         statuses.count(503)
 
 
+def test_retry_after_covers_the_work_queued_ahead_in_a_real_burst(tmp_path):
+    pair = pair_files(*stereo_pair(288, 384))  # runs alone under the default batch pixel budget
+    with run_uvicorn(tmp_path, max_queue="6") as server, ThreadPoolExecutor(12) as pool, \
+            httpx.Client(base_url=server.base_url, timeout=120,
+                         limits=httpx.Limits(max_connections=12)) as client:
+        assert client.post("/disparity", files=pair).status_code == 200  # compute time measured
+
+        def post() -> tuple[httpx.Response, float]:
+            response = client.post("/disparity", files=pair)
+            return response, time.monotonic()
+
+        answers = list(pool.map(lambda _: post(), range(12)))
+    refused = [(r, t) for r, t in answers if r.status_code == 503]
+    served_until = max(t for r, t in answers if r.status_code == 200)
+    assert refused and all(r.json()["error"]["code"] == "queue_full" for r, _ in refused)
+    first_refusal = min(t for _, t in refused)
+    retry_after = max(int(r.headers["retry-after"]) for r, _ in refused)
+    waited = served_until - first_refusal  # what a client refused first would have had to wait
+    assert 0.8 * waited <= retry_after <= 3 * waited + 2, (retry_after, waited)
+
+
 def test_sigterm_drains_the_queue_without_losing_a_request(tmp_path):
     pair = pair_files(*stereo_pair(96, 128))
     with run_uvicorn(tmp_path, max_batch_size="1") as server, ThreadPoolExecutor(8) as pool, \

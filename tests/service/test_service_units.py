@@ -36,9 +36,18 @@ def test_settings_come_from_crestereo_environment_variables():
     assert settings.api_key == "k" and settings.max_wait_ms == 2.5
 
 
+def test_each_model_has_its_pixel_limit_under_the_global_one():
+    default = Settings.from_env({})
+    assert (default.pixel_limit("lite"), default.pixel_limit("full")) == (4_194_304, 1_048_576)
+    custom = Settings.from_env({"CRESTEREO_MODEL_MAX_PIXELS": "lite=2000000, full=9000000",
+                                "CRESTEREO_MAX_IMAGE_PIXELS": "3000000"})
+    assert (custom.pixel_limit("lite"), custom.pixel_limit("full")) == (2_000_000, 3_000_000)
+
+
 @pytest.mark.parametrize("environ", [
     {"CRESTEREO_MODELS": "lite,huge"}, {"CRESTEREO_MAX_BATCH_SIZE": "0"},
-    {"CRESTEREO_WEIGHTS": "lite"}, {"CRESTEREO_MODELS": ""}])
+    {"CRESTEREO_WEIGHTS": "lite"}, {"CRESTEREO_MODELS": ""},
+    {"CRESTEREO_MODEL_MAX_PIXELS": "full=many"}, {"CRESTEREO_MODEL_MAX_PIXELS": "huge=5"}])
 def test_invalid_settings_stop_the_service_from_starting(environ):
     with pytest.raises(ValidationError):
         Settings.from_env(environ)
@@ -58,6 +67,8 @@ def documented_default(value: object) -> str:
         return "(none)"
     if isinstance(value, tuple):
         return "`" + ",".join(value) + "`"
+    if isinstance(value, dict):
+        return "`" + ",".join(f"{key}={item}" for key, item in value.items()) + "`"
     if isinstance(value, float) and value.is_integer():
         return f"`{int(value)}`"
     return f"`{value}`"
