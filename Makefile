@@ -18,7 +18,7 @@ $(VENV)/.installed: pyproject.toml
 setup: $(VENV)/.installed
 
 serve: setup
-	$(VENV)/bin/uvicorn service.app:create_app --factory --host $(HOST) --port $(PORT)
+	$(PY) -m service --host $(HOST) --port $(PORT)
 
 test: setup
 	$(PY) -m pytest -q

@@ -1,4 +1,4 @@
-"""ASGI middleware: request ids, access log and request metrics; the request body size limit."""
+"""ASGI middleware: request ids, access log and request metrics; the request size limits."""
 
 from __future__ import annotations
 
@@ -76,9 +76,14 @@ def _client_request_id(scope: Scope) -> str | None:
     return None
 
 
-class BodySizeLimitMiddleware:
-    """Refuses bodies over `max_bytes` with 413: at once from `Content-Length`, else as soon as
-    the streamed body passes the limit (chunked uploads)."""
+MAX_HEADER_BYTES = 16 * 1024
+"""Largest request header block (names and values) the app accepts: 431 beyond."""
+
+
+class RequestSizeLimitMiddleware:
+    """Refuses header blocks over MAX_HEADER_BYTES with 431, and bodies over `max_bytes` with
+    413: at once from `Content-Length`, else as soon as the streamed body passes the limit
+    (chunked uploads)."""
 
     def __init__(self, app: ASGIApp, max_bytes: int, metrics: Metrics) -> None:
         self.app = app
@@ -88,6 +93,12 @@ class BodySizeLimitMiddleware:
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
+            return
+        header_bytes = sum(len(name) + len(value) for name, value in scope["headers"])
+        if header_bytes > MAX_HEADER_BYTES:
+            self.metrics.reject("too_large")
+            await error_response(431, "headers_too_large", f"request headers of {header_bytes} bytes; "
+                                 f"the limit is {MAX_HEADER_BYTES}")(scope, receive, send)
             return
         declared = dict(scope["headers"]).get(b"content-length")
         if declared is not None and declared.isdigit() and int(declared) > self.max_bytes:

@@ -159,7 +159,7 @@ def free_port() -> int:
 
 @contextmanager
 def run_uvicorn(tmp_path: Path, **env: str) -> Iterator[Server]:
-    """`uvicorn service.app:create_app --factory` on a free loopback port with `CRESTEREO_*`
+    """`python -m service` (uvicorn with the service's limits) on a free loopback port with `CRESTEREO_*`
     settings from `env` (lite only unless given); stopped (and killed if need be) on exit."""
     port = free_port()
     log_path = tmp_path / f"uvicorn-{port}.log"
@@ -167,8 +167,7 @@ def run_uvicorn(tmp_path: Path, **env: str) -> Iterator[Server]:
                **{f"CRESTEREO_{key.upper()}": value for key, value in env.items()}}
     with log_path.open("wb") as log:
         process = subprocess.Popen(
-            [sys.executable, "-m", "uvicorn", "service.app:create_app", "--factory",
-             "--host", "127.0.0.1", "--port", str(port)],
+            [sys.executable, "-m", "service", "--host", "127.0.0.1", "--port", str(port)],
             cwd=REPO, env=environ, stdout=log, stderr=subprocess.STDOUT)
     server = Server(f"http://127.0.0.1:{port}", process, log_path)
     try:

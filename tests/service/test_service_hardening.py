@@ -15,7 +15,7 @@ import httpx
 import pytest
 
 from service.images import ImageError, read_header
-from service_helpers import REPO, encode, metric_total, stereo_pair
+from service_helpers import REPO, encode, metric_total, run_uvicorn, stereo_pair
 
 
 def tiff_with_repeated_size_tags(first: int, second: int) -> bytes:
@@ -115,3 +115,29 @@ def test_a_client_gone_mid_upload_counts_as_499_without_a_traceback(default_serv
     assert metric_total(after, "crestereo_requests_total", status="500") == metric_total(
         before, "crestereo_requests_total", status="500")
     assert "Traceback" not in default_server.log() and "ClientDisconnect" not in default_server.log()
+
+
+@pytest.mark.parametrize("size", [20_000, 1_000_000])
+def test_oversized_request_headers_get_a_json_431_and_the_server_stays_up(default_server, size):
+    response = httpx.post(default_server.base_url + "/disparity", headers={"X-Big": "a" * size})
+    assert response.status_code == 431
+    assert response.json()["error"]["code"] == "headers_too_large"
+    assert httpx.get(default_server.base_url + "/health/live").status_code == 200
+
+
+def test_idle_connections_beyond_the_concurrency_cap_get_503_not_a_hang(tmp_path):
+    from service.__main__ import SERVER_LIMITS
+
+    with run_uvicorn(tmp_path) as server:
+        host, port = server.base_url.removeprefix("http://").split(":")
+        idle = [socket.create_connection((host, int(port))) for _ in range(SERVER_LIMITS["limit_concurrency"])]
+        try:
+            time.sleep(0.2)
+            capped = httpx.get(server.base_url + "/health/live", timeout=5)
+        finally:
+            for sock in idle:
+                sock.close()
+        time.sleep(0.2)
+        after = httpx.get(server.base_url + "/health/live", timeout=5)
+    assert capped.status_code == 503
+    assert after.status_code == 200

@@ -1,0 +1,48 @@
+"""`python -m service`: the service under uvicorn, with the server limits it is sized for.
+
+    python -m service [--host 127.0.0.1] [--port 8000]
+
+The address defaults come from UVICORN_HOST / UVICORN_PORT (the container sets 0.0.0.0:8000),
+else loopback:8000. The limits below are uvicorn's own; service/README.md ("Server limits")
+says what each bounds and what uvicorn cannot bound.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+
+import uvicorn
+
+from service.settings import Settings
+
+SERVER_LIMITS = {
+    # Open connections plus running requests before uvicorn answers 503 itself: room for two full
+    # model queues (2 x CRESTEREO_MAX_QUEUE) and the probes, far below what exhausts memory.
+    "limit_concurrency": 128,
+    # Seconds an idle keep-alive connection is held open.
+    "timeout_keep_alive": 5,
+    # Bytes of an unparsed request head before uvicorn answers 400 (text) itself: up to this, the
+    # head reaches the app, which answers 431 (JSON) over 16 KiB. Worst case in memory:
+    # limit_concurrency x 1 MiB = 128 MiB.
+    "h11_max_incomplete_event_size": 1024 * 1024,
+}
+SHUTDOWN_MARGIN_S = 5
+"""After SIGTERM the service's drain (CRESTEREO_DRAIN_TIMEOUT_S) answers every admitted request;
+uvicorn cancels whatever still runs this long after it (a client that never reads its answer)."""
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(prog="python -m service", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--host", default=os.environ.get("UVICORN_HOST", "127.0.0.1"))
+    parser.add_argument("--port", type=int, default=int(os.environ.get("UVICORN_PORT", "8000")))
+    args = parser.parse_args(argv)
+    shutdown_s = math.ceil(Settings.from_env().drain_timeout_s) + SHUTDOWN_MARGIN_S
+    uvicorn.run("service.app:create_app", factory=True, host=args.host, port=args.port,
+                timeout_graceful_shutdown=shutdown_s, **SERVER_LIMITS)
+
+
+if __name__ == "__main__":
+    main()
