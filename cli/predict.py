@@ -17,7 +17,7 @@ from model import load_model
 from stereo_data.formats import read_image, write_kitti_disparity, write_pfm
 from training.distributed import resolve_device
 
-from .evaluate import add_model_options
+from .evaluate import add_model_options, iterations
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".ppm", ".pgm", ".tif", ".tiff", ".webp"}
 DISPARITY_FORMATS = ("pfm", "png", "npy")
@@ -59,7 +59,6 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--color-max", type=float, metavar="PX", help="disparity at the top of the colour scale [each map's maximum]"
     )
-    parser.add_argument("--iters", type=int, help="iterations at 1/4 resolution [the model's default]")
     add_model_options(parser)
     parser.set_defaults(run=run)
 
@@ -125,7 +124,11 @@ def run(args: argparse.Namespace) -> int:
     predictor = load_model(args.model, args.weights, resolve_device(args.device, 0))
     for pair in tqdm(pairs, desc=f"predict {args.model}", unit="pair", disable=single):
         prediction = predictor.predict(
-            read_image(pair.left), read_image(pair.right), iters=args.iters, two_pass=args.two_pass
+            read_image(pair.left),
+            read_image(pair.right),
+            iters=iterations(args),
+            two_pass=args.two_pass,
+            scale=args.scale,
         )
         write_disparity(args.output if single else args.output / f"{pair.stem}.{args.format}", prediction.disparity)
         if args.uncertainty is not None:

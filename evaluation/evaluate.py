@@ -12,7 +12,8 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from model import StereoPredictor
+from model import Prediction, StereoPredictor
+from model.inference import Iterations
 from stereo_data.readers import StereoSample
 
 from .metrics import DisparityMetrics, compute_metrics, mean_metrics
@@ -95,10 +96,13 @@ def evaluate(
     baseline_sgbm: bool = False,
     sheets_dir: Path | None = None,
     two_pass: bool = False,
+    iters: Iterations = None,
+    scale: float = 1.0,
     progress: bool = True,
 ) -> EvaluationReport:
     """Predict every pair of `dataset` with `predictor` (and SGBM when `baseline_sgbm`), score it.
 
+    two_pass, iters, scale: the inference knobs of `StereoPredictor.predict`.
     Times are wall-clock seconds of one prediction, the model's after one untimed warm-up
     prediction on the first pair. With `sheets_dir`, writes `sheets_dir/NAME.png` per pair:
     left image, ground truth, uncertainty, then each method's disparity and error map, on fixed
@@ -112,17 +116,24 @@ def evaluate(
             "name": predictor.name,
             "weights_sha256": predictor.weights_sha256,
             "num_parameters": predictor.num_parameters,
+            "iters": list(predictor.iterations(iters)),
+            "two_pass": two_pass,
+            "scale": scale,
         },
     )
     first = dataset[0]
-    predictor.predict(first.left, first.right, two_pass=two_pass)
+
+    def predict(sample: StereoSample) -> Prediction:
+        return predictor.predict(sample.left, sample.right, two_pass=two_pass, iters=iters, scale=scale)
+
+    predict(first)
     for index in tqdm(range(len(dataset)), desc=f"eval {predictor.name}", unit="pair", disable=not progress):
         sample = dataset[index]
         known = sample.valid & np.isfinite(sample.disparity)
         if not known.any():
             raise ValueError(f"pair {sample.name!r} has no valid ground-truth pixel")
         start = time.perf_counter()
-        prediction = predictor.predict(sample.left, sample.right, two_pass=two_pass)
+        prediction = predict(sample)
         seconds = time.perf_counter() - start
         methods = {
             predictor.name: MethodResult(compute_metrics(prediction.disparity, sample.disparity, known), seconds)

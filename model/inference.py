@@ -93,6 +93,11 @@ def as_image_batch(image: np.ndarray | Tensor, device: torch.device) -> Tensor:
     return batch.expand(-1, 3, -1, -1) if batch.shape[1] == 1 else batch
 
 
+def shrink(images: Tensor, size: tuple[int, int]) -> Tensor:
+    """(B, 3, H, W) images resized down to ``size`` = (height, width), antialiased."""
+    return F.interpolate(images, size=size, mode="bilinear", antialias=True, align_corners=False)
+
+
 def pad_to_multiple(x: Tensor, multiple: int = INPUT_MULTIPLE) -> Tensor:
     """Replicate-pad (B, C, H, W) on the bottom and right to multiples of ``multiple``."""
     height, width = x.shape[-2:]
@@ -134,6 +139,7 @@ class StereoPredictor:
         iters: Iterations = None,
         init_disparity: np.ndarray | Tensor | None = None,
         two_pass: bool = False,
+        scale: float = 1.0,
     ) -> Prediction:
         """Disparity and uncertainty of a rectified pair of any size (see ``as_image_batch``).
 
@@ -141,22 +147,34 @@ class StereoPredictor:
             (B, H, W) tensor, positive pixels; refinement then runs at 1/4 only.
         two_pass: first a pass at half resolution, then refinement at full resolution from it
             (better for large images and large disparities). Ignored when init_disparity is given.
+        scale: in (0, 1]: the network sees the pair resized by this factor (fewer pixels, so
+            faster, and disparities shrunk by it); the maps come back at the input's size, the
+            disparity in input pixels.
         """
+        if not 0.0 < scale <= 1.0:
+            raise ValueError(f"scale must be in (0, 1], got {scale}")
         is_array = isinstance(left, np.ndarray)
         left_batch, right_batch = as_image_batch(left, self.device), as_image_batch(right, self.device)
         if left_batch.shape != right_batch.shape:
             raise ValueError(f"left and right differ in size: {tuple(left_batch.shape)} vs {tuple(right_batch.shape)}")
         counts = self.iterations(iters)
+        height, width = left_batch.shape[-2:]
+        size = (max(1, round(height * scale)), max(1, round(width * scale)))
+        if size != (height, width):
+            left_batch, right_batch = (shrink(image, size) for image in (left_batch, right_batch))
         init: Tensor | None = None
         if init_disparity is not None:
             init = torch.as_tensor(init_disparity, dtype=torch.float32, device=self.device)
-            init = init.reshape(left_batch.shape[0], 1, *left_batch.shape[-2:])
+            init = init.reshape(left_batch.shape[0], 1, height, width)
+            init = init if size == (height, width) else resize_disparity(init, *size)
         elif two_pass:
-            half = F.interpolate(left_batch, scale_factor=0.5, mode="bilinear", antialias=True, align_corners=False)
-            half_right = F.interpolate(right_batch, scale_factor=0.5, mode="bilinear", antialias=True, align_corners=False)
-            coarse, _ = self.run(half, half_right, counts, None)
-            init = resize_disparity(coarse, *left_batch.shape[-2:])
+            half_size = (max(1, size[0] // 2), max(1, size[1] // 2))
+            coarse, _ = self.run(shrink(left_batch, half_size), shrink(right_batch, half_size), counts, None)
+            init = resize_disparity(coarse, *size)
         disparity, uncertainty = self.run(left_batch, right_batch, counts, init)
+        if size != (height, width):
+            disparity = resize_disparity(disparity, height, width)
+            uncertainty = F.interpolate(uncertainty, size=(height, width), mode="bilinear", align_corners=False)
         if is_array:
             return Prediction(disparity[0, 0].cpu().numpy(), uncertainty[0, 0].cpu().numpy())
         return Prediction(disparity[:, 0], uncertainty[:, 0])

@@ -134,3 +134,22 @@ def test_inference_holds_no_autograd_state(lite):
     batch = torch.from_numpy(left).permute(2, 0, 1)[None]
     out = lite.predict(batch, batch)
     assert not out.disparity.requires_grad and out.disparity.is_inference()
+
+
+def test_a_scale_runs_the_network_on_the_resized_pair_and_answers_in_input_pixels(lite):
+    import torch.nn.functional as F
+
+    left, right = random_pair(96, 160, seed=3)
+    scaled = lite.predict(left, right, iters=(1, 1, 2), scale=0.5)
+    assert scaled.disparity.shape == scaled.uncertainty.shape == (96, 160)
+
+    def half(image):
+        batch = torch.from_numpy(image).permute(2, 0, 1)[None].float()
+        return F.interpolate(batch, size=(48, 80), mode="bilinear", antialias=True, align_corners=False)
+
+    small = lite.predict(half(left), half(right), iters=(1, 1, 2))
+    expected = 2.0 * F.interpolate(small.disparity[:, None], size=(96, 160), mode="bilinear", align_corners=False)
+    np.testing.assert_allclose(scaled.disparity, expected[0, 0].numpy(), rtol=1e-4, atol=1e-4)
+    for bad in (0.0, -1.0, 1.5):
+        with pytest.raises(ValueError, match="scale"):
+            lite.predict(left, right, scale=bad)
