@@ -10,12 +10,14 @@ says what each bounds and what uvicorn cannot bound.
 from __future__ import annotations
 
 import argparse
+import logging
 import math
 import os
 
 import uvicorn
 
 from service.settings import Settings
+from service.worker import any_busy
 
 SERVER_LIMITS = {
     # Open connections plus running requests before uvicorn answers 503 itself: room for two full
@@ -42,6 +44,12 @@ def main(argv: list[str] | None = None) -> None:
     shutdown_s = math.ceil(Settings.from_env().drain_timeout_s) + SHUTDOWN_MARGIN_S
     uvicorn.run("service.app:create_app", factory=True, host=args.host, port=args.port,
                 timeout_graceful_shutdown=shutdown_s, **SERVER_LIMITS)
+    # Only reached where SIGTERM does not end the process (uvicorn re-raises it; PID 1 ignores
+    # it). A batch abandoned at the drain timeout may still compute: leave without running
+    # torch's static destructors under it, which would abort the process.
+    if any_busy():
+        logging.shutdown()
+        os._exit(0)
 
 
 if __name__ == "__main__":

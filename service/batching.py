@@ -46,8 +46,8 @@ class Predictor(Protocol):
     weights_sha256: str | None
     num_parameters: int
 
-    def predict(self, left: Any, right: Any, *, iters: Any = None, init_disparity: Any = None,
-                two_pass: bool = False) -> Any: ...
+    def predict(self, left: Any, right: Any, *, iters: Iterations = None, init_disparity: Any = None,
+                two_pass: bool = False, scale: float = 1.0) -> Any: ...
 
 
 class BatchingError(Exception):
@@ -78,13 +78,26 @@ class InferenceFailed(BatchingError):
         self.error_id = error_id
 
 
+Iterations = int | tuple[int, int, int] | None
+"""ARM iterations as `StereoPredictor.predict` takes them (None: the model's own)."""
+
+
+@dataclass(frozen=True)
+class Knobs:
+    """The inference options of a request (`StereoPredictor.predict`'s keywords)."""
+
+    two_pass: bool = False
+    iters: Iterations = None
+    scale: float = 1.0
+
+
 @dataclass(frozen=True)
 class BatchKey:
     """Requests with equal keys may share a batch."""
 
     model: str
-    two_pass: bool
-    height: int  # input shape of the batch: padded to a multiple of 32, or exact for two_pass
+    knobs: Knobs
+    height: int  # input shape of the batch: padded to a multiple of 32, or exact (see batch_key)
     width: int
 
     @property
@@ -92,13 +105,13 @@ class BatchKey:
         return self.height * self.width
 
 
-def batch_key(model: str, two_pass: bool, height: int, width: int) -> BatchKey:
-    """One-pass requests batch by padded shape: padding them to it is what the network does
-    anyway. Two-pass requests batch by exact shape, since their half-resolution pass sees the
+def batch_key(model: str, knobs: Knobs, height: int, width: int) -> BatchKey:
+    """Plain requests batch by padded shape: padding them to it is what the network does anyway.
+    Two-pass and scaled requests batch by exact shape, since their resized passes see the
     unpadded image."""
-    if two_pass:
-        return BatchKey(model, True, height, width)
-    return BatchKey(model, False, _round_up(height), _round_up(width))
+    if knobs.two_pass or knobs.scale != 1.0:
+        return BatchKey(model, knobs, height, width)
+    return BatchKey(model, knobs, _round_up(height), _round_up(width))
 
 
 @dataclass(frozen=True)
@@ -132,12 +145,12 @@ class Admission:
         self.model = model
         self.job: _Job | None = None
 
-    async def run(self, left: np.ndarray, right: np.ndarray, *, two_pass: bool,
+    async def run(self, left: np.ndarray, right: np.ndarray, *, knobs: Knobs,
                   deadline: float | None, is_disconnected: Callable[[], Awaitable[bool]],
                   request_id: str | None = None) -> JobResult:
         """Queue a decoded pair (uint8 HxWx3 RGB) and wait for its result."""
         height, width = left.shape[:2]
-        job = _Job(batch_key(self.model, two_pass, height, width), left, right, deadline,
+        job = _Job(batch_key(self.model, knobs, height, width), left, right, deadline,
                    is_disconnected, request_id)
         if deadline is not None and deadline <= job.enqueued_at:
             raise DeadlineExceeded("deadline passed before the request was queued")
@@ -393,7 +406,9 @@ def compute_batch(predictor: Predictor, key: BatchKey, lefts: Sequence[np.ndarra
     the network pads, predict, and crop each map back to its image's size."""
     left = _to_batch_tensor(lefts, key)
     right = _to_batch_tensor(rights, key)
-    prediction = predictor.predict(left, right, two_pass=key.two_pass)
+    knobs = key.knobs
+    prediction = predictor.predict(left, right, two_pass=knobs.two_pass, iters=knobs.iters,
+                                   scale=knobs.scale)
     disparity = prediction.disparity.numpy()
     uncertainty = prediction.uncertainty.numpy()
     return [(np.ascontiguousarray(disparity[i, :h, :w]), np.ascontiguousarray(uncertainty[i, :h, :w]))

@@ -62,7 +62,8 @@ class ServiceRuntime:
         if self.batcher is not None:
             await self.batcher.close()
         if self._executor is not None:  # a batch abandoned at the drain timeout is not waited for
-            self._executor.shutdown(wait=False, cancel_futures=True)
+            await asyncio.to_thread(self._executor.shutdown, wait=not self._executor.busy,
+                                    cancel_futures=True)
 
     def begin_drain(self) -> None:
         """Stop admitting work; after `drain_timeout_s`, answer what is still queued or computing

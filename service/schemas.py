@@ -44,11 +44,27 @@ class DisparityOptions(BaseModel):
     two_pass: bool = Field(
         False, description="Cascaded inference: a half-resolution pass initialises the "
         "full-resolution one (better on large images, slower).")
+    iters: str | None = Field(
+        None, pattern=r"^[1-9][0-9]?(,[1-9][0-9]?,[1-9][0-9]?)?$", examples=["4", "1,2,4"],
+        description="ARM iterations: `N` at 1/4 resolution, or `N16,N8,N4` for the three stages "
+        "(1-99 each); fewer is faster and coarser [the model's: lite 2,4,6, full 2,4,8].")
+    scale: float = Field(
+        1.0, gt=0, le=1, description="Run the network on the pair resized by this factor (0 < "
+        "scale <= 1): about scale^2 of the time; the maps still come at the input's size, "
+        "disparity in input pixels.")
     focal_px: FiniteFloat | None = Field(
         None, gt=0, description="Focal length in pixels; with `baseline_m` adds a metric depth "
         "map Z = focal_px x baseline_m / disparity (invalid where disparity <= 0).")
     baseline_m: FiniteFloat | None = Field(
         None, gt=0, description="Stereo baseline in metres; see `focal_px`.")
+
+    @property
+    def iterations(self) -> int | tuple[int, int, int] | None:
+        """`iters` as `StereoPredictor.predict` takes it."""
+        if self.iters is None:
+            return None
+        counts = tuple(int(n) for n in self.iters.split(","))
+        return counts[0] if len(counts) == 1 else (counts[0], counts[1], counts[2])
 
     @model_validator(mode="after")
     def _depth_needs_calibration(self) -> DisparityOptions:

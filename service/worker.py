@@ -4,15 +4,26 @@
 at exit: a batch still computing when the drain timeout ends (minutes, for a large image on
 `full`) would keep the process alive past it. A daemon thread does not, so the drain timeout
 bounds shutdown; the abandoned batch's requests have been answered 503 `draining` by then.
+A process must not finish normally while such a thread computes (torch's static destructors
+then abort it): `python -m service` ends with `os._exit` when `any_busy()`.
 """
 
 from __future__ import annotations
 
 import queue
 import threading
+import weakref
 from collections.abc import Callable
 from concurrent.futures import Executor, Future
 from typing import Any
+
+
+_WORKERS: weakref.WeakSet[DaemonWorker] = weakref.WeakSet()
+
+
+def any_busy() -> bool:
+    """Whether any worker of this process is running a call now."""
+    return any(worker.busy for worker in list(_WORKERS))
 
 
 class DaemonWorker(Executor):
@@ -24,8 +35,10 @@ class DaemonWorker(Executor):
                                              dict[str, Any]] | None] = queue.SimpleQueue()
         self._initializer, self._initargs = initializer, initargs
         self._closed = False
+        self.busy = False
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
         self._thread.start()
+        _WORKERS.add(self)
 
     def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> Future[Any]:
         if self._closed:
@@ -57,7 +70,10 @@ class DaemonWorker(Executor):
             future, fn, args, kwargs = item
             if not future.set_running_or_notify_cancel():
                 continue
+            self.busy = True
             try:
                 future.set_result(fn(*args, **kwargs))
             except BaseException as exc:  # handed to the caller, as ThreadPoolExecutor does
                 future.set_exception(exc)
+            finally:
+                self.busy = False

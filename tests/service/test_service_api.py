@@ -111,6 +111,31 @@ async def test_two_pass_inference_is_served():
                                rtol=1e-4, atol=1e-4)
 
 
+@pytest.mark.parametrize(("params", "knobs"), [
+    ({"iters": "3"}, {"iters": 3}),
+    ({"iters": "1,1,2"}, {"iters": (1, 1, 2)}),
+    ({"scale": "0.5"}, {"scale": 0.5}),
+    ({"scale": "0.5", "iters": "2", "two_pass": "true"}, {"scale": 0.5, "iters": 2, "two_pass": True}),
+])
+async def test_iterations_and_scale_are_served_as_the_library_computes_them(params, knobs):
+    left, right = stereo_pair()
+    async with serve_asgi() as h:
+        response = await h.client.post("/disparity", params=params, files=pair_files(left, right))
+        direct = h.predictors["lite"].predict(left, right, **knobs)
+    assert response.status_code == 200, response.text
+    served = decode_array(response.json()["disparity"])
+    assert served.shape == left.shape[:2]
+    np.testing.assert_allclose(served, direct.disparity, rtol=1e-4, atol=1e-4)
+
+
+@pytest.mark.parametrize("params", [{"iters": "0"}, {"iters": "1,2"}, {"iters": "4,x,6"},
+                                    {"iters": "100"}, {"scale": "0"}, {"scale": "1.5"}])
+async def test_bad_iterations_or_scale_get_422(params):
+    async with serve_asgi() as h:
+        response = await h.client.post("/disparity", params=params, files=pair_files(*stereo_pair()))
+    assert (response.status_code, response.json()["error"]["code"]) == (422, "invalid_request")
+
+
 async def test_request_id_is_echoed_when_well_formed_and_replaced_otherwise():
     async with serve_asgi() as h:
         echoed = await h.client.get("/health", headers={"X-Request-Id": "trace-42.a:b"})

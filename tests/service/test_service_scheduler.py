@@ -9,7 +9,7 @@ from contextlib import asynccontextmanager
 import anyio
 import pytest
 
-from service.batching import Batcher, JobResult
+from service.batching import Batcher, JobResult, Knobs
 from service.metrics import Metrics
 from service_helpers import GatedPredictor, lite_settings, quiet_load_model, stereo_pair
 
@@ -35,7 +35,7 @@ async def batcher(**settings: float) -> AsyncIterator[tuple[Batcher, GatedPredic
 
 async def run(batcher: Batcher, results: list[JobResult]) -> None:
     async with batcher.admit("lite") as admission:
-        results.append(await admission.run(LEFT, RIGHT, two_pass=False, deadline=None,
+        results.append(await admission.run(LEFT, RIGHT, knobs=Knobs(), deadline=None,
                                            is_disconnected=connected))
 
 
@@ -55,7 +55,7 @@ async def test_a_partial_batch_waits_for_requests_still_being_decoded():
                 tg.start_soon(run, b, results)  # queued while `decoding` is still admitted
                 await anyio.sleep(0.2)
                 assert predictor.calls == []  # held back: another request is on its way
-                results.append(await decoding.run(LEFT, RIGHT, two_pass=False, deadline=None,
+                results.append(await decoding.run(LEFT, RIGHT, knobs=Knobs(), deadline=None,
                                                   is_disconnected=connected))
     assert predictor.calls == [2] and [r.batch_size for r in results] == [2, 2]
 

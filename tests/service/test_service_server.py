@@ -172,9 +172,10 @@ def test_the_drain_timeout_bounds_shutdown_even_while_a_batch_computes(tmp_path)
         signalled = time.monotonic()
         server.process.send_signal(signal.SIGTERM)
         response = future.result()
-        server.process.wait(timeout=60)
+        exit_code = server.process.wait(timeout=60)
         exited_after = time.monotonic() - signalled
     assert (response.status_code, response.json()["error"]["code"]) == (503, "draining")
+    assert exit_code in (0, -signal.SIGTERM), server.log()[-2000:]
     assert exited_after < 4.0, f"exited {exited_after:.1f} s after SIGTERM with a 1 s drain timeout"
 
 
