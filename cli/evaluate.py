@@ -80,6 +80,8 @@ def run(args: argparse.Namespace) -> int:
         scale=args.scale,
     )
     print(report.table())
+    print()
+    print(report.uncertainty_table())
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(report.to_dict(), indent=2) + "\n")

@@ -16,9 +16,9 @@ from model import Prediction, StereoPredictor
 from model.inference import Iterations
 from stereo_data.readers import StereoSample
 
-from .metrics import DisparityMetrics, compute_metrics, mean_metrics
+from .metrics import DisparityMetrics, Sparsification, compute_metrics, mean_metrics, mean_sparsification, sparsification
 from .sgbm import sgbm_disparity
-from .visualize import Panel, colorize, compose_sheet, disparity_panels
+from .visualize import Panel, colorize, compose_sheet, disparity_panels, line_plot
 
 SGBM = "sgbm"
 """Method name of the OpenCV StereoSGBM baseline in reports."""
@@ -26,10 +26,12 @@ SGBM = "sgbm"
 
 @dataclass(frozen=True)
 class MethodResult:
-    """One method on one pair: its metrics and the seconds one prediction took."""
+    """One method on one pair: its metrics, the seconds one prediction took, and how well its
+    uncertainty ranks its errors (bad-2 sparsification)."""
 
     metrics: DisparityMetrics
     seconds: float
+    sparsification: Sparsification
 
 
 @dataclass(frozen=True)
@@ -55,9 +57,13 @@ class EvaluationReport:
         return list(self.pairs[0].methods) if self.pairs else []
 
     def mean(self, method: str) -> MethodResult:
-        """Unweighted mean over pairs of the metrics and the time of `method`."""
+        """Unweighted mean over pairs of the metrics, the time and the sparsification of `method`."""
         results = [pair.methods[method] for pair in self.pairs]
-        return MethodResult(mean_metrics([r.metrics for r in results]), float(np.mean([r.seconds for r in results])))
+        return MethodResult(
+            mean_metrics([r.metrics for r in results]),
+            float(np.mean([r.seconds for r in results])),
+            mean_sparsification([r.sparsification for r in results]),
+        )
 
     def to_dict(self) -> dict[str, Any]:
         """Every number of the report, JSON-ready."""
@@ -83,6 +89,28 @@ class EvaluationReport:
                 lines.append(
                     f"{label:<34.34} {method:<6} {m.epe:>7.3f} {m.bad1:>7.2f} {m.bad2:>7.2f} {m.bad3:>7.2f}"
                     f" {m.d1_all:>8.2f} {result.seconds:>8.3f}"
+                )
+                label = ""
+        return "\n".join(lines)
+
+    def uncertainty_table(self) -> str:
+        """Plain-text table of how each method's uncertainty ranks its errors: bad-2 after
+        removing the most uncertain 0/25/50/75 % of pixels, AUC, optimal AUC, random AUC and
+        AUC / optimal (1 = perfect ranking; random / optimal = no ranking at all)."""
+        header = (
+            f"{'pair':<34} {'method':<6} {'bad2@0%':>8} {'@25%':>6} {'@50%':>6} {'@75%':>6}"
+            f" {'AUC':>7} {'AUCopt':>7} {'AUCrnd':>7} {'AUC/opt':>8}"
+        )
+        lines = [header, "-" * len(header)]
+        rows = [(pair.name, pair.methods) for pair in self.pairs]
+        rows.append((f"mean of {len(self.pairs)} pairs", {m: self.mean(m) for m in self.method_names}))
+        for label, methods in rows:
+            for method, result in methods.items():
+                sp = result.sparsification
+                at = dict(zip(sp.removed_percent, sp.bad_percent, strict=True))
+                lines.append(
+                    f"{label:<34.34} {method:<6} {at[0.0]:>8.2f} {at[25.0]:>6.2f} {at[50.0]:>6.2f} {at[75.0]:>6.2f}"
+                    f" {sp.auc:>7.4f} {sp.auc_optimal:>7.4f} {sp.auc_random:>7.4f} {sp.ratio_to_optimal:>8.2f}"
                 )
                 label = ""
         return "\n".join(lines)
@@ -116,7 +144,7 @@ def evaluate(
             "name": predictor.name,
             "weights_sha256": predictor.weights_sha256,
             "num_parameters": predictor.num_parameters,
-            "iters": list(predictor.iterations(iters)),
+            "iters": iters,  # None: the model's own
             "two_pass": two_pass,
             "scale": scale,
         },
@@ -135,30 +163,40 @@ def evaluate(
         start = time.perf_counter()
         prediction = predict(sample)
         seconds = time.perf_counter() - start
-        methods = {
-            predictor.name: MethodResult(compute_metrics(prediction.disparity, sample.disparity, known), seconds)
-        }
-        disparities = {predictor.name: prediction.disparity}
+        outputs = {predictor.name: (prediction.disparity, prediction.uncertainty, seconds)}
         if baseline_sgbm:
             start = time.perf_counter()
             baseline = sgbm_disparity(sample.left, sample.right, float(sample.disparity[known].max()))
-            seconds = time.perf_counter() - start
-            methods[SGBM] = MethodResult(compute_metrics(baseline, sample.disparity, known), seconds)
-            disparities[SGBM] = baseline
+            outputs[SGBM] = (*baseline, time.perf_counter() - start)
+        methods = {
+            name: MethodResult(
+                compute_metrics(disparity, sample.disparity, known),
+                seconds,
+                sparsification(np.abs(disparity - sample.disparity)[known], uncertainty[known]),
+            )
+            for name, (disparity, uncertainty, seconds) in outputs.items()
+        }
         height, width = sample.disparity.shape
         report.pairs.append(PairResult(sample.name, width, height, methods))
         if sheets_dir is not None:
-            sheet = evaluation_sheet(sample, known, prediction.uncertainty, disparities)
+            disparities = {name: disparity for name, (disparity, _, _) in outputs.items()}
+            curves = {name: result.sparsification for name, result in methods.items()}
+            sheet = evaluation_sheet(sample, known, prediction.uncertainty, disparities, curves)
             sheets_dir.mkdir(parents=True, exist_ok=True)
             cv2.imwrite(str(sheets_dir / f"{sample.name}.png"), sheet[:, :, ::-1])
     return report
 
 
 def evaluation_sheet(
-    sample: StereoSample, known: np.ndarray, uncertainty: np.ndarray, disparities: dict[str, np.ndarray]
+    sample: StereoSample,
+    known: np.ndarray,
+    uncertainty: np.ndarray,
+    disparities: dict[str, np.ndarray],
+    curves: dict[str, Sparsification],
 ) -> np.ndarray:
     """Sheet image (uint8 RGB) of one pair: row 1 left, ground truth, the model's uncertainty;
-    then one row per method (disparity, |error|). `disparities` maps method -> float HxW px."""
+    then one row per method (disparity, |error|); last, the sparsification curves of `curves`
+    with the optimal one. `disparities` maps method -> float HxW px."""
     ground_truth = np.where(known, sample.disparity, np.inf)
     disparity_max = float(ground_truth[known].max())
     rows = [
@@ -171,4 +209,14 @@ def evaluation_sheet(
         ]
     ]
     rows += [disparity_panels(name, d, sample.disparity, known, disparity_max) for name, d in disparities.items()]
+    rows.append([Panel("sparsification: bad-2 % of the most trusted pixels", sparsification_plot(curves))])
     return compose_sheet(rows)
+
+
+def sparsification_plot(curves: dict[str, Sparsification]) -> np.ndarray:
+    """uint8 RGB plot of each method's sparsification curve (bad-2 % against % removed)."""
+    series = {
+        f"{name} (AUC/opt {curve.ratio_to_optimal:.2f})": (list(curve.removed_percent), list(curve.bad_percent))
+        for name, curve in curves.items()
+    }
+    return line_plot(series, "% most uncertain pixels removed", "bad-2 % of the rest", size=(720, 360))

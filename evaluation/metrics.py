@@ -6,6 +6,7 @@ included), from the absolute error |prediction - ground truth| in pixels.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -90,4 +91,78 @@ def mean_metrics(per_pair: list[DisparityMetrics]) -> DisparityMetrics:
         bad3=mean_of("bad3"),
         d1_all=mean_of("d1_all"),
         valid_pixels=sum(m.valid_pixels for m in per_pair),
+    )
+
+
+SPARSIFICATION_STEP_PERCENT = 5
+"""The sparsification curve removes the most uncertain pixels in steps of this many percent."""
+
+
+@dataclass(frozen=True)
+class Sparsification:
+    """How well an uncertainty (or any confidence) map ranks the errors of a disparity map
+    (Poggi et al., "On the confidence of stereo matching in a deep-learning era", 2021).
+
+    Removing the most uncertain pixels first, the error rate (bad-`threshold`) of what is left is
+    measured at every density. removed_percent: 0, 5, ..., 95; bad_percent: bad-N (%) of the
+    pixels kept there. auc: area under the error-rate curve (fraction) over density 0..1, computed
+    pixel by pixel; auc_optimal: the area of a perfect ranking, eps + (1 - eps) ln(1 - eps) for
+    the error rate eps at full density; auc_random: the area of a random ranking, eps. So
+    auc / auc_optimal is 1 for a perfect map and eps / auc_optimal for a useless one.
+    """
+
+    threshold_px: float
+    removed_percent: tuple[float, ...]
+    bad_percent: tuple[float, ...]
+    auc: float
+    auc_optimal: float
+    auc_random: float
+
+    @property
+    def ratio_to_optimal(self) -> float:
+        """auc / auc_optimal (>= 1; 1 is perfect); nan when there is no error at all."""
+        return self.auc / self.auc_optimal if self.auc_optimal > 0 else float("nan")
+
+
+def optimal_sparsification_auc(error_rate: float) -> float:
+    """Area under the sparsification curve of a perfect ranking for error rate `error_rate` (a
+    fraction): eps + (1 - eps) ln(1 - eps), 1 when every pixel is wrong."""
+    if error_rate >= 1.0:
+        return 1.0
+    return error_rate + (1.0 - error_rate) * math.log1p(-error_rate)
+
+
+def sparsification(errors: np.ndarray, uncertainty: np.ndarray, threshold_px: float = 2.0) -> Sparsification:
+    """The sparsification curve and its areas for flat arrays of absolute errors (px) and
+    uncertainties (larger = less trusted; ties keep pixel order) over the same valid pixels."""
+    if errors.shape != uncertainty.shape or errors.ndim != 1 or errors.size == 0:
+        raise ValueError(f"expected equal non-empty flat arrays, got {errors.shape} and {uncertainty.shape}")
+    order = np.argsort(uncertainty, kind="stable")  # most trusted first
+    bad = errors[order] > threshold_px
+    kept = np.arange(1, bad.size + 1)
+    error_rate_kept = np.cumsum(bad) / kept  # error rate of the k most trusted pixels, k = 1..N
+    removed = tuple(float(r) for r in range(0, 100, SPARSIFICATION_STEP_PERCENT))
+    at = [max(1, round(bad.size * (1.0 - r / 100.0))) for r in removed]
+    epsilon = float(bad.mean())
+    return Sparsification(
+        threshold_px=threshold_px,
+        removed_percent=removed,
+        bad_percent=tuple(float(100.0 * error_rate_kept[k - 1]) for k in at),
+        auc=float(error_rate_kept.mean()),
+        auc_optimal=optimal_sparsification_auc(epsilon),
+        auc_random=epsilon,
+    )
+
+
+def mean_sparsification(per_pair: list[Sparsification]) -> Sparsification:
+    """Unweighted mean over pairs of the curve and the areas (each pair counts once)."""
+    if not per_pair:
+        raise ValueError("no pairs to average")
+    return Sparsification(
+        threshold_px=per_pair[0].threshold_px,
+        removed_percent=per_pair[0].removed_percent,
+        bad_percent=tuple(float(v) for v in np.mean([s.bad_percent for s in per_pair], axis=0)),
+        auc=float(np.mean([s.auc for s in per_pair])),
+        auc_optimal=float(np.mean([s.auc_optimal for s in per_pair])),
+        auc_random=float(np.mean([s.auc_random for s in per_pair])),
     )

@@ -52,8 +52,23 @@ def fill_invalid_from_left(disparity: np.ndarray, valid: np.ndarray) -> np.ndarr
     return np.where(row_has_valid, filled, 0.0).astype(np.float32)
 
 
-def sgbm_disparity(left: np.ndarray, right: np.ndarray, max_disparity: float) -> np.ndarray:
-    """Baseline disparity (float32 HxW, px, positive, no holes) of a rectified uint8 HxWx3 pair."""
-    raw = create_sgbm(max_disparity).compute(left, right)
-    disparity = raw.astype(np.float32) / 16.0
-    return fill_invalid_from_left(disparity, raw >= 0)
+
+
+def sgbm_disparity(left: np.ndarray, right: np.ndarray, max_disparity: float) -> tuple[np.ndarray, np.ndarray]:
+    """Baseline disparity (float32 HxW, px, positive, no holes: invalid outputs filled from the
+    left) of a rectified uint8 HxWx3 pair, and its left-right consistency error as an
+    uncertainty (float32 HxW, px, larger = less trusted): |d_L(x) - d_R(x - d_L(x))| with d_R the
+    right view's disparity (SGBM on the mirrored, swapped pair); pixels SGBM left invalid, or
+    whose match falls outside the right view or on an invalid right pixel, get +inf."""
+    matcher = create_sgbm(max_disparity)
+    raw_left = matcher.compute(left, right)
+    raw_right = matcher.compute(np.ascontiguousarray(right[:, ::-1]), np.ascontiguousarray(left[:, ::-1]))[:, ::-1]
+    disparity_left = raw_left.astype(np.float32) / 16.0
+    disparity_right = raw_right.astype(np.float32) / 16.0
+    height, width = disparity_left.shape
+    match = np.round(np.arange(width)[None, :] - disparity_left).astype(np.int64)
+    inside = (raw_left >= 0) & (match >= 0) & (match < width)
+    right_at_match = np.take_along_axis(disparity_right, np.clip(match, 0, width - 1), axis=1)
+    right_valid = np.take_along_axis(raw_right >= 0, np.clip(match, 0, width - 1), axis=1)
+    consistency = np.where(inside & right_valid, np.abs(disparity_left - right_at_match), np.inf)
+    return fill_invalid_from_left(disparity_left, raw_left >= 0), consistency.astype(np.float32)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -81,3 +83,72 @@ def _titled_tile(panel: Panel) -> np.ndarray:
     title = np.full((TITLE_HEIGHT, PANEL_WIDTH, 3), 255, np.uint8)
     cv2.putText(title, panel.title, (6, TITLE_HEIGHT - 7), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
     return np.concatenate([title, image], axis=0)
+
+
+def _span(values: np.ndarray) -> tuple[float, float]:
+    """(min, max) of `values`, widened to (v, v + 1) when they are all equal."""
+    low, high = float(values.min()), float(values.max())
+    return (low, high) if high > low else (low, low + 1.0)
+
+
+def line_plot(
+    series: dict[str, tuple[Sequence[float], Sequence[float]]],
+    x_label: str,
+    y_label: str,
+    log_y: bool = False,
+    size: tuple[int, int] = (900, 500),
+) -> np.ndarray:
+    """Named (x, y) line series drawn on one pair of axes: uint8 RGB image of `size` (w, h)."""
+    (width, height), margin_left, margin_bottom, margin = size, 80, 50, 20
+    canvas = np.full((height, width, 3), 255, np.uint8)
+    plot_w, plot_h = width - margin_left - margin, height - margin_bottom - margin
+    points = [
+        (x, y)
+        for xs, ys in series.values()
+        for x, y in zip(xs, ys, strict=True)
+        if math.isfinite(y) and (y > 0 or not log_y)
+    ]
+    if not points:
+        return canvas
+    transform = np.log10 if log_y else np.asarray
+    x_all = np.array([p[0] for p in points], dtype=np.float64)
+    y_all = transform(np.array([p[1] for p in points], dtype=np.float64))
+    x_low, x_high = _span(x_all)
+    y_low, y_high = _span(y_all)
+
+    def to_pixels(xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
+        px = margin_left + (xs - x_low) / (x_high - x_low) * plot_w
+        py = margin + (1.0 - (ys - y_low) / (y_high - y_low)) * plot_h
+        return np.stack([px, py], axis=1).round().astype(np.int32)
+
+    black, grey = (0, 0, 0), (200, 200, 200)
+    font = cv2.FONT_HERSHEY_SIMPLEX
+    for i in range(6):
+        fraction = i / 5
+        x_pixel = int(margin_left + fraction * plot_w)
+        y_pixel = int(margin + (1 - fraction) * plot_h)
+        cv2.line(canvas, (x_pixel, margin), (x_pixel, margin + plot_h), grey, 1)
+        cv2.line(canvas, (margin_left, y_pixel), (margin_left + plot_w, y_pixel), grey, 1)
+        x_value = x_low + fraction * (x_high - x_low)
+        y_value = y_low + fraction * (y_high - y_low)
+        cv2.putText(
+            canvas, f"{x_value:.4g}", (x_pixel - 20, height - margin_bottom + 20), font, 0.4, black, 1, cv2.LINE_AA
+        )
+        y_text = f"{10**y_value:.3g}" if log_y else f"{y_value:.3g}"
+        cv2.putText(canvas, y_text, (5, y_pixel + 4), font, 0.4, black, 1, cv2.LINE_AA)
+    cv2.rectangle(canvas, (margin_left, margin), (margin_left + plot_w, margin + plot_h), black, 1)
+    cv2.putText(canvas, x_label, (margin_left + plot_w // 2 - 30, height - 8), font, 0.5, black, 1, cv2.LINE_AA)
+    cv2.putText(canvas, y_label, (margin_left + 5, margin - 5), font, 0.5, black, 1, cv2.LINE_AA)
+
+    colours = [(30, 80, 200), (220, 40, 40), (40, 160, 40), (160, 40, 160)]  # RGB
+    for number, (name, (xs, ys)) in enumerate(series.items()):
+        colour = colours[number % len(colours)]
+        x_values, y_values = np.asarray(xs, np.float64), np.asarray(ys, np.float64)
+        keep = np.isfinite(y_values) & ((y_values > 0) if log_y else True)
+        if keep.any():
+            line = to_pixels(x_values[keep], transform(y_values[keep]))
+            cv2.polylines(canvas, [line], False, colour, 2, cv2.LINE_AA)
+        legend_y = margin + 20 + 20 * number
+        cv2.line(canvas, (width - 220, legend_y - 4), (width - 195, legend_y - 4), colour, 2)
+        cv2.putText(canvas, name, (width - 190, legend_y), font, 0.45, black, 1, cv2.LINE_AA)
+    return canvas

@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from evaluation.metrics import DisparityMetrics, compute_metrics, mean_metrics
+from evaluation.metrics import DisparityMetrics, compute_metrics, mean_metrics, sparsification
 
 INF = np.inf
 
@@ -57,3 +57,25 @@ def test_mean_over_pairs_weights_every_pair_equally():
     mean = mean_metrics([small, large])
     assert (mean.epe, mean.bad1, mean.bad2, mean.bad3, mean.d1_all) == (2.0, 20.0, 6.0, 4.0, 2.0)
     assert mean.valid_pixels == 1010
+
+
+def test_a_perfect_ranking_reaches_the_optimal_sparsification_area_and_a_random_one_the_error_rate():
+    rng = np.random.default_rng(0)
+    errors = np.where(rng.random(100_000) < 0.3, 5.0, 0.5)  # 30 % bad-2
+    perfect = sparsification(errors, errors + rng.random(errors.size) * 0.1)
+    random = sparsification(errors, rng.random(errors.size))
+    assert perfect.auc_random == pytest.approx(0.3, abs=0.01)
+    assert perfect.auc_optimal == pytest.approx(0.3 + 0.7 * math.log(0.7), rel=1e-2)
+    assert perfect.auc == pytest.approx(perfect.auc_optimal, abs=1e-3)
+    assert perfect.ratio_to_optimal == pytest.approx(1.0, abs=0.02)
+    assert random.auc == pytest.approx(0.3, abs=0.01)
+    assert perfect.bad_percent[0] == random.bad_percent[0] == pytest.approx(30, abs=1)
+    at = dict(zip(perfect.removed_percent, perfect.bad_percent, strict=True))
+    assert at[30.0] == pytest.approx(0.0, abs=0.1) and at[15.0] == pytest.approx(100 * 0.15 / 0.85, abs=0.5)
+    assert perfect.removed_percent == tuple(float(r) for r in range(0, 100, 5))
+
+
+def test_an_inverted_ranking_is_worse_than_random():
+    errors = np.linspace(0, 4, 1000)
+    inverted = sparsification(errors, -errors)
+    assert inverted.auc > inverted.auc_random > inverted.auc_optimal

@@ -24,7 +24,7 @@ class OffsetPredictor:
         self.offset = offset
         self.calls = 0
 
-    def predict(self, left, right, *, two_pass=False):
+    def predict(self, left, right, *, two_pass=False, iters=None, scale=1.0):
         self.calls += 1
         truth = self.truth[id(left)]
         disparity = np.where(np.isfinite(truth), truth + self.offset, 0.0).astype(np.float32)
@@ -83,7 +83,8 @@ def test_one_sheet_per_pair_with_a_row_per_method(samples, tmp_path):
     sheet = cv2.imread(str(tmp_path / "a.png"))
     assert sheet.shape[1] == 3 * PANEL_WIDTH
     panel_height = 24 + round(48 * PANEL_WIDTH / 80)
-    assert sheet.shape[0] == 3 * panel_height  # inputs row, model row, SGBM row
+    plot_height = 24 + round(360 * PANEL_WIDTH / 720)
+    assert sheet.shape[0] == 3 * panel_height + plot_height  # inputs, model, SGBM, sparsification
 
 
 def test_a_pair_without_ground_truth_is_an_error():

@@ -29,6 +29,18 @@ def test_sgbm_finds_a_constant_shift_on_a_textured_pair():
     rng = np.random.default_rng(0)
     right = rng.integers(0, 256, (64, 128, 3), dtype=np.uint8)
     left = np.roll(right, 7, axis=1)  # left(x) = right(x - 7): disparity 7
-    disparity = sgbm_disparity(left, right, max_disparity=20)
+    disparity, consistency = sgbm_disparity(left, right, max_disparity=20)
     assert disparity.dtype == np.float32 and np.isfinite(disparity).all()
     assert np.median(np.abs(disparity[:, 30:] - 7.0)) < 0.25
+    assert np.median(consistency[:, 30:]) < 0.5  # both views agree where the match is seen
+
+
+def test_sgbm_left_right_consistency_flags_where_the_views_disagree():
+    rng = np.random.default_rng(1)
+    right = rng.integers(0, 256, (64, 128, 3), dtype=np.uint8)
+    left = np.roll(right, 7, axis=1)
+    left[:, 60:80] = rng.integers(0, 256, (64, 20, 3), dtype=np.uint8)  # a patch seen by the left view only
+    disparity, consistency = sgbm_disparity(left, right, max_disparity=20)
+    inconsistent = ~(consistency < 1.0)
+    assert inconsistent[:, 62:78].mean() > 3 * inconsistent[:, 30:55].mean()
+    assert np.isinf(consistency[:, :7]).all()  # matches left of the right view's frame
