@@ -8,7 +8,7 @@ from typing import Any, Literal
 SYNTHETIC = "synthetic"
 """The `path` of a DataSource that stands for the procedural scene generator."""
 
-Schedule = Literal["one-cycle", "linear", "constant"]
+Schedule = Literal["one-cycle", "linear", "constant", "flat-decay"]
 Precision = Literal["auto", "fp32", "bf16"]
 
 
@@ -75,9 +75,12 @@ class TrainConfig:
     betas: tuple[float, float] = _knob((0.9, 0.999), "Adam betas")
     weight_decay: float = _knob(0.0, "decoupled weight decay (AdamW); 0 is plain Adam")
     schedule: Schedule = _knob(
-        "one-cycle", "lr schedule after warm-up: cosine (one-cycle) or linear decay to 0, or constant"
+        "one-cycle",
+        "lr schedule after warm-up: cosine (one-cycle) or linear decay to 0, constant, or flat-decay "
+        "(constant, then linear to 0 over the last decay_steps)",
     )
     warmup_fraction: float = _knob(0.01, "fraction of the schedule spent warming the lr up linearly from 0")
+    decay_steps: int = _knob(400, "flat-decay: the lr decays linearly to 0 over this many last steps of the schedule")
     gamma: float = _knob(0.8, "sequence-loss decay: prediction i of n has weight gamma^(n-i)")
     train_iters: tuple[int, int, int] | None = _knob(
         None, "ARM iterations at 1/16, 1/8, 1/4 in training (fewer = faster steps) [the model's own]"

@@ -1,4 +1,5 @@
-"""Learning-rate schedules: linear warm-up, then cosine (one-cycle), linear or no decay."""
+"""Learning-rate schedules: linear warm-up, then cosine (one-cycle), linear, no decay, or flat with a
+short linear decay at the end (flat-decay)."""
 
 from __future__ import annotations
 
@@ -9,17 +10,23 @@ import torch
 from .config import Schedule
 
 
-def learning_rate_factor(step: int, total_steps: int, schedule: Schedule, warmup_fraction: float) -> float:
+def learning_rate_factor(
+    step: int, total_steps: int, schedule: Schedule, warmup_fraction: float, decay_steps: int = 0
+) -> float:
     """Multiplier of the peak lr for optimiser step `step` (0-based) of `total_steps`.
 
     The first ceil(warmup_fraction * total_steps) steps ramp linearly up to 1; then "one-cycle"
-    anneals to 0 along a half cosine, "linear" decays linearly to 0 and "constant" stays at 1.
+    anneals to 0 along a half cosine, "linear" decays linearly to 0, "constant" stays at 1 and
+    "flat-decay" stays at 1 until the last `decay_steps` steps, over which it decays linearly to 0
+    (a long run at the peak that can stop at a low-noise point: resume with a later total).
     """
     warmup_steps = math.ceil(warmup_fraction * total_steps)
     if step < warmup_steps:
         return (step + 1) / warmup_steps
     if schedule == "constant":
         return 1.0
+    if schedule == "flat-decay":
+        return min(1.0, max(0.0, (total_steps - step) / max(1, decay_steps)))
     progress = min(1.0, (step - warmup_steps) / max(1, total_steps - warmup_steps))
     if schedule == "linear":
         return 1.0 - progress
@@ -29,12 +36,16 @@ def learning_rate_factor(step: int, total_steps: int, schedule: Schedule, warmup
 
 
 def build_scheduler(
-    optimizer: torch.optim.Optimizer, total_steps: int, schedule: Schedule, warmup_fraction: float
+    optimizer: torch.optim.Optimizer,
+    total_steps: int,
+    schedule: Schedule,
+    warmup_fraction: float,
+    decay_steps: int = 0,
 ) -> torch.optim.lr_scheduler.LambdaLR:
     """A LambdaLR applying `learning_rate_factor`; its state_dict holds only the step count, so a
     resumed run with a different `total_steps` follows the new horizon from where it stands."""
 
     def factor(step: int) -> float:
-        return learning_rate_factor(step, total_steps, schedule, warmup_fraction)
+        return learning_rate_factor(step, total_steps, schedule, warmup_fraction, decay_steps)
 
     return torch.optim.lr_scheduler.LambdaLR(optimizer, factor)

@@ -96,7 +96,7 @@ class Trainer:
             self.network.parameters(), lr=config.lr, betas=config.betas, weight_decay=config.weight_decay
         )
         self.scheduler = build_scheduler(
-            self.optimizer, config.schedule_length, config.schedule, config.warmup_fraction
+            self.optimizer, config.schedule_length, config.schedule, config.warmup_fraction, config.decay_steps
         )
         self.history = TrainingHistory.from_dict(source.get("training") if source else None)
         self.start_step = 0

@@ -34,3 +34,8 @@ def test_scheduler_sets_the_optimiser_lr_step_by_step():
         optimizer.step()
         scheduler.step()
     assert lrs == pytest.approx([0.5, 1.0, 1.0, 0.5])
+
+
+def test_flat_decay_holds_the_peak_then_decays_linearly_over_the_last_steps():
+    factors = [learning_rate_factor(s, 100, "flat-decay", 0.0, decay_steps=20) for s in (0, 79, 80, 90, 99, 100)]
+    assert factors == pytest.approx([1.0, 1.0, 1.0, 0.5, 0.05, 0.0])
