@@ -82,6 +82,10 @@ def run(args: argparse.Namespace) -> int:
     print(report.table())
     print()
     print(report.uncertainty_table())
+    calibration = report.calibration_table()
+    if calibration:
+        print()
+        print(calibration)
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(report.to_dict(), indent=2) + "\n")

@@ -6,16 +6,16 @@ import argparse
 import sys
 from collections.abc import Sequence
 
-from . import evaluate, export, predict, train
+from . import calibrate, evaluate, export, predict, train
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="crestereo-pp",
-        description="CREStereo++ / Lite-CREStereo++ stereo disparity: train, eval, predict, export.",
+        description="CREStereo++ / Lite-CREStereo++ stereo disparity: train, eval, predict, export, calibrate.",
     )
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for command in (train, evaluate, predict, export):
+    for command in (train, evaluate, predict, export, calibrate):
         command.add_parser(commands)
     return parser
 

@@ -59,6 +59,11 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--color-max", type=float, metavar="PX", help="disparity at the top of the colour scale [each map's maximum]"
     )
+    parser.add_argument(
+        "--raw-uncertainty",
+        action="store_true",
+        help="write the paper's raw U instead of the calibrated P(error > 2 px) the weights define",
+    )
     add_model_options(parser)
     parser.set_defaults(run=run)
 
@@ -129,6 +134,7 @@ def run(args: argparse.Namespace) -> int:
             iters=iterations(args),
             two_pass=args.two_pass,
             scale=args.scale,
+            raw_uncertainty=args.raw_uncertainty,
         )
         write_disparity(args.output if single else args.output / f"{pair.stem}.{args.format}", prediction.disparity)
         if args.uncertainty is not None:

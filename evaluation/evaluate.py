@@ -16,7 +16,17 @@ from model import Prediction, StereoPredictor
 from model.inference import Iterations
 from stereo_data.readers import StereoSample
 
-from .metrics import DisparityMetrics, Sparsification, compute_metrics, mean_metrics, mean_sparsification, sparsification
+from .metrics import (
+    DisparityMetrics,
+    Reliability,
+    Sparsification,
+    compute_metrics,
+    mean_metrics,
+    mean_sparsification,
+    pool_reliability,
+    reliability,
+    sparsification,
+)
 from .sgbm import sgbm_disparity
 from .visualize import Panel, colorize, compose_sheet, disparity_panels, line_plot
 
@@ -32,6 +42,7 @@ class MethodResult:
     metrics: DisparityMetrics
     seconds: float
     sparsification: Sparsification
+    reliability: Reliability | None = None  # when the uncertainty is a calibrated probability
 
 
 @dataclass(frozen=True)
@@ -59,10 +70,12 @@ class EvaluationReport:
     def mean(self, method: str) -> MethodResult:
         """Unweighted mean over pairs of the metrics, the time and the sparsification of `method`."""
         results = [pair.methods[method] for pair in self.pairs]
+        reliabilities = [r.reliability for r in results if r.reliability is not None]
         return MethodResult(
             mean_metrics([r.metrics for r in results]),
             float(np.mean([r.seconds for r in results])),
             mean_sparsification([r.sparsification for r in results]),
+            pool_reliability(reliabilities) if len(reliabilities) == len(results) else None,
         )
 
     def to_dict(self) -> dict[str, Any]:
@@ -92,6 +105,27 @@ class EvaluationReport:
                 )
                 label = ""
         return "\n".join(lines)
+
+    def calibration_table(self) -> str:
+        """Plain-text reliability table (all pixels of all pairs) of each method whose
+        uncertainty is a calibrated probability; empty when there is none."""
+        blocks = []
+        for method in self.method_names:
+            pooled = self.mean(method).reliability
+            if pooled is None:
+                continue
+            lines = [
+                f"{method}: predicted vs observed P(error > {pooled.threshold_px:g} px), all pixels of "
+                f"{len(self.pairs)} pairs; expected calibration error {pooled.expected_calibration_error:.4f}",
+                f"{'bin':<9} {'predicted':>9} {'observed':>9} {'pixels':>10}",
+            ]
+            bins = len(pooled.pixels)
+            for index, (predicted, observed, pixels) in enumerate(
+                zip(pooled.predicted, pooled.observed, pooled.pixels, strict=True)
+            ):
+                lines.append(f"{index / bins:.1f}-{(index + 1) / bins:.1f}   {predicted:>9.3f} {observed:>9.3f} {pixels:>10}")
+            blocks.append("\n".join(lines))
+        return "\n\n".join(blocks)
 
     def uncertainty_table(self) -> str:
         """Plain-text table of how each method's uncertainty ranks its errors: bad-2 after
@@ -147,6 +181,11 @@ def evaluate(
             "iters": iters,  # None: the model's own
             "two_pass": two_pass,
             "scale": scale,
+            "uncertainty": (
+                f"P(error > {predictor.calibration.threshold_px:g} px), fitted on {predictor.calibration.fitted_on}"
+                if predictor.calibration is not None
+                else "the paper's U of the last iteration (no calibration in the weights)"
+            ),
         },
     )
     first = dataset[0]
@@ -164,6 +203,7 @@ def evaluate(
         prediction = predict(sample)
         seconds = time.perf_counter() - start
         outputs = {predictor.name: (prediction.disparity, prediction.uncertainty, seconds)}
+        calibration = predictor.calibration
         if baseline_sgbm:
             start = time.perf_counter()
             baseline = sgbm_disparity(sample.left, sample.right, float(sample.disparity[known].max()))
@@ -173,6 +213,9 @@ def evaluate(
                 compute_metrics(disparity, sample.disparity, known),
                 seconds,
                 sparsification(np.abs(disparity - sample.disparity)[known], uncertainty[known]),
+                reliability(np.abs(disparity - sample.disparity)[known], uncertainty[known], calibration.threshold_px)
+                if name == predictor.name and calibration is not None
+                else None,
             )
             for name, (disparity, uncertainty, seconds) in outputs.items()
         }

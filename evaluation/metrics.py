@@ -166,3 +166,62 @@ def mean_sparsification(per_pair: list[Sparsification]) -> Sparsification:
         auc_optimal=float(np.mean([s.auc_optimal for s in per_pair])),
         auc_random=float(np.mean([s.auc_random for s in per_pair])),
     )
+
+
+@dataclass(frozen=True)
+class Reliability:
+    """How well predicted probabilities of a large error match what happens (a reliability
+    diagram): pixels binned by predicted probability into `bins` equal-width bins of [0, 1].
+
+    predicted, observed: per bin, the mean predicted probability and the observed frequency of
+    an error above threshold_px (nan for an empty bin); pixels: per bin, its pixel count;
+    expected_calibration_error: sum over bins of pixels share x |predicted - observed|.
+    """
+
+    threshold_px: float
+    predicted: tuple[float, ...]
+    observed: tuple[float, ...]
+    pixels: tuple[int, ...]
+    expected_calibration_error: float
+
+
+def reliability(errors: np.ndarray, probability: np.ndarray, threshold_px: float, bins: int = 10) -> Reliability:
+    """The reliability of `probability` (flat, predicted P(error > threshold_px)) against the
+    flat absolute `errors` (px) over the same valid pixels."""
+    if errors.shape != probability.shape or errors.ndim != 1 or errors.size == 0:
+        raise ValueError(f"expected equal non-empty flat arrays, got {errors.shape} and {probability.shape}")
+    which = np.clip((probability * bins).astype(np.int64), 0, bins - 1)
+    bad = errors > threshold_px
+    counts = np.bincount(which, minlength=bins)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        predicted = np.bincount(which, weights=probability, minlength=bins) / counts
+        observed = np.bincount(which, weights=bad, minlength=bins) / counts
+    filled = counts > 0
+    ece = float(np.sum(counts[filled] / errors.size * np.abs(predicted[filled] - observed[filled])))
+    return Reliability(
+        threshold_px=threshold_px,
+        predicted=tuple(float(v) for v in predicted),
+        observed=tuple(float(v) for v in observed),
+        pixels=tuple(int(c) for c in counts),
+        expected_calibration_error=ece,
+    )
+
+
+def pool_reliability(per_pair: list[Reliability]) -> Reliability:
+    """The reliability of all pixels of all pairs together (bins added up)."""
+    if not per_pair:
+        raise ValueError("no pairs to pool")
+    counts = np.sum([r.pixels for r in per_pair], axis=0)
+    predicted_sum = np.nansum([np.multiply(r.predicted, r.pixels) for r in per_pair], axis=0)
+    observed_sum = np.nansum([np.multiply(r.observed, r.pixels) for r in per_pair], axis=0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        predicted, observed = predicted_sum / counts, observed_sum / counts
+    filled = counts > 0
+    ece = float(np.sum(counts[filled] / counts.sum() * np.abs(predicted[filled] - observed[filled])))
+    return Reliability(
+        threshold_px=per_pair[0].threshold_px,
+        predicted=tuple(float(v) for v in predicted),
+        observed=tuple(float(v) for v in observed),
+        pixels=tuple(int(c) for c in counts),
+        expected_calibration_error=ece,
+    )

@@ -12,6 +12,7 @@ import torch
 from torch import Tensor
 from torch.nn import functional as F
 
+from .calibration import UncertaintyCalibration
 from .config import ModelConfig
 from .network import INPUT_MULTIPLE, CREStereoPP
 from .upsample import resize_disparity
@@ -68,7 +69,14 @@ def load_model(name: str = "lite", weights: str | Path | None = None, device: st
         config = ModelConfig.from_dict(dict(checkpoint["config"]))
     network = CREStereoPP(config)
     network.load_state_dict({k: v.float() for k, v in checkpoint["model"].items()})
-    return StereoPredictor(network, name, file_sha256(path), device)
+    calibration = checkpoint.get("calibration")
+    return StereoPredictor(
+        network,
+        name,
+        file_sha256(path),
+        device,
+        UncertaintyCalibration.from_dict(calibration) if calibration is not None else None,
+    )
 
 
 def as_image_batch(image: np.ndarray | Tensor, device: torch.device) -> Tensor:
@@ -105,13 +113,26 @@ def pad_to_multiple(x: Tensor, multiple: int = INPUT_MULTIPLE) -> Tensor:
 
 
 class StereoPredictor:
-    """A network ready for inference (eval mode, on ``device``, no gradients)."""
+    """A network ready for inference (eval mode, on ``device``, no gradients).
 
-    def __init__(self, network: CREStereoPP, name: str, weights_sha256: str | None, device: str | torch.device) -> None:
+    calibration: what the uncertainty map means for these weights (``model.calibration``); when
+    given, ``predict`` returns P(|error| > calibration.threshold_px) as the uncertainty, else the
+    paper's raw U.
+    """
+
+    def __init__(
+        self,
+        network: CREStereoPP,
+        name: str,
+        weights_sha256: str | None,
+        device: str | torch.device,
+        calibration: UncertaintyCalibration | None = None,
+    ) -> None:
         self.device = torch.device(device)
         self.network = network.to(self.device).eval()
         self.name = name
         self.weights_sha256 = weights_sha256
+        self.calibration = calibration
 
     @property
     def config(self) -> ModelConfig:
@@ -140,6 +161,7 @@ class StereoPredictor:
         init_disparity: np.ndarray | Tensor | None = None,
         two_pass: bool = False,
         scale: float = 1.0,
+        raw_uncertainty: bool = False,
     ) -> Prediction:
         """Disparity and uncertainty of a rectified pair of any size (see ``as_image_batch``).
 
@@ -150,6 +172,9 @@ class StereoPredictor:
         scale: in (0, 1]: the network sees the pair resized by this factor (fewer pixels, so
             faster, and disparities shrunk by it); the maps come back at the input's size, the
             disparity in input pixels.
+        raw_uncertainty: return the paper's U (in [0, 1], at most 0.5 after the first iteration)
+            even when the weights carry a calibration; otherwise the uncertainty is the calibrated
+            probability of an error above ``calibration.threshold_px`` where there is one.
         """
         if not 0.0 < scale <= 1.0:
             raise ValueError(f"scale must be in (0, 1], got {scale}")
@@ -175,6 +200,8 @@ class StereoPredictor:
         if size != (height, width):
             disparity = resize_disparity(disparity, height, width)
             uncertainty = F.interpolate(uncertainty, size=(height, width), mode="bilinear", align_corners=False)
+        if self.calibration is not None and not raw_uncertainty:
+            uncertainty = self.calibration.apply(uncertainty)
         if is_array:
             return Prediction(disparity[0, 0].cpu().numpy(), uncertainty[0, 0].cpu().numpy())
         return Prediction(disparity[:, 0], uncertainty[:, 0])

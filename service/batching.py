@@ -47,7 +47,7 @@ class Predictor(Protocol):
     num_parameters: int
 
     def predict(self, left: Any, right: Any, *, iters: Iterations = None, init_disparity: Any = None,
-                two_pass: bool = False, scale: float = 1.0) -> Any: ...
+                two_pass: bool = False, scale: float = 1.0, raw_uncertainty: bool = False) -> Any: ...
 
 
 class BatchingError(Exception):
@@ -89,6 +89,7 @@ class Knobs:
     two_pass: bool = False
     iters: Iterations = None
     scale: float = 1.0
+    raw_uncertainty: bool = False
 
 
 @dataclass(frozen=True)
@@ -408,7 +409,7 @@ def compute_batch(predictor: Predictor, key: BatchKey, lefts: Sequence[np.ndarra
     right = _to_batch_tensor(rights, key)
     knobs = key.knobs
     prediction = predictor.predict(left, right, two_pass=knobs.two_pass, iters=knobs.iters,
-                                   scale=knobs.scale)
+                                   scale=knobs.scale, raw_uncertainty=knobs.raw_uncertainty)
     disparity = prediction.disparity.numpy()
     uncertainty = prediction.uncertainty.numpy()
     return [(np.ascontiguousarray(disparity[i, :h, :w]), np.ascontiguousarray(uncertainty[i, :h, :w]))

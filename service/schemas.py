@@ -52,6 +52,9 @@ class DisparityOptions(BaseModel):
         1.0, gt=0, le=1, description="Run the network on the pair resized by this factor (0 < "
         "scale <= 1): about scale^2 of the time; the maps still come at the input's size, "
         "disparity in input pixels.")
+    raw_uncertainty: bool = Field(
+        False, description="Return the paper's raw U (last iteration, in [0, 0.5] after the first) "
+        "instead of the calibrated probability of an error above 2 px (see `uncertainty`).")
     focal_px: FiniteFloat | None = Field(
         None, gt=0, description="Focal length in pixels; with `baseline_m` adds a metric depth "
         "map Z = focal_px x baseline_m / disparity (invalid where disparity <= 0).")
@@ -118,7 +121,11 @@ class DisparityResponse(BaseModel):
     batch_size: int = Field(description="How many requests were computed together with this one.")
     timings: Timings
     disparity: EncodedArray = Field(description="Pixels of the left image, positive; x_right = x - d.")
-    uncertainty: EncodedArray = Field(description="Per-pixel uncertainty in [0, 1].")
+    uncertainty: EncodedArray = Field(description="Per-pixel probability that the disparity is off "
+                                      "by more than 2 px, calibrated for the served weights on "
+                                      "procedural scenes (see the model card); with "
+                                      "`raw_uncertainty=true`, or for weights without a "
+                                      "calibration, the paper's U in [0, 1].")
     depth: EncodedArray | None = Field(
         None, description="Metres, +inf where disparity <= 0; only with focal_px and baseline_m.")
 

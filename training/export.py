@@ -9,7 +9,8 @@ from .checkpoint import load_checkpoint, save_atomically
 
 
 def export_weights(checkpoint: Path, output: Path, half: bool = False) -> dict[str, Any]:
-    """Write `output` = {"model", "config", "model_name", "train_config", "step", "training"}
+    """Write `output` = {"model", "config", "model_name", "train_config", "step", "training",
+    "calibration"}
     from a checkpoint, dropping the optimiser, scheduler and RNG states.
 
     half: store floating-point tensors as float16 (half the size; `load_model` and
@@ -26,6 +27,7 @@ def export_weights(checkpoint: Path, output: Path, half: bool = False) -> dict[s
         "train_config": source.get("train_config"),
         "step": source.get("step"),
         "training": source.get("training"),
+        "calibration": source.get("calibration"),  # fitted for these weights (model.calibration)
         "dtype": "float16" if half else "float32",
     }
     save_atomically(payload, output)

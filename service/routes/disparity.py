@@ -169,7 +169,8 @@ async def estimate_disparity(
         async with batcher.admit(options.model, pixels=header.pixels, deadline=deadline) as admission:
             left, right = await run_in_threadpool(_decode_pair, left_bytes, right_bytes)
             result = await admission.run(
-                left, right, knobs=Knobs(options.two_pass, options.iterations, options.scale),
+                left, right, knobs=Knobs(options.two_pass, options.iterations, options.scale,
+                                          options.raw_uncertainty),
                 deadline=deadline,
                 is_disconnected=request.is_disconnected, request_id=request_id_var.get())
     except QueueFull as exc:

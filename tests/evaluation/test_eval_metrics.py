@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from evaluation.metrics import DisparityMetrics, compute_metrics, mean_metrics, sparsification
+from evaluation.metrics import DisparityMetrics, compute_metrics, mean_metrics, reliability, sparsification
 
 INF = np.inf
 
@@ -79,3 +79,17 @@ def test_an_inverted_ranking_is_worse_than_random():
     errors = np.linspace(0, 4, 1000)
     inverted = sparsification(errors, -errors)
     assert inverted.auc > inverted.auc_random > inverted.auc_optimal
+
+
+def test_probabilities_that_match_the_error_frequency_have_a_small_calibration_error():
+    rng = np.random.default_rng(1)
+    probability = rng.random(200_000)
+    errors = np.where(rng.random(probability.size) < probability, 5.0, 0.0)  # P(bad) = probability
+    calibrated = reliability(errors, probability, threshold_px=2.0)
+    overconfident = reliability(errors, probability * 0.2, threshold_px=2.0)
+    assert calibrated.expected_calibration_error < 0.01
+    assert overconfident.expected_calibration_error > 0.3
+    assert sum(calibrated.pixels) == probability.size
+    for predicted, observed in zip(calibrated.predicted, calibrated.observed, strict=True):
+        assert observed == pytest.approx(predicted, abs=0.02)
+    assert math.isnan(overconfident.observed[-1])  # no prediction above 0.2: empty bins

@@ -18,6 +18,7 @@ class OffsetPredictor:
     name = "lite"
     weights_sha256 = None
     num_parameters = 0
+    calibration = None
 
     def __init__(self, samples: list[StereoSample], offset: float) -> None:
         self.truth = {id(s.left): s.disparity for s in samples}

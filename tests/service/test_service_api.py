@@ -162,3 +162,14 @@ async def test_logs_are_json_lines_carrying_the_request_id():
     assert access == [{**access[0], "request_id": "req-1", "method": "POST", "path": "/disparity",
                        "status": 200, "model": "lite", "batch_size": 1}]
     assert access[0]["duration_ms"] > 0 and access[0]["level"] == "info"
+
+
+async def test_the_raw_uncertainty_is_served_on_request():
+    left, right = stereo_pair()
+    async with serve_asgi() as h:
+        response = await h.client.post("/disparity", params={"raw_uncertainty": "true"},
+                                       files=pair_files(left, right))
+        direct = h.predictors["lite"].predict(left, right, raw_uncertainty=True)
+    assert response.status_code == 200
+    np.testing.assert_allclose(decode_array(response.json()["uncertainty"]), direct.uncertainty,
+                               rtol=1e-5, atol=1e-6)
