@@ -8,12 +8,14 @@ Disparity is positive everywhere, in pixels of the left image (the right match i
 """
 
 from .config import ModelConfig
-from .inference import Prediction, StereoPredictor, load_model
+from .inference import Iterations, Prediction, StereoPredictor, load_model
 from .loss import matching_loss, sequence_loss
-from .network import CREStereoPP, NetworkOutput
+from .network import INPUT_MULTIPLE, CREStereoPP, NetworkOutput
 
 __all__ = [
+    "INPUT_MULTIPLE",
     "CREStereoPP",
+    "Iterations",
     "ModelConfig",
     "NetworkOutput",
     "Prediction",

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import warnings
+from collections.abc import Sequence
 from pathlib import Path
 from typing import NamedTuple
 
@@ -109,7 +110,14 @@ def shrink(images: Tensor, size: tuple[int, int]) -> Tensor:
 def pad_to_multiple(x: Tensor, multiple: int = INPUT_MULTIPLE) -> Tensor:
     """Replicate-pad (B, C, H, W) on the bottom and right to multiples of ``multiple``."""
     height, width = x.shape[-2:]
-    return F.pad(x, (0, -width % multiple, 0, -height % multiple), mode="replicate")
+    return pad_to_size(x, height + -height % multiple, width + -width % multiple)
+
+
+def pad_to_size(x: Tensor, height: int, width: int) -> Tensor:
+    """Replicate-pad (B, C, h, w) on the bottom and right to (height, width) >= (h, w)."""
+    if (height, width) == tuple(x.shape[-2:]):
+        return x
+    return F.pad(x, (0, width - x.shape[-1], 0, height - x.shape[-2]), mode="replicate")
 
 
 class StereoPredictor:
@@ -205,6 +213,52 @@ class StereoPredictor:
         if is_array:
             return Prediction(disparity[0, 0].cpu().numpy(), uncertainty[0, 0].cpu().numpy())
         return Prediction(disparity[:, 0], uncertainty[:, 0])
+
+    def predict_batch(
+        self,
+        lefts: Sequence[np.ndarray],
+        rights: Sequence[np.ndarray],
+        *,
+        iters: Iterations = None,
+        two_pass: bool = False,
+        scale: float = 1.0,
+        raw_uncertainty: bool = False,
+    ) -> list[Prediction]:
+        """Several pairs (arrays, as ``predict`` takes them) in one forward pass; the maps come
+        back as numpy HxW arrays, copied from the device once for the whole batch.
+
+        Pairs of different sizes are replicate-padded at the bottom and right to one shape, a
+        multiple of INPUT_MULTIPLE, exactly as ``predict`` pads a single pair, so each result
+        equals ``predict`` on its pair alone up to float rounding. With ``two_pass`` or a
+        ``scale`` the resized passes would see the padding: all pairs must then have one size.
+        """
+        if not lefts or len(lefts) != len(rights):
+            raise ValueError(f"need as many right images as left ones (at least one), got {len(lefts)} and {len(rights)}")
+        sizes = [image.shape[:2] for image in lefts]
+        if len(set(sizes)) > 1 and (two_pass or scale != 1.0):
+            raise ValueError("pairs of different sizes can only be batched without two_pass or scale")
+        height = max(h for h, _ in sizes)
+        width = max(w for _, w in sizes)
+        if len(set(sizes)) > 1:
+            height, width = -(-height // INPUT_MULTIPLE) * INPUT_MULTIPLE, -(-width // INPUT_MULTIPLE) * INPUT_MULTIPLE
+
+        def stack(images: Sequence[np.ndarray]) -> Tensor:
+            batches = [as_image_batch(image, self.device) for image in images]
+            return torch.cat([pad_to_size(b, height, width) for b in batches])
+
+        prediction = self.predict(
+            stack(lefts),
+            stack(rights),
+            iters=iters,
+            two_pass=two_pass,
+            scale=scale,
+            raw_uncertainty=raw_uncertainty,
+        )
+        disparity, uncertainty = prediction.disparity.cpu().numpy(), prediction.uncertainty.cpu().numpy()
+        return [
+            Prediction(np.ascontiguousarray(disparity[i, :h, :w]), np.ascontiguousarray(uncertainty[i, :h, :w]))
+            for i, (h, w) in enumerate(sizes)
+        ]
 
     def run(self, left: Tensor, right: Tensor, iters: tuple[int, int, int], init: Tensor | None) -> tuple[Tensor, Tensor]:
         """Pad (B,3,H,W) inputs to multiples of 32, run the network, crop back.

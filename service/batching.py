@@ -25,29 +25,30 @@ from collections.abc import AsyncIterator, Awaitable, Callable, Mapping, Sequenc
 from concurrent.futures import Executor
 from contextlib import asynccontextmanager
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Protocol
 
 import numpy as np
-import torch
+
+from model import INPUT_MULTIPLE, Iterations, Prediction
 
 from service.metrics import Metrics
 from service.settings import Settings
 
 logger = logging.getLogger(__name__)
 
-PAD_MULTIPLE = 32  # the network pads its input to a multiple of 32 (replicate), then crops back
 _EMA_WEIGHT = 0.2  # weight of the newest batch in the running means of compute time
 
 
 class Predictor(Protocol):
-    """What the service needs from `model.load_model(...)`."""
+    """What the service needs from `model.load_model(...)` (a `model.StereoPredictor`)."""
 
     name: str
     weights_sha256: str | None
     num_parameters: int
 
-    def predict(self, left: Any, right: Any, *, iters: Iterations = None, init_disparity: Any = None,
-                two_pass: bool = False, scale: float = 1.0, raw_uncertainty: bool = False) -> Any: ...
+    def predict_batch(self, lefts: Sequence[np.ndarray], rights: Sequence[np.ndarray], *,
+                      iters: Iterations = None, two_pass: bool = False, scale: float = 1.0,
+                      raw_uncertainty: bool = False) -> list[Prediction]: ...
 
 
 class BatchingError(Exception):
@@ -76,10 +77,6 @@ class InferenceFailed(BatchingError):
     def __init__(self, error_id: str) -> None:
         super().__init__(f"inference failed; logged as error id {error_id}")
         self.error_id = error_id
-
-
-Iterations = int | tuple[int, int, int] | None
-"""ARM iterations as `StereoPredictor.predict` takes them (None: the model's own)."""
 
 
 @dataclass(frozen=True)
@@ -403,25 +400,13 @@ class Batcher:
 
 def compute_batch(predictor: Predictor, key: BatchKey, lefts: Sequence[np.ndarray],
                   rights: Sequence[np.ndarray]) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Run one batch on the calling (worker) thread: pad every image to the batch shape the way
-    the network pads, predict, and crop each map back to its image's size."""
-    left = _to_batch_tensor(lefts, key)
-    right = _to_batch_tensor(rights, key)
+    """Run one batch on the calling (worker) thread: `StereoPredictor.predict_batch`, which pads
+    every pair to the batch shape the way the network pads one and returns host arrays."""
     knobs = key.knobs
-    prediction = predictor.predict(left, right, two_pass=knobs.two_pass, iters=knobs.iters,
-                                   scale=knobs.scale, raw_uncertainty=knobs.raw_uncertainty)
-    disparity = prediction.disparity.numpy()
-    uncertainty = prediction.uncertainty.numpy()
-    return [(np.ascontiguousarray(disparity[i, :h, :w]), np.ascontiguousarray(uncertainty[i, :h, :w]))
-            for i, (h, w) in enumerate(image.shape[:2] for image in lefts)]
-
-
-def _to_batch_tensor(images: Sequence[np.ndarray], key: BatchKey) -> torch.Tensor:
-    """Bx3xHxW uint8 tensor of HxWx3 images, each replicate-padded at the bottom and right."""
-    padded = [np.pad(image, ((0, key.height - image.shape[0]), (0, key.width - image.shape[1]),
-                             (0, 0)), mode="edge") for image in images]
-    return torch.from_numpy(np.stack(padded)).permute(0, 3, 1, 2).contiguous()
+    predictions = predictor.predict_batch(lefts, rights, two_pass=knobs.two_pass, iters=knobs.iters,
+                                          scale=knobs.scale, raw_uncertainty=knobs.raw_uncertainty)
+    return [(p.disparity, p.uncertainty) for p in predictions]
 
 
 def _round_up(size: int) -> int:
-    return -(-size // PAD_MULTIPLE) * PAD_MULTIPLE
+    return -(-size // INPUT_MULTIPLE) * INPUT_MULTIPLE

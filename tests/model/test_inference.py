@@ -153,3 +153,17 @@ def test_a_scale_runs_the_network_on_the_resized_pair_and_answers_in_input_pixel
     for bad in (0.0, -1.0, 1.5):
         with pytest.raises(ValueError, match="scale"):
             lite.predict(left, right, scale=bad)
+
+
+def test_a_batch_of_pairs_of_different_sizes_equals_each_pair_alone_as_host_arrays(lite):
+    pairs = [random_pair(64, 96, seed=1), random_pair(50, 90, seed=2), random_pair(60, 70, seed=3)]
+    batch = lite.predict_batch([l for l, _ in pairs], [r for _, r in pairs], iters=(1, 1, 2))
+    for (left, right), result in zip(pairs, batch, strict=True):
+        alone = lite.predict(left, right, iters=(1, 1, 2))
+        assert isinstance(result.disparity, np.ndarray) and result.disparity.shape == left.shape[:2]
+        np.testing.assert_allclose(result.disparity, alone.disparity, rtol=1e-4, atol=1e-3)
+        np.testing.assert_allclose(result.uncertainty, alone.uncertainty, rtol=1e-4, atol=1e-4)
+    with pytest.raises(ValueError, match="different sizes"):
+        lite.predict_batch([pairs[0][0], pairs[1][0]], [pairs[0][1], pairs[1][1]], scale=0.5)
+    with pytest.raises(ValueError, match="as many"):
+        lite.predict_batch([pairs[0][0]], [])

@@ -67,8 +67,9 @@ def lite_settings(**overrides: Any) -> Settings:
 
 
 class GatedPredictor:
-    """The real predictor, except that `predict` first waits for `gate` (lets a test hold the
-    worker busy while requests queue) and raises for an all-black left batch (fault injection)."""
+    """The real predictor, except that `predict_batch` first waits for `gate` (lets a test hold
+    the worker busy while requests queue) and raises for an all-black left batch (fault
+    injection)."""
 
     def __init__(self, inner: Predictor) -> None:
         self._inner = inner
@@ -79,12 +80,12 @@ class GatedPredictor:
     def __getattr__(self, name: str) -> Any:
         return getattr(self._inner, name)
 
-    def predict(self, left: Any, right: Any, **kwargs: Any) -> Any:
-        self.calls.append(left.shape[0])
+    def predict_batch(self, lefts: Any, rights: Any, **kwargs: Any) -> Any:
+        self.calls.append(len(lefts))
         assert self.gate.wait(timeout=60)
-        if float(left.max()) == 0:
+        if max(float(left.max()) for left in lefts) == 0:
             raise RuntimeError("injected fault: all-black left image")
-        return self._inner.predict(left, right, **kwargs)
+        return self._inner.predict_batch(lefts, rights, **kwargs)
 
 
 @dataclass
