@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -93,16 +93,24 @@ class EvaluationReport:
             f"{'pair':<34} {'method':<6} {'EPE':>7} {'bad-1%':>7} {'bad-2%':>7} {'bad-3%':>7}"
             f" {'D1-all%':>8} {'time s':>8}"
         )
+
+        def row(result: MethodResult) -> str:
+            m = result.metrics
+            return (
+                f"{m.epe:>7.3f} {m.bad1:>7.2f} {m.bad2:>7.2f} {m.bad3:>7.2f} {m.d1_all:>8.2f} {result.seconds:>8.3f}"
+            )
+
+        return self._rows(header, row)
+
+    def _rows(self, header: str, row: Callable[[MethodResult], str]) -> str:
+        """A plain-text table: `header`, then per pair and method (then per method, the mean
+        over pairs) the pair, the method and `row` of its result."""
         lines = [header, "-" * len(header)]
-        rows = [(pair.name, pair.methods) for pair in self.pairs]
-        rows.append((f"mean of {len(self.pairs)} pairs", {m: self.mean(m) for m in self.method_names}))
-        for label, methods in rows:
+        groups = [(pair.name, pair.methods) for pair in self.pairs]
+        groups.append((f"mean of {len(self.pairs)} pairs", {m: self.mean(m) for m in self.method_names}))
+        for label, methods in groups:
             for method, result in methods.items():
-                m = result.metrics
-                lines.append(
-                    f"{label:<34.34} {method:<6} {m.epe:>7.3f} {m.bad1:>7.2f} {m.bad2:>7.2f} {m.bad3:>7.2f}"
-                    f" {m.d1_all:>8.2f} {result.seconds:>8.3f}"
-                )
+                lines.append(f"{label:<34.34} {method:<6} {row(result)}")
                 label = ""
         return "\n".join(lines)
 
@@ -135,19 +143,16 @@ class EvaluationReport:
             f"{'pair':<34} {'method':<6} {'bad2@0%':>8} {'@25%':>6} {'@50%':>6} {'@75%':>6}"
             f" {'AUC':>7} {'AUCopt':>7} {'AUCrnd':>7} {'AUC/opt':>8}"
         )
-        lines = [header, "-" * len(header)]
-        rows = [(pair.name, pair.methods) for pair in self.pairs]
-        rows.append((f"mean of {len(self.pairs)} pairs", {m: self.mean(m) for m in self.method_names}))
-        for label, methods in rows:
-            for method, result in methods.items():
-                sp = result.sparsification
-                at = dict(zip(sp.removed_percent, sp.bad_percent, strict=True))
-                lines.append(
-                    f"{label:<34.34} {method:<6} {at[0.0]:>8.2f} {at[25.0]:>6.2f} {at[50.0]:>6.2f} {at[75.0]:>6.2f}"
-                    f" {sp.auc:>7.4f} {sp.auc_optimal:>7.4f} {sp.auc_random:>7.4f} {sp.ratio_to_optimal:>8.2f}"
-                )
-                label = ""
-        return "\n".join(lines)
+
+        def row(result: MethodResult) -> str:
+            sp = result.sparsification
+            at = dict(zip(sp.removed_percent, sp.bad_percent, strict=True))
+            return (
+                f"{at[0.0]:>8.2f} {at[25.0]:>6.2f} {at[50.0]:>6.2f} {at[75.0]:>6.2f}"
+                f" {sp.auc:>7.4f} {sp.auc_optimal:>7.4f} {sp.auc_random:>7.4f} {sp.ratio_to_optimal:>8.2f}"
+            )
+
+        return self._rows(header, row)
 
 
 def evaluate(

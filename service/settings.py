@@ -85,16 +85,9 @@ class Settings(BaseModel):
             return tuple(name.strip() for name in value.split(",") if name.strip())
         return value
 
-    @field_validator("weights", mode="before")
+    @field_validator("weights", "model_max_pixels", mode="before")
     @classmethod
-    def _split_weights(cls, value: object) -> object:
-        if isinstance(value, str):
-            return dict(_name_value_pairs(value))
-        return value
-
-    @field_validator("model_max_pixels", mode="before")
-    @classmethod
-    def _split_model_pixels(cls, value: object) -> object:
+    def _split_per_model(cls, value: object) -> object:
         if isinstance(value, str):
             return dict(_name_value_pairs(value))
         return value

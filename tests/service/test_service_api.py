@@ -100,32 +100,24 @@ async def test_grayscale_16_bit_and_jpeg_uploads_are_accepted():
                                decode_array(eight_bit.json()["disparity"]), atol=1e-4)
 
 
-async def test_two_pass_inference_is_served():
-    left, right = stereo_pair()
-    async with serve_asgi() as h:
-        response = await h.client.post("/disparity", params={"two_pass": "true"},
-                                       files=pair_files(left, right))
-        direct = h.predictors["lite"].predict(left, right, two_pass=True)
-    assert response.status_code == 200
-    np.testing.assert_allclose(decode_array(response.json()["disparity"]), direct.disparity,
-                               rtol=1e-4, atol=1e-4)
-
-
 @pytest.mark.parametrize(("params", "knobs"), [
+    ({"two_pass": "true"}, {"two_pass": True}),
     ({"iters": "3"}, {"iters": 3}),
     ({"iters": "1,1,2"}, {"iters": (1, 1, 2)}),
     ({"scale": "0.5"}, {"scale": 0.5}),
     ({"scale": "0.5", "iters": "2", "two_pass": "true"}, {"scale": 0.5, "iters": 2, "two_pass": True}),
+    ({"raw_uncertainty": "true"}, {"raw_uncertainty": True}),
 ])
-async def test_iterations_and_scale_are_served_as_the_library_computes_them(params, knobs):
+async def test_inference_options_are_served_as_the_library_computes_them(params, knobs):
     left, right = stereo_pair()
     async with serve_asgi() as h:
         response = await h.client.post("/disparity", params=params, files=pair_files(left, right))
         direct = h.predictors["lite"].predict(left, right, **knobs)
     assert response.status_code == 200, response.text
-    served = decode_array(response.json()["disparity"])
-    assert served.shape == left.shape[:2]
-    np.testing.assert_allclose(served, direct.disparity, rtol=1e-4, atol=1e-4)
+    for name in ("disparity", "uncertainty"):
+        served = decode_array(response.json()[name])
+        assert served.shape == left.shape[:2]
+        np.testing.assert_allclose(served, getattr(direct, name), rtol=1e-4, atol=1e-4)
 
 
 @pytest.mark.parametrize("params", [{"iters": "0"}, {"iters": "1,2"}, {"iters": "4,x,6"},
@@ -162,14 +154,3 @@ async def test_logs_are_json_lines_carrying_the_request_id():
     assert access == [{**access[0], "request_id": "req-1", "method": "POST", "path": "/disparity",
                        "status": 200, "model": "lite", "batch_size": 1}]
     assert access[0]["duration_ms"] > 0 and access[0]["level"] == "info"
-
-
-async def test_the_raw_uncertainty_is_served_on_request():
-    left, right = stereo_pair()
-    async with serve_asgi() as h:
-        response = await h.client.post("/disparity", params={"raw_uncertainty": "true"},
-                                       files=pair_files(left, right))
-        direct = h.predictors["lite"].predict(left, right, raw_uncertainty=True)
-    assert response.status_code == 200
-    np.testing.assert_allclose(decode_array(response.json()["uncertainty"]), direct.uncertainty,
-                               rtol=1e-5, atol=1e-6)
