@@ -12,9 +12,9 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from evaluation.visualize import colorize
 from model import load_model
 from stereo_data.formats import read_image, write_kitti_disparity, write_pfm
+from stereo_data.visualize import disparity_picture, scale_range
 from training.distributed import resolve_device
 
 from .evaluate import add_model_options, iterations
@@ -57,7 +57,10 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("--color", type=Path, metavar="PNG", help="colour-mapped disparity PNG (folder mode: a folder)")
     parser.add_argument(
-        "--color-max", type=float, metavar="PX", help="disparity at the top of the colour scale [each map's maximum]"
+        "--color-min", type=float, metavar="PX", help="disparity at the bottom of the colour scale [each map's 1st percentile]"
+    )
+    parser.add_argument(
+        "--color-max", type=float, metavar="PX", help="disparity at the top of the colour scale [each map's 99th percentile]"
     )
     parser.add_argument(
         "--raw-uncertainty",
@@ -144,8 +147,9 @@ def run(args: argparse.Namespace) -> int:
         if args.color is not None:
             color_path = args.color if single else args.color / f"{pair.stem}.png"
             color_path.parent.mkdir(parents=True, exist_ok=True)
-            scale = args.color_max if args.color_max is not None else float(prediction.disparity.max())
-            cv2.imwrite(str(color_path), colorize(prediction.disparity, 0.0, scale)[:, :, ::-1])
+            scale = scale_range(prediction.disparity, args.color_min, args.color_max)
+            picture = disparity_picture(prediction.disparity, scale)
+            cv2.imwrite(str(color_path), picture[:, :, ::-1])
     if single:
         print(f"wrote {args.output}")
     else:

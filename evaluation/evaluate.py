@@ -28,7 +28,9 @@ from .metrics import (
     sparsification,
 )
 from .sgbm import sgbm_disparity
-from .visualize import Panel, colorize, compose_sheet, disparity_panels, line_plot
+from stereo_data.visualize import colorize
+
+from .visualize import Panel, compose_sheet, disparity_panels, line_plot
 
 SGBM = "sgbm"
 """Method name of the OpenCV StereoSGBM baseline in reports."""

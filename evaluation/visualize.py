@@ -1,4 +1,5 @@
-"""Colour maps and per-pair evaluation sheets (PNG-ready uint8 RGB images)."""
+"""Per-pair evaluation sheets and line plots (PNG-ready uint8 RGB images); colour maps are
+`stereo_data.visualize`'s."""
 
 from __future__ import annotations
 
@@ -9,6 +10,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from stereo_data.visualize import colorize
+
 ERROR_SCALE_PX = 8.0
 """Absolute disparity error (px) shown at the top of the error colour map on every sheet."""
 
@@ -16,20 +19,6 @@ PANEL_WIDTH = 480
 """Width in pixels of one panel of a sheet (images are resized to it, aspect kept)."""
 
 TITLE_HEIGHT = 24
-
-
-def colorize(values: np.ndarray, vmin: float, vmax: float, colormap: int = cv2.COLORMAP_TURBO) -> np.ndarray:
-    """Map a float HxW array to uint8 HxWx3 RGB with a fixed linear scale [vmin, vmax].
-
-    Values outside the scale are clipped; non-finite values are drawn black.
-    """
-    finite = np.isfinite(values)
-    span = max(vmax - vmin, 1e-6)
-    scaled = np.clip((np.where(finite, values, vmin) - vmin) / span, 0.0, 1.0)
-    bgr = cv2.applyColorMap((scaled * 255.0).round().astype(np.uint8), colormap)
-    rgb = bgr[:, :, ::-1].copy()
-    rgb[~finite] = 0
-    return rgb
 
 
 @dataclass(frozen=True)

@@ -8,9 +8,10 @@ import io
 import cv2
 import numpy as np
 
+from stereo_data.visualize import preview
+
 from service.schemas import EncodedArray
 
-PREVIEW_MAX_DISPARITY = 192.0  # px at the top of the preview's fixed colour scale
 KITTI_SCALE = 256.0  # KITTI 16-bit PNG: value = round(map x 256), 0 = invalid
 UNCERTAINTY_SCALE = 65535.0
 
@@ -42,13 +43,11 @@ def encode_png16(values: np.ndarray, scale: float) -> bytes:
     return _png(scaled)
 
 
-def encode_preview(disparity: np.ndarray, uncertainty: np.ndarray) -> bytes:
-    """RGB PNG, disparity (turbo, 0..PREVIEW_MAX_DISPARITY px) left of uncertainty (inferno, 0..1)."""
-    disparity_u8 = np.clip(disparity / PREVIEW_MAX_DISPARITY * 255, 0, 255).astype(np.uint8)
-    uncertainty_u8 = np.clip(uncertainty * 255, 0, 255).astype(np.uint8)
-    preview = np.hstack([cv2.applyColorMap(disparity_u8, cv2.COLORMAP_TURBO),
-                         cv2.applyColorMap(uncertainty_u8, cv2.COLORMAP_INFERNO)])
-    return _png(preview)  # applyColorMap gives BGR, which is what imencode expects
+def encode_preview(disparity: np.ndarray, uncertainty: np.ndarray,
+                   disparity_range: tuple[float, float]) -> bytes:
+    """RGB PNG (`stereo_data.visualize.preview`): disparity (turbo, over `disparity_range` px)
+    left of uncertainty (inferno, 0-1), each with a colour bar that prints its range."""
+    return _png(preview(disparity, uncertainty, disparity_range)[:, :, ::-1])  # imencode wants BGR
 
 
 def _png(image: np.ndarray) -> bytes:

@@ -34,8 +34,9 @@ class DisparityOptions(BaseModel):
     format: OutputFormat = Field(
         OutputFormat.json,
         description="`json`: maps as base64 little-endian float32 with shape and dtype. "
-        "`npz`: numpy archive of the maps. `png`: colour preview, disparity (turbo colour map, "
-        "0 to 192 px, clipped) beside uncertainty (inferno, 0 to 1). `disparity_png16`: KITTI "
+        "`npz`: numpy archive of the maps. `png`: colour preview, disparity (turbo colour map over "
+        "the map's 1st-99th percentile, or `color_min`-`color_max` px) beside uncertainty "
+        "(inferno, 0 to 1), each with a colour bar printing its range. `disparity_png16`: KITTI "
         "16-bit PNG, value = round(disparity x 256), 0 = invalid, clipped at 65535. "
         "`depth_png16`: KITTI depth 16-bit PNG, value = round(metres x 256), 0 = invalid, needs "
         "`focal_px` and `baseline_m`. `uncertainty_png16`: 16-bit PNG, value = "
@@ -55,6 +56,12 @@ class DisparityOptions(BaseModel):
     raw_uncertainty: bool = Field(
         False, description="Return the paper's raw U (last iteration, in [0, 0.5] after the first) "
         "instead of the calibrated probability of an error above 2 px (see `uncertainty`).")
+    color_min: FiniteFloat | None = Field(
+        None, description="`format=png`: disparity (px) at the bottom of the colour scale "
+        "[the map's 1st percentile].")
+    color_max: FiniteFloat | None = Field(
+        None, description="`format=png`: disparity (px) at the top of the colour scale "
+        "[the map's 99th percentile].")
     focal_px: FiniteFloat | None = Field(
         None, gt=0, description="Focal length in pixels; with `baseline_m` adds a metric depth "
         "map Z = focal_px x baseline_m / disparity (invalid where disparity <= 0).")
@@ -75,6 +82,8 @@ class DisparityOptions(BaseModel):
             raise ValueError("give both focal_px and baseline_m, or neither")
         if self.format is OutputFormat.depth_png16 and self.focal_px is None:
             raise ValueError("format=depth_png16 needs focal_px and baseline_m")
+        if self.color_min is not None and self.color_max is not None and self.color_max <= self.color_min:
+            raise ValueError("color_max must be above color_min")
         if self.focal_px is not None and self.baseline_m is not None and (
                 self.focal_px * self.baseline_m > FLOAT32_MAX):
             raise ValueError(f"focal_px x baseline_m must be at most {FLOAT32_MAX:.4g} (depth is float32)")

@@ -46,6 +46,7 @@ from service.schemas import (
     Timings,
 )
 from service.settings import Settings
+from stereo_data.visualize import scale_range
 
 router = APIRouter(tags=["disparity"])
 
@@ -328,7 +329,8 @@ def _render(options: DisparityOptions, predictor: Predictor, header: ImageHeader
                 maps["depth"] = depth
             return Response(encode_npz(maps), media_type="application/x-npz", headers=headers)
         case OutputFormat.png:
-            content = encode_preview(result.disparity, result.uncertainty)
+            content = encode_preview(result.disparity, result.uncertainty, scale_range(
+                result.disparity, options.color_min, options.color_max))
         case OutputFormat.disparity_png16:
             content = encode_png16(result.disparity, KITTI_SCALE)
         case OutputFormat.depth_png16:

@@ -11,6 +11,7 @@ import pytest
 from cli.main import main
 from cli.predict import find_pairs
 from stereo_data.formats import read_kitti_disparity, read_pfm
+from stereo_data.visualize import BAR_HEIGHT
 
 REPO = Path(__file__).resolve().parents[2]
 pytestmark = pytest.mark.filterwarnings("ignore:no weights at:RuntimeWarning")
@@ -42,7 +43,7 @@ def test_one_pair_to_pfm_with_uncertainty_and_colour(pairs_dir, tmp_path):
     assert np.isfinite(disparity).all() and (disparity >= 0).all()
     u = np.load(uncertainty)
     assert u.shape == (64, 96) and 0.0 <= u.min() and u.max() <= 1.0
-    assert cv2.imread(str(colour)).shape == (64, 96, 3)
+    assert cv2.imread(str(colour)).shape == (64 + BAR_HEIGHT, 96, 3)  # the map, then its colour bar
 
 
 @pytest.mark.parametrize("suffix", [".png", ".npy"])

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from evaluation.evaluate import SGBM, evaluate
-from evaluation.visualize import PANEL_WIDTH, colorize
+from evaluation.visualize import PANEL_WIDTH
+from stereo_data.visualize import colorize
 from model import Prediction
 from stereo_data.readers import StereoSample
 

@@ -80,6 +80,9 @@ CASES: list[tuple[str, dict[str, Any], int, str, str]] = [
     ("calibration whose depth overflows float32",
      {"files": PAIR, "params": {"focal_px": 1e308, "baseline_m": 1e308}}, 422, "invalid_request",
      "bad_input"),
+    ("preview colour scale upside down",
+     {"files": PAIR, "params": {"format": "png", "color_min": 50, "color_max": 10}}, 422,
+     "invalid_request", "bad_input"),
     ("body that is not multipart",
      {"json": {"left": "x", "right": "y"}}, 415, "unsupported_media_type", "bad_input"),
 ]

@@ -38,7 +38,7 @@ def test_every_disparity_answer_is_documented_with_examples_of_its_error_codes()
     assert operation["requestBody"]["content"]["multipart/form-data"]["schema"]["required"] == [
         "left", "right"]
     names = {parameter["name"] for parameter in operation["parameters"]}
-    assert names == {"model", "format", "two_pass", "iters", "scale", "raw_uncertainty", "focal_px", "baseline_m",
+    assert names == {"model", "format", "two_pass", "iters", "scale", "raw_uncertainty", "color_min", "color_max", "focal_px", "baseline_m",
                      "X-Request-Timeout-Ms"}
 
 

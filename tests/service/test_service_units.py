@@ -13,6 +13,7 @@ from pydantic import ValidationError
 
 from service.cpu import cgroup_cpu_quota, usable_cpus
 from service.encoding import depth_from_disparity, encode_png16, encode_preview
+from stereo_data.visualize import BAR_HEIGHT, scale_range
 from service.images import ImageError, decode_rgb, read_header
 from service.settings import Settings
 from service_helpers import REPO, encode, stereo_pair
@@ -157,12 +158,25 @@ def test_png16_scales_values_and_marks_invalid_pixels_zero():
     assert decoded.tolist() == [[384, 0, 0, 65535, 1]]  # valid values never round to 0
 
 
-def test_preview_puts_disparity_left_of_uncertainty_on_fixed_scales():
-    disparity = np.array([[0.0, 192.0, 400.0]], np.float32)
-    uncertainty = np.array([[0.0, 1.0, 0.5]], np.float32)
-    preview = cv2.imdecode(np.frombuffer(encode_preview(disparity, uncertainty), np.uint8),
-                           cv2.IMREAD_COLOR)
-    assert preview.shape == (1, 6, 3)
-    assert (preview[0, 1] == preview[0, 2]).all()  # disparity clipped at 192 px
-    turbo = cv2.applyColorMap(np.array([[0, 255]], np.uint8), cv2.COLORMAP_TURBO)
-    assert (preview[0, :2] == turbo[0]).all()
+def test_preview_puts_disparity_left_of_uncertainty_with_colour_bars_on_their_scales():
+    disparity = np.tile(np.linspace(12.0, 53.0, 64, dtype=np.float32), (40, 1))  # a Middlebury range
+    uncertainty = np.tile(np.linspace(0.0, 1.0, 64, dtype=np.float32), (40, 1))
+    png = encode_preview(disparity, uncertainty, scale_range(disparity))
+    preview = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)[:, :, ::-1]
+    assert preview.shape == (40 + BAR_HEIGHT, 128, 3)
+    turbo = cv2.applyColorMap(np.array([[0, 255]], np.uint8), cv2.COLORMAP_TURBO)[0, :, ::-1]
+    # the map's own range spans the whole colour map (not the bottom quarter of a fixed 0-192)
+    assert np.abs(preview[0, 0].astype(int) - turbo[0]).max() <= 40
+    assert np.abs(preview[0, 63].astype(int) - turbo[1]).max() <= 40
+    inferno = cv2.applyColorMap(np.array([[255]], np.uint8), cv2.COLORMAP_INFERNO)[0, 0, ::-1]
+    assert (preview[0, 127] == inferno).all()
+    assert (preview[40:] == 255).any() and (preview[40:] < 128).any()  # bars: white with dark text
+
+
+def test_a_fixed_colour_scale_is_honoured_and_a_reversed_one_refused():
+    disparity = np.full((8, 8), 30.0, np.float32)
+    assert scale_range(disparity, 0.0, 192.0) == (0.0, 192.0)
+    low, high = scale_range(disparity)
+    assert high > low  # a constant map still gets a scale
+    with pytest.raises(ValueError, match="above"):
+        scale_range(disparity, 50.0, 10.0)
