@@ -6,7 +6,7 @@ import hashlib
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
@@ -77,6 +77,7 @@ def load_model(name: str = "lite", weights: str | Path | None = None, device: st
         file_sha256(path),
         device,
         UncertaintyCalibration.from_dict(calibration) if calibration is not None else None,
+        checkpoint.get("training"),
     )
 
 
@@ -125,7 +126,8 @@ class StereoPredictor:
 
     calibration: what the uncertainty map means for these weights (``model.calibration``); when
     given, ``predict`` returns P(|error| > calibration.threshold_px) as the uncertainty, else the
-    paper's raw U.
+    paper's raw U. training: the weights file's cumulative training record, as stored there
+    ("total_steps", "total_pairs", "total_minutes", "runs" with each run's validation), or None.
     """
 
     def __init__(
@@ -135,12 +137,14 @@ class StereoPredictor:
         weights_sha256: str | None,
         device: str | torch.device,
         calibration: UncertaintyCalibration | None = None,
+        training: dict[str, Any] | None = None,
     ) -> None:
         self.device = torch.device(device)
         self.network = network.to(self.device).eval()
         self.name = name
         self.weights_sha256 = weights_sha256
         self.calibration = calibration
+        self.training = training
 
     @property
     def config(self) -> ModelConfig:

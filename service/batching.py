@@ -25,11 +25,12 @@ from collections.abc import AsyncIterator, Awaitable, Callable, Mapping, Sequenc
 from concurrent.futures import Executor
 from contextlib import asynccontextmanager
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
-from model import INPUT_MULTIPLE, Iterations, Prediction
+from model import INPUT_MULTIPLE, Iterations, ModelConfig, Prediction
+from model.calibration import UncertaintyCalibration
 
 from service.metrics import Metrics
 from service.settings import Settings
@@ -45,6 +46,9 @@ class Predictor(Protocol):
     name: str
     weights_sha256: str | None
     num_parameters: int
+    config: ModelConfig
+    calibration: UncertaintyCalibration | None
+    training: dict[str, Any] | None
 
     def predict_batch(self, lefts: Sequence[np.ndarray], rights: Sequence[np.ndarray], *,
                       iters: Iterations = None, two_pass: bool = False, scale: float = 1.0,

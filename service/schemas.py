@@ -187,3 +187,41 @@ class ProbeResponse(BaseModel):
     model_config = ConfigDict(json_schema_extra={"examples": [{"status": "ready"}]})
 
     status: str = Field(description="`alive` / `dead` (liveness); the service state (readiness).")
+
+
+class TensorMetadata(BaseModel):
+    """An input or output of the model, as the Open Inference Protocol describes tensors."""
+
+    name: str
+    datatype: str
+    shape: list[int] = Field(description="-1 for a free dimension.")
+
+
+class TrainingSummary(BaseModel):
+    steps: int
+    pairs: int
+    minutes: float
+    dev_metrics: dict[str, float] | None = Field(
+        None, description="Mean EPE (px), bad-1/2/3 and D1-all (%) on the real validation pairs, "
+        "measured when these weights were saved (see the model card).")
+
+
+class ModelInfo(BaseModel):
+    """One served model: Open Inference Protocol model metadata (`name`, `versions`, `platform`,
+    `inputs`, `outputs`), then what this service adds."""
+
+    name: str
+    versions: list[str] = Field(description="The weights' identity, as `X-Weights`.")
+    platform: Literal["pytorch"] = "pytorch"
+    inputs: list[TensorMetadata]
+    outputs: list[TensorMetadata]
+    parameters: int
+    iterations: list[int] = Field(description="Default ARM iterations at 1/16, 1/8, 1/4.")
+    uncertainty: str = Field(description="What the `uncertainty` map means for these weights.")
+    training: TrainingSummary | None = Field(None, description="None for weights without a record.")
+    max_image_pixels: int
+    min_image_side: int
+
+
+class ModelList(BaseModel):
+    models: list[ModelInfo]

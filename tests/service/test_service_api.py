@@ -154,3 +154,24 @@ async def test_logs_are_json_lines_carrying_the_request_id():
     assert access == [{**access[0], "request_id": "req-1", "method": "POST", "path": "/disparity",
                        "status": 200, "model": "lite", "batch_size": 1}]
     assert access[0]["duration_ms"] > 0 and access[0]["level"] == "info"
+
+
+async def test_models_describe_each_loaded_model_in_open_inference_protocol_shape():
+    async with serve_asgi() as h:
+        listing = await h.client.get("/models")
+        one = await h.client.get("/models/lite")
+        missing = await h.client.get("/models/full")
+    predictor = h.predictors["lite"]
+    assert listing.status_code == one.status_code == 200
+    assert listing.json()["models"] == [one.json()]
+    info = one.json()
+    assert info["name"] == "lite" and info["platform"] == "pytorch"
+    assert info["versions"] == [predictor.weights_sha256[:16]]
+    assert [t["name"] for t in info["inputs"]] == ["left", "right"]
+    assert [(t["name"], t["datatype"], t["shape"]) for t in info["outputs"]] == [
+        ("disparity", "FP32", [-1, -1]), ("uncertainty", "FP32", [-1, -1])]
+    assert info["parameters"] == predictor.num_parameters and info["iterations"] == [2, 4, 6]
+    assert info["max_image_pixels"] == 4_194_304 and info["min_image_side"] == 32
+    assert info["training"]["pairs"] == predictor.training["total_pairs"] > 0
+    assert set(info["training"]["dev_metrics"]) == {"epe", "bad1", "bad2", "bad3", "d1_all"}
+    assert (missing.status_code, missing.json()["error"]["code"]) == (404, "model_not_found")
