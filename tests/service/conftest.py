@@ -1,21 +1,3 @@
-"""Fixtures of the service tests (helpers live in `service_helpers.py`)."""
+"""Fixtures of the service tests (they and the helpers live in `service_helpers.py`)."""
 
-from collections.abc import Iterator
-
-import pytest
-
-from service_helpers import Server, run_uvicorn
-
-
-@pytest.fixture
-def anyio_backend() -> str:
-    """The service runs on asyncio (uvicorn's loop); async tests do too."""
-    return "asyncio"
-
-
-@pytest.fixture(scope="session")
-def default_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
-    """One uvicorn process with the default batching settings (lite only), shared by the tests
-    that do not need their own configuration."""
-    with run_uvicorn(tmp_path_factory.mktemp("uvicorn")) as server:
-        yield server
+from service_helpers import anyio_backend, default_server  # noqa: F401  (pytest finds fixtures by name)

@@ -20,6 +20,7 @@ import anyio
 import cv2
 import httpx
 import numpy as np
+import pytest
 from fastapi import FastAPI
 
 from model import load_model
@@ -191,3 +192,20 @@ def run_uvicorn(tmp_path: Path, **env: str) -> Iterator[Server]:
             except subprocess.TimeoutExpired:
                 process.kill()
                 process.wait()
+
+
+# --- fixtures, imported by the conftest of every folder whose tests need a server -----------------
+
+
+@pytest.fixture
+def anyio_backend() -> str:
+    """The service runs on asyncio (uvicorn's loop); async tests do too."""
+    return "asyncio"
+
+
+@pytest.fixture(scope="session")
+def default_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
+    """One uvicorn process with the default batching settings (lite only), shared by the tests
+    that do not need their own configuration."""
+    with run_uvicorn(tmp_path_factory.mktemp("uvicorn")) as server:
+        yield server

@@ -1,0 +1,14 @@
+"""Python client of the disparity service: numpy arrays in and out, typed errors, polite retries.
+
+    from client import StereoClient
+    with StereoClient("http://127.0.0.1:8000") as service:
+        result = service.disparity(left_rgb, right_rgb, model="lite")
+    result.disparity, result.uncertainty            # float32 HxW
+
+`AsyncStereoClient` is the same with `await`. Only httpx, numpy and OpenCV (to encode arrays as
+PNG) are needed; nothing of the server is imported.
+"""
+
+from .stereo_client import AsyncStereoClient, DisparityResult, ServiceError, StereoClient
+
+__all__ = ["AsyncStereoClient", "DisparityResult", "ServiceError", "StereoClient"]

@@ -1,0 +1,209 @@
+"""`StereoClient` and `AsyncStereoClient`: one request builder and one response reader, two loops."""
+
+from __future__ import annotations
+
+import asyncio
+import io
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import httpx
+import numpy as np
+
+Image = np.ndarray | bytes | str | os.PathLike[str]
+"""An image: HxW or HxWx3 RGB array (uint8 or uint16), encoded file bytes, or a file path."""
+
+RETRIED_CODES = frozenset({"queue_full", "loading"})
+"""503 codes worth retrying after `Retry-After`; others (draining, deadline_exceeded, ...) are not."""
+
+
+class ServiceError(Exception):
+    """An error answer of the service: HTTP `status`, its stable `code` and `message`, and the
+    `retry_after` seconds it suggested (None without the header)."""
+
+    def __init__(self, status: int, code: str, message: str, retry_after: float | None = None) -> None:
+        super().__init__(f"{status} {code}: {message}")
+        self.status, self.code, self.message, self.retry_after = status, code, message, retry_after
+
+
+@dataclass(frozen=True)
+class DisparityResult:
+    """The maps (float32 HxW: disparity in px of the left image, uncertainty, depth in m when
+    calibration was given) and the facts the service reports about the computation."""
+
+    disparity: np.ndarray
+    uncertainty: np.ndarray
+    depth: np.ndarray | None
+    model: str
+    weights: str
+    batch_size: int
+    queue_ms: float
+    compute_ms: float
+
+
+@dataclass
+class _Retries:
+    """At most `max_retries` retries, waiting what the service asks, never above `max_wait_s`."""
+
+    max_retries: int
+    max_wait_s: float
+
+    def wait_for(self, error: ServiceError, attempt: int) -> float | None:
+        """Seconds to wait before retrying after `error` on `attempt` (0-based), or None."""
+        if error.code not in RETRIED_CODES or attempt >= self.max_retries:
+            return None
+        return min(self.max_wait_s, error.retry_after if error.retry_after is not None else 1.0)
+
+
+def _encode(image: Image) -> bytes:
+    if isinstance(image, bytes):
+        return image
+    if isinstance(image, (str, os.PathLike)):
+        return Path(image).read_bytes()
+    array = np.asarray(image)
+    if array.ndim == 3 and array.shape[2] == 3:
+        array = np.ascontiguousarray(array[:, :, ::-1])  # RGB -> OpenCV's BGR
+    elif array.ndim != 2:
+        raise ValueError(f"expected an HxW or HxWx3 image, got shape {array.shape}")
+    ok, encoded = cv2.imencode(".png", array)
+    if not ok:
+        raise ValueError("could not encode the image as PNG")
+    return encoded.tobytes()
+
+
+def _request(left: Image, right: Image, options: dict[str, Any]) -> dict[str, Any]:
+    params = {"format": "npz", **{k: _query_value(v) for k, v in options.items() if v is not None and v is not False}}
+    files = {"left": ("left.png", _encode(left)), "right": ("right.png", _encode(right))}
+    return {"params": params, "files": files}
+
+
+def _query_value(value: Any) -> str:
+    if value is True:
+        return "true"
+    if isinstance(value, (tuple, list)):
+        return ",".join(str(v) for v in value)
+    return str(value)
+
+
+def _error(response: httpx.Response) -> ServiceError:
+    try:
+        body = response.json()["error"]
+        code, message = str(body["code"]), str(body["message"])
+    except (ValueError, KeyError, TypeError):  # not the service's JSON (a proxy, uvicorn itself)
+        code, message = "http_error", response.text[:200]
+    retry_after = response.headers.get("retry-after")
+    return ServiceError(response.status_code, code, message, float(retry_after) if retry_after else None)
+
+
+def _result(response: httpx.Response) -> DisparityResult:
+    if response.status_code != 200:
+        raise _error(response)
+    maps = np.load(io.BytesIO(response.content))
+    headers = response.headers
+    return DisparityResult(
+        disparity=maps["disparity"],
+        uncertainty=maps["uncertainty"],
+        depth=maps["depth"] if "depth" in maps.files else None,
+        model=headers["x-model"],
+        weights=headers["x-weights"],
+        batch_size=int(headers["x-batch-size"]),
+        queue_ms=float(headers["x-queue-ms"]),
+        compute_ms=float(headers["x-compute-ms"]),
+    )
+
+
+def _json(response: httpx.Response) -> Any:
+    if response.status_code >= 400 and response.status_code != 503:
+        raise _error(response)
+    return response.json()
+
+
+class StereoClient:
+    """Synchronous client. `max_retries`: retries of a request refused with 503 `queue_full` or
+    `loading`, each after the `Retry-After` the service sent (capped at `max_retry_wait_s`)."""
+
+    def __init__(self, base_url: str = "http://127.0.0.1:8000", *, api_key: str | None = None,
+                 timeout_s: float = 300.0, max_retries: int = 3, max_retry_wait_s: float = 30.0) -> None:
+        headers = {"Authorization": f"Bearer {api_key}"} if api_key else {}
+        self._http = httpx.Client(base_url=base_url, headers=headers, timeout=timeout_s)
+        self._retries = _Retries(max_retries, max_retry_wait_s)
+
+    def disparity(self, left: Image, right: Image, *, model: str = "lite", iters: int | tuple[int, int, int] | None = None,
+                  scale: float | None = None, two_pass: bool = False, raw_uncertainty: bool = False,
+                  focal_px: float | None = None, baseline_m: float | None = None) -> DisparityResult:
+        """Disparity and uncertainty of a rectified pair (raises `ServiceError` on an error answer)."""
+        request = _request(left, right, dict(model=model, iters=iters, scale=scale, two_pass=two_pass,
+                                             raw_uncertainty=raw_uncertainty, focal_px=focal_px,
+                                             baseline_m=baseline_m))
+        for attempt in range(self._retries.max_retries + 1):
+            try:
+                return _result(self._http.post("/disparity", **request))
+            except ServiceError as error:
+                wait = self._retries.wait_for(error, attempt)
+                if wait is None:
+                    raise
+                time.sleep(wait)
+        raise AssertionError("unreachable: the last attempt returns or raises")
+
+    def health(self) -> dict[str, Any]:
+        """`GET /health` (also when the service answers 503: the body says why)."""
+        return dict(_json(self._http.get("/health")))
+
+    def models(self) -> list[dict[str, Any]]:
+        """`GET /models`: what each loaded model is."""
+        return list(_json(self._http.get("/models"))["models"])
+
+    def close(self) -> None:
+        self._http.close()
+
+    def __enter__(self) -> StereoClient:
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        self.close()
+
+
+class AsyncStereoClient:
+    """`StereoClient` for asyncio: the same methods, awaited."""
+
+    def __init__(self, base_url: str = "http://127.0.0.1:8000", *, api_key: str | None = None,
+                 timeout_s: float = 300.0, max_retries: int = 3, max_retry_wait_s: float = 30.0) -> None:
+        headers = {"Authorization": f"Bearer {api_key}"} if api_key else {}
+        self._http = httpx.AsyncClient(base_url=base_url, headers=headers, timeout=timeout_s)
+        self._retries = _Retries(max_retries, max_retry_wait_s)
+
+    async def disparity(self, left: Image, right: Image, *, model: str = "lite",
+                        iters: int | tuple[int, int, int] | None = None, scale: float | None = None,
+                        two_pass: bool = False, raw_uncertainty: bool = False, focal_px: float | None = None,
+                        baseline_m: float | None = None) -> DisparityResult:
+        request = _request(left, right, dict(model=model, iters=iters, scale=scale, two_pass=two_pass,
+                                             raw_uncertainty=raw_uncertainty, focal_px=focal_px,
+                                             baseline_m=baseline_m))
+        for attempt in range(self._retries.max_retries + 1):
+            try:
+                return _result(await self._http.post("/disparity", **request))
+            except ServiceError as error:
+                wait = self._retries.wait_for(error, attempt)
+                if wait is None:
+                    raise
+                await asyncio.sleep(wait)
+        raise AssertionError("unreachable: the last attempt returns or raises")
+
+    async def health(self) -> dict[str, Any]:
+        return dict(_json(await self._http.get("/health")))
+
+    async def models(self) -> list[dict[str, Any]]:
+        return list(_json(await self._http.get("/models"))["models"])
+
+    async def close(self) -> None:
+        await self._http.aclose()
+
+    async def __aenter__(self) -> AsyncStereoClient:
+        return self
+
+    async def __aexit__(self, *_: object) -> None:
+        await self.close()

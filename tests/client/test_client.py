@@ -1,0 +1,84 @@
+"""`client.StereoClient` / `AsyncStereoClient` against a real uvicorn process on loopback."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+
+from client import AsyncStereoClient, ServiceError, StereoClient
+from service_helpers import encode, quiet_load_model, run_uvicorn, stereo_pair
+
+
+def test_the_sync_client_returns_the_library_maps_as_arrays(default_server):
+    left, right = stereo_pair()
+    with StereoClient(default_server.base_url) as service:
+        result = service.disparity(left, right, iters=(1, 2, 3), focal_px=700.0, baseline_m=0.1)
+        models = service.models()
+        health = service.health()
+    direct = quiet_load_model("lite").predict(left, right, iters=(1, 2, 3))
+    assert result.disparity.dtype == np.float32 and result.disparity.shape == left.shape[:2]
+    np.testing.assert_allclose(result.disparity, direct.disparity, rtol=1e-4, atol=1e-3)
+    np.testing.assert_allclose(result.uncertainty, direct.uncertainty, rtol=1e-4, atol=1e-4)
+    assert result.depth is not None and result.depth.shape == left.shape[:2]
+    assert result.model == "lite" and result.batch_size >= 1 and result.compute_ms > 0
+    assert [m["name"] for m in models] == ["lite"] and health["status"] == "ready"
+
+
+def test_files_and_bytes_are_sent_as_they_are(default_server, tmp_path):
+    left, right = stereo_pair()
+    (tmp_path / "l.png").write_bytes(encode(left))
+    with StereoClient(default_server.base_url) as service:
+        from_files = service.disparity(tmp_path / "l.png", encode(right))
+        from_arrays = service.disparity(left, right)
+    np.testing.assert_array_equal(from_files.disparity, from_arrays.disparity)
+
+
+def test_error_answers_raise_typed_errors_with_the_services_code(default_server):
+    left, right = stereo_pair()
+    with StereoClient(default_server.base_url) as service:
+        with pytest.raises(ServiceError) as not_an_image:
+            service.disparity(b"hello world", right)
+        with pytest.raises(ServiceError) as bad_option:
+            service.disparity(left, right, scale=2.0)
+    assert (not_an_image.value.status, not_an_image.value.code) == (415, "unsupported_media_type")
+    assert (bad_option.value.status, bad_option.value.code) == (422, "invalid_request")
+
+
+@pytest.mark.anyio
+async def test_the_async_client_gives_the_same_answer(default_server):
+    left, right = stereo_pair()
+    async with AsyncStereoClient(default_server.base_url) as service:
+        result = await service.disparity(left, right)
+        with pytest.raises(ServiceError):
+            await service.disparity(left, right[:, :-1])
+    with StereoClient(default_server.base_url) as service:
+        np.testing.assert_array_equal(result.disparity, service.disparity(left, right).disparity)
+
+
+def test_a_full_queue_is_retried_after_retry_after_until_served(tmp_path):
+    left, right = stereo_pair(96, 128)
+    with run_uvicorn(tmp_path, max_queue="1", max_batch_size="1") as server:
+        patient = StereoClient(server.base_url, max_retries=20, max_retry_wait_s=2)
+        impatient = StereoClient(server.base_url, max_retries=0)
+        outcomes: list[object] = []
+
+        def post(client: StereoClient) -> None:
+            try:
+                outcomes.append(client.disparity(left, right))
+            except ServiceError as error:
+                outcomes.append(error)
+
+        threads = [threading.Thread(target=post, args=(patient,)) for _ in range(4)]
+        threads += [threading.Thread(target=post, args=(impatient,)) for _ in range(4)]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join(timeout=120)
+    refused = [o for o in outcomes if isinstance(o, ServiceError)]
+    assert len(outcomes) == 8
+    assert all(error.code == "queue_full" and error.retry_after is not None for error in refused)
+    assert refused, "the burst never filled the queue: nothing was retried"
+    served = [o for o in outcomes if not isinstance(o, ServiceError)]
+    assert len(served) >= 4  # every patient request, however often refused, was served in the end
