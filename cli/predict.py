@@ -14,6 +14,7 @@ from tqdm import tqdm
 
 from model import load_model
 from stereo_data.formats import read_image, write_kitti_disparity, write_pfm
+from stereo_data.pointcloud import Calibration, encode_ply, point_cloud
 from stereo_data.visualize import disparity_picture, scale_range
 from training.distributed import resolve_device
 
@@ -62,6 +63,12 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--color-max", type=float, metavar="PX", help="disparity at the top of the colour scale [each map's 99th percentile]"
     )
+    parser.add_argument("--ply", type=Path, metavar="PLY", help="binary PLY point cloud coloured by the left image (folder mode: a folder)")
+    parser.add_argument("--focal-px", type=float, help="--ply: focal length in px (with --baseline-m: metric points)")
+    parser.add_argument("--baseline-m", type=float, help="--ply: stereo baseline in metres")
+    parser.add_argument("--cx", type=float, help="--ply: principal point x in px [the image centre]")
+    parser.add_argument("--cy", type=float, help="--ply: principal point y in px [the image centre]")
+    parser.add_argument("--max-uncertainty", type=float, help="--ply: drop points whose uncertainty is above this")
     parser.add_argument(
         "--raw-uncertainty",
         action="store_true",
@@ -127,12 +134,16 @@ def write_uncertainty(path: Path, uncertainty: np.ndarray) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    if (args.focal_px is None) != (args.baseline_m is None):
+        raise ValueError("give both --focal-px and --baseline-m, or neither")
     pairs = find_pairs(args.left, args.right)
     single = is_single_pair(args.left, args.right)
     predictor = load_model(args.model, args.weights, resolve_device(args.device, 0))
+    calibration = None if args.focal_px is None else Calibration(args.focal_px, args.baseline_m, args.cx, args.cy)
     for pair in tqdm(pairs, desc=f"predict {args.model}", unit="pair", disable=single):
+        left = read_image(pair.left)
         prediction = predictor.predict(
-            read_image(pair.left),
+            left,
             read_image(pair.right),
             iters=iterations(args),
             two_pass=args.two_pass,
@@ -150,6 +161,13 @@ def run(args: argparse.Namespace) -> int:
             scale = scale_range(prediction.disparity, args.color_min, args.color_max)
             picture = disparity_picture(prediction.disparity, scale)
             cv2.imwrite(str(color_path), picture[:, :, ::-1])
+        if args.ply is not None:
+            ply_path = args.ply if single else args.ply / f"{pair.stem}.ply"
+            ply_path.parent.mkdir(parents=True, exist_ok=True)
+            points, colours = point_cloud(
+                prediction.disparity, left, prediction.uncertainty, calibration, args.max_uncertainty
+            )
+            ply_path.write_bytes(encode_ply(points, colours))
     if single:
         print(f"wrote {args.output}")
     else:

@@ -20,6 +20,7 @@ class OutputFormat(StrEnum):
     disparity_png16 = "disparity_png16"
     uncertainty_png16 = "uncertainty_png16"
     depth_png16 = "depth_png16"
+    ply = "ply"
 
 
 FLOAT32_MAX = float(np.finfo(np.float32).max)
@@ -40,7 +41,10 @@ class DisparityOptions(BaseModel):
         "16-bit PNG, value = round(disparity x 256), 0 = invalid, clipped at 65535. "
         "`depth_png16`: KITTI depth 16-bit PNG, value = round(metres x 256), 0 = invalid, needs "
         "`focal_px` and `baseline_m`. `uncertainty_png16`: 16-bit PNG, value = "
-        "round(uncertainty x 65535).",
+        "round(uncertainty x 65535). `ply`: binary PLY point cloud coloured by the left image: "
+        "metric (metres, left camera frame) with `focal_px` and `baseline_m` (principal point "
+        "`cx_px`, `cy_px`, default the image centre), else image-space (x px, y px, disparity px); "
+        "pixels above `max_uncertainty` are dropped.",
     )
     two_pass: bool = Field(
         False, description="Cascaded inference: a half-resolution pass initialises the "
@@ -62,6 +66,12 @@ class DisparityOptions(BaseModel):
     color_max: FiniteFloat | None = Field(
         None, description="`format=png`: disparity (px) at the top of the colour scale "
         "[the map's 99th percentile].")
+    cx_px: FiniteFloat | None = Field(
+        None, description="`format=ply`: principal point x in px [the image centre].")
+    cy_px: FiniteFloat | None = Field(
+        None, description="`format=ply`: principal point y in px [the image centre].")
+    max_uncertainty: FiniteFloat | None = Field(
+        None, ge=0, description="`format=ply`: drop points whose uncertainty is above this.")
     focal_px: FiniteFloat | None = Field(
         None, gt=0, description="Focal length in pixels; with `baseline_m` adds a metric depth "
         "map Z = focal_px x baseline_m / disparity (invalid where disparity <= 0).")
@@ -82,6 +92,8 @@ class DisparityOptions(BaseModel):
             raise ValueError("give both focal_px and baseline_m, or neither")
         if self.format is OutputFormat.depth_png16 and self.focal_px is None:
             raise ValueError("format=depth_png16 needs focal_px and baseline_m")
+        if (self.cx_px is not None or self.cy_px is not None) and self.focal_px is None:
+            raise ValueError("cx_px and cy_px need focal_px and baseline_m")
         if self.color_min is not None and self.color_max is not None and self.color_max <= self.color_min:
             raise ValueError("color_max must be above color_min")
         if self.focal_px is not None and self.baseline_m is not None and (

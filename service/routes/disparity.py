@@ -46,6 +46,7 @@ from service.schemas import (
     Timings,
 )
 from service.settings import Settings
+from stereo_data.pointcloud import Calibration, encode_ply, point_cloud
 from stereo_data.visualize import scale_range
 
 router = APIRouter(tags=["disparity"])
@@ -90,9 +91,10 @@ def _error_doc(description: str, examples: dict[str, str],
 RESPONSES: dict[int | str, dict[str, Any]] = {
     200: {
         "description": "The maps, in the requested `format` (`application/json` for json, "
-        "`application/x-npz` for npz, `image/png` for the PNG formats).",
+        "`application/x-npz` for npz, `image/png` for the PNG formats, `application/x-ply` for ply).",
         "headers": _RESULT_HEADERS,
-        "content": {**_binary("application/x-npz"), **_binary("image/png")},
+        "content": {**_binary("application/x-npz"), **_binary("image/png"),
+                    **_binary("application/x-ply")},
     },
     401: _error_doc("`CRESTEREO_API_KEY` is set and the bearer token is missing or wrong.",
                     {"unauthorized": "missing or wrong bearer token"},
@@ -188,7 +190,7 @@ async def estimate_disparity(
         raise ApiError(500, "inference_failed", str(exc)) from None
     request.state.batch_size = result.batch_size
     predictor = runtime.predictors[options.model]
-    return await run_in_threadpool(_render, options, predictor, header, result)
+    return await run_in_threadpool(_render, options, predictor, header, result, left)
 
 
 def _refuse_repeated_options(request: Request) -> None:
@@ -299,7 +301,7 @@ def _image_error(name: str, exc: ImageError) -> ApiError:
 
 
 def _render(options: DisparityOptions, predictor: Predictor, header: ImageHeader,
-            result: JobResult) -> Response:
+            result: JobResult, left: np.ndarray) -> Response:
     """The answer in the requested format, with the result facts as headers."""
     weights = weights_identity(predictor)
     queue_ms, compute_ms = result.queue_seconds * 1000, result.compute_seconds * 1000
@@ -338,4 +340,10 @@ def _render(options: DisparityOptions, predictor: Predictor, header: ImageHeader
             content = encode_png16(depth, KITTI_SCALE)
         case OutputFormat.uncertainty_png16:
             content = encode_png16(result.uncertainty, UNCERTAINTY_SCALE)
+        case OutputFormat.ply:
+            calibration = None if options.focal_px is None or options.baseline_m is None else Calibration(
+                options.focal_px, options.baseline_m, options.cx_px, options.cy_px)
+            points, colours = point_cloud(result.disparity, left, result.uncertainty, calibration,
+                                          options.max_uncertainty)
+            return Response(encode_ply(points, colours), media_type="application/x-ply", headers=headers)
     return Response(content, media_type="image/png", headers=headers)

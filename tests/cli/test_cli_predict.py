@@ -146,3 +146,21 @@ def test_predict_on_a_real_pair_keeps_its_size(small_stereo_dev, tmp_path):
     )
     left = cv2.imread(str(pair / "left.png"))
     assert read_pfm(out).shape == left.shape[:2]
+
+
+def test_a_metric_point_cloud_is_written_as_ply(pairs_dir, tmp_path):
+    import io
+
+    from plyfile import PlyData
+
+    pair = pairs_dir / "shift4"
+    ply = tmp_path / "cloud.ply"
+    argv = ["predict", str(pair / "left.png"), str(pair / "right.png"), "-o", str(tmp_path / "d.pfm"),
+            "--ply", str(ply), "--focal-px", "500", "--baseline-m", "0.1", "--device", "cpu"]
+    assert main(argv) == 0
+    vertex = PlyData.read(io.BytesIO(ply.read_bytes()))["vertex"]
+    disparity = read_pfm(tmp_path / "d.pfm")
+    assert len(vertex) == int((disparity > 0).sum())
+    np.testing.assert_allclose(np.sort(vertex["z"]), np.sort(50.0 / disparity[disparity > 0]), rtol=1e-4)
+    without_baseline = [a for a in argv if a not in ("--baseline-m", "0.1")]
+    assert main(without_baseline) == 2  # metric points need both --focal-px and --baseline-m

@@ -13,6 +13,7 @@ import pytest
 
 from service.logs import JsonFormatter
 from service_helpers import HEIGHT, WIDTH, encode, pair_files, serve_asgi, stereo_pair
+from stereo_data.visualize import BAR_HEIGHT
 
 pytestmark = pytest.mark.anyio
 
@@ -74,7 +75,7 @@ async def test_every_format_encodes_the_same_maps_and_depth_is_focal_times_basel
     assert sorted(archive.files) == ["depth", "disparity", "uncertainty"]
     np.testing.assert_allclose(archive["disparity"], disparity, atol=1e-4)
     np.testing.assert_allclose(archive["uncertainty"], uncertainty, atol=1e-4)
-    assert preview.shape == (HEIGHT, 2 * WIDTH, 3) and preview.dtype == np.uint8
+    assert preview.shape == (HEIGHT + BAR_HEIGHT, 2 * WIDTH, 3) and preview.dtype == np.uint8  # maps, bars
     for name, values, scale in (("disparity", disparity, 256), ("depth", depth, 256),
                                 ("uncertainty", uncertainty, 65535)):
         image = png16[name]
@@ -175,3 +176,20 @@ async def test_models_describe_each_loaded_model_in_open_inference_protocol_shap
     assert info["training"]["pairs"] == predictor.training["total_pairs"] > 0
     assert set(info["training"]["dev_metrics"]) == {"epe", "bad1", "bad2", "bad3", "d1_all"}
     assert (missing.status_code, missing.json()["error"]["code"]) == (404, "model_not_found")
+
+
+async def test_a_metric_point_cloud_is_served_as_binary_ply():
+    import io
+
+    from plyfile import PlyData
+
+    left, right = stereo_pair()
+    params = {"format": "ply", "focal_px": 500.0, "baseline_m": 0.12, "max_uncertainty": 1.0}
+    async with serve_asgi() as h:
+        response = await h.client.post("/disparity", params=params, files=pair_files(left, right))
+        direct = h.predictors["lite"].predict(left, right)
+    assert response.status_code == 200 and response.headers["content-type"] == "application/x-ply"
+    vertex = PlyData.read(io.BytesIO(response.content))["vertex"]
+    assert len(vertex) == int((direct.disparity > 0).sum())
+    np.testing.assert_allclose(np.sort(vertex["z"]), np.sort(500.0 * 0.12 / direct.disparity[direct.disparity > 0]),
+                               rtol=1e-3)

@@ -23,7 +23,7 @@ def test_every_disparity_answer_is_documented_with_examples_of_its_error_codes()
     responses = operation["responses"]
     assert set(responses) == {"200", "401", "413", "415", "422", "500", "503"}
     assert set(responses["200"]["content"]) == {"application/json", "application/x-npz",
-                                                "image/png"}
+                                                "image/png", "application/x-ply"}
     for status, response in responses.items():
         assert response["description"]
         assert "X-Request-Id" in response["headers"]
@@ -38,7 +38,8 @@ def test_every_disparity_answer_is_documented_with_examples_of_its_error_codes()
     assert operation["requestBody"]["content"]["multipart/form-data"]["schema"]["required"] == [
         "left", "right"]
     names = {parameter["name"] for parameter in operation["parameters"]}
-    assert names == {"model", "format", "two_pass", "iters", "scale", "raw_uncertainty", "color_min", "color_max", "focal_px", "baseline_m",
+    assert names == {"model", "format", "two_pass", "iters", "scale", "raw_uncertainty", "color_min", "color_max", "cx_px", "cy_px", "max_uncertainty",
+                     "focal_px", "baseline_m",
                      "X-Request-Timeout-Ms"}
 
 

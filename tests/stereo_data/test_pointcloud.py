@@ -1,0 +1,38 @@
+"""Point clouds from disparity: geometry, filtering, and binary PLY read back by plyfile."""
+
+import io
+
+import numpy as np
+import pytest
+from plyfile import PlyData
+
+from stereo_data.pointcloud import Calibration, encode_ply, point_cloud
+
+
+def test_metric_points_follow_the_pinhole_model_and_keep_their_colours():
+    disparity = np.array([[10.0, 20.0], [0.0, 40.0]], np.float32)  # one pixel without disparity
+    left = np.arange(12, dtype=np.uint8).reshape(2, 2, 3)
+    points, colours = point_cloud(disparity, left, calibration=Calibration(100.0, 0.5, cx=0.0, cy=0.0))
+    z = 100.0 * 0.5 / np.array([10.0, 20.0, 40.0])
+    expected = np.stack([np.array([0, 1, 1]) * z / 100.0, np.array([0, 0, 1]) * z / 100.0, z], axis=1)
+    np.testing.assert_allclose(points, expected, rtol=1e-6)
+    np.testing.assert_array_equal(colours, left.reshape(-1, 3)[[0, 1, 3]])
+
+
+def test_without_calibration_points_are_in_image_space_and_uncertain_ones_are_dropped():
+    disparity = np.full((2, 3), 5.0, np.float32)
+    uncertainty = np.array([[0.1, 0.9, 0.2], [0.3, 0.4, 0.95]], np.float32)
+    points, _ = point_cloud(disparity, np.zeros((2, 3, 3), np.uint8), uncertainty, max_uncertainty=0.5)
+    assert points.tolist() == [[0, 0, 5], [2, 0, 5], [0, 1, 5], [1, 1, 5]]
+    with pytest.raises(ValueError, match="needs the uncertainty"):
+        point_cloud(disparity, np.zeros((2, 3, 3), np.uint8), max_uncertainty=0.5)
+
+
+def test_the_ply_is_binary_and_reads_back_with_plyfile():
+    points = np.array([[0.5, -1.0, 2.0], [3.0, 4.0, 5.0]], np.float32)
+    colours = np.array([[255, 0, 10], [1, 2, 3]], np.uint8)
+    data = encode_ply(points, colours)
+    assert data.startswith(b"ply\nformat binary_little_endian 1.0\n")
+    vertex = PlyData.read(io.BytesIO(data))["vertex"]
+    np.testing.assert_array_equal(np.stack([vertex["x"], vertex["y"], vertex["z"]], axis=1), points)
+    np.testing.assert_array_equal(np.stack([vertex["red"], vertex["green"], vertex["blue"]], axis=1), colours)
