@@ -215,17 +215,16 @@ def evaluate(
             start = time.perf_counter()
             baseline = sgbm_disparity(sample.left, sample.right, float(sample.disparity[known].max()))
             outputs[SGBM] = (*baseline, time.perf_counter() - start)
-        methods = {
-            name: MethodResult(
+        methods = {}
+        for name, (disparity, uncertainty, seconds) in outputs.items():
+            errors, trust = np.abs(disparity - sample.disparity)[known], uncertainty[known]
+            calibrated = name == predictor.name and calibration is not None
+            methods[name] = MethodResult(
                 compute_metrics(disparity, sample.disparity, known),
                 seconds,
-                sparsification(np.abs(disparity - sample.disparity)[known], uncertainty[known]),
-                reliability(np.abs(disparity - sample.disparity)[known], uncertainty[known], calibration.threshold_px)
-                if name == predictor.name and calibration is not None
-                else None,
+                sparsification(errors, trust),
+                reliability(errors, trust, calibration.threshold_px) if calibrated else None,
             )
-            for name, (disparity, uncertainty, seconds) in outputs.items()
-        }
         height, width = sample.disparity.shape
         report.pairs.append(PairResult(sample.name, width, height, methods))
         if sheets_dir is not None:

@@ -10,10 +10,9 @@ Disparity is positive everywhere, in pixels of the left image (the right match i
 from .config import ModelConfig
 from .inference import Iterations, Prediction, StereoPredictor, load_model
 from .loss import matching_loss, sequence_loss
-from .network import INPUT_MULTIPLE, CREStereoPP, NetworkOutput
+from .network import CREStereoPP, NetworkOutput, padded_size
 
 __all__ = [
-    "INPUT_MULTIPLE",
     "CREStereoPP",
     "Iterations",
     "ModelConfig",
@@ -22,5 +21,6 @@ __all__ = [
     "StereoPredictor",
     "load_model",
     "matching_loss",
+    "padded_size",
     "sequence_loss",
 ]

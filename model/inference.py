@@ -15,7 +15,7 @@ from torch.nn import functional as F
 
 from .calibration import UncertaintyCalibration
 from .config import ModelConfig
-from .network import INPUT_MULTIPLE, CREStereoPP
+from .network import CREStereoPP, padded_size
 from .upsample import resize_disparity
 
 WEIGHTS_DIR = Path(__file__).parent / "weights"
@@ -108,10 +108,10 @@ def shrink(images: Tensor, size: tuple[int, int]) -> Tensor:
     return F.interpolate(images, size=size, mode="bilinear", antialias=True, align_corners=False)
 
 
-def pad_to_multiple(x: Tensor, multiple: int = INPUT_MULTIPLE) -> Tensor:
-    """Replicate-pad (B, C, H, W) on the bottom and right to multiples of ``multiple``."""
+def pad_to_multiple(x: Tensor) -> Tensor:
+    """Replicate-pad (B, C, H, W) on the bottom and right to multiples of INPUT_MULTIPLE."""
     height, width = x.shape[-2:]
-    return pad_to_size(x, height + -height % multiple, width + -width % multiple)
+    return pad_to_size(x, padded_size(height), padded_size(width))
 
 
 def pad_to_size(x: Tensor, height: int, width: int) -> Tensor:
@@ -244,7 +244,7 @@ class StereoPredictor:
         height = max(h for h, _ in sizes)
         width = max(w for _, w in sizes)
         if len(set(sizes)) > 1:
-            height, width = -(-height // INPUT_MULTIPLE) * INPUT_MULTIPLE, -(-width // INPUT_MULTIPLE) * INPUT_MULTIPLE
+            height, width = padded_size(height), padded_size(width)
 
         def stack(images: Sequence[np.ndarray]) -> Tensor:
             batches = [as_image_batch(image, self.device) for image in images]

@@ -21,6 +21,11 @@ INPUT_MULTIPLE = 32
 """Input height and width must be multiples of this (``model.inference`` pads to it)."""
 
 
+def padded_size(size: int) -> int:
+    """``size`` (an input height or width, px) rounded up to a multiple of INPUT_MULTIPLE."""
+    return -(-size // INPUT_MULTIPLE) * INPUT_MULTIPLE
+
+
 @dataclass
 class NetworkOutput:
     """What one forward pass returns. Disparities are positive, in pixels of the input.

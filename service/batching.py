@@ -29,7 +29,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from model import INPUT_MULTIPLE, Iterations, ModelConfig, Prediction
+from model import Iterations, ModelConfig, Prediction, padded_size
 from model.calibration import UncertaintyCalibration
 
 from service.metrics import Metrics
@@ -113,7 +113,7 @@ def batch_key(model: str, knobs: Knobs, height: int, width: int) -> BatchKey:
     unpadded image."""
     if knobs.two_pass or knobs.scale != 1.0:
         return BatchKey(model, knobs, height, width)
-    return BatchKey(model, knobs, _round_up(height), _round_up(width))
+    return BatchKey(model, knobs, padded_size(height), padded_size(width))
 
 
 @dataclass(frozen=True)
@@ -410,7 +410,3 @@ def compute_batch(predictor: Predictor, key: BatchKey, lefts: Sequence[np.ndarra
     predictions = predictor.predict_batch(lefts, rights, two_pass=knobs.two_pass, iters=knobs.iters,
                                           scale=knobs.scale, raw_uncertainty=knobs.raw_uncertainty)
     return [(p.disparity, p.uncertainty) for p in predictions]
-
-
-def _round_up(size: int) -> int:
-    return -(-size // INPUT_MULTIPLE) * INPUT_MULTIPLE
