@@ -28,7 +28,7 @@ from .metrics import (
     sparsification,
 )
 from .sgbm import sgbm_disparity
-from stereo_data.visualize import colorize
+from stereo_data.visualize import UNCERTAINTY_COLORMAP, colorize
 
 from .visualize import Panel, compose_sheet, disparity_panels, line_plot
 
@@ -254,7 +254,7 @@ def evaluation_sheet(
             Panel(
                 f"ground truth 0-{disparity_max:.0f} px (black: unknown)", colorize(ground_truth, 0.0, disparity_max)
             ),
-            Panel("uncertainty 0-1", colorize(uncertainty, 0.0, 1.0, cv2.COLORMAP_VIRIDIS)),
+            Panel("uncertainty 0-1", colorize(uncertainty, 0.0, 1.0, UNCERTAINTY_COLORMAP)),
         ]
     ]
     rows += [disparity_panels(name, d, sample.disparity, known, disparity_max) for name, d in disparities.items()]
