@@ -26,6 +26,7 @@ from torch.utils.flop_counter import FlopCounterMode
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a checkout without installing
 from model import load_model  # noqa: E402
+from model.config import MODEL_NAMES  # noqa: E402
 
 
 def matmul_gflops(n: int = 2048, runs: int = 10) -> float:
@@ -77,7 +78,7 @@ def measure(name: str, height: int, width: int, runs: int, profile: bool) -> dic
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--runs", type=int, default=5)
-    parser.add_argument("--models", nargs="+", default=["lite", "full"])
+    parser.add_argument("--models", nargs="+", default=list(MODEL_NAMES))
     parser.add_argument("--sizes", nargs="+", default=["384x1248", "480x640"])
     parser.add_argument("--profile", action="store_true")
     parser.add_argument("--one", help=argparse.SUPPRESS)  # child mode: "model:HxW"

@@ -9,16 +9,13 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
-import numpy as np
 from tqdm import tqdm
 
-from model import load_model
-from stereo_data.formats import read_image, write_kitti_disparity, write_pfm
+from stereo_data.formats import read_image, write_disparity, write_uncertainty
 from stereo_data.pointcloud import Calibration, encode_ply, point_cloud
 from stereo_data.visualize import disparity_picture, scale_range
-from training.distributed import resolve_device
 
-from .evaluate import add_model_options, iterations
+from .options import add_model_options, iterations, load_predictor
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".ppm", ".pgm", ".tif", ".tiff", ".webp"}
 DISPARITY_FORMATS = ("pfm", "png", "npy")
@@ -110,35 +107,12 @@ def find_pairs(left: str, right: str) -> list[PairPaths]:
     ]
 
 
-def write_disparity(path: Path, disparity: np.ndarray) -> None:
-    """Write float HxW disparity (px) by extension: .pfm (float32), .png (KITTI 16-bit, x256), .npy."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    suffix = path.suffix.lower()
-    if suffix == ".pfm":
-        write_pfm(path, disparity)
-    elif suffix == ".png":
-        write_kitti_disparity(path, disparity)
-    elif suffix == ".npy":
-        np.save(path, disparity.astype(np.float32))
-    else:
-        raise ValueError(f"unknown disparity format {path.suffix!r} for {path}: use .pfm, .png or .npy")
-
-
-def write_uncertainty(path: Path, uncertainty: np.ndarray) -> None:
-    """Write float HxW uncertainty in [0, 1] by extension: .pfm, .npy, or .png (16-bit, x65535)."""
-    if path.suffix.lower() == ".png":
-        path.parent.mkdir(parents=True, exist_ok=True)
-        cv2.imwrite(str(path), np.round(np.clip(uncertainty, 0.0, 1.0) * 65535).astype(np.uint16))
-    else:
-        write_disparity(path, uncertainty)
-
-
 def run(args: argparse.Namespace) -> int:
     if (args.focal_px is None) != (args.baseline_m is None):
         raise ValueError("give both --focal-px and --baseline-m, or neither")
     pairs = find_pairs(args.left, args.right)
     single = is_single_pair(args.left, args.right)
-    predictor = load_model(args.model, args.weights, resolve_device(args.device, 0))
+    predictor = load_predictor(args)
     calibration = None if args.focal_px is None else Calibration(args.focal_px, args.baseline_m, args.cx, args.cy)
     for pair in tqdm(pairs, desc=f"predict {args.model}", unit="pair", disable=single):
         left = read_image(pair.left)
@@ -150,11 +124,13 @@ def run(args: argparse.Namespace) -> int:
             scale=args.scale,
             raw_uncertainty=args.raw_uncertainty,
         )
-        write_disparity(args.output if single else args.output / f"{pair.stem}.{args.format}", prediction.disparity)
+        disparity_path = args.output if single else args.output / f"{pair.stem}.{args.format}"
+        disparity_path.parent.mkdir(parents=True, exist_ok=True)
+        write_disparity(disparity_path, prediction.disparity)
         if args.uncertainty is not None:
-            write_uncertainty(
-                args.uncertainty if single else args.uncertainty / f"{pair.stem}.pfm", prediction.uncertainty
-            )
+            uncertainty_path = args.uncertainty if single else args.uncertainty / f"{pair.stem}.pfm"
+            uncertainty_path.parent.mkdir(parents=True, exist_ok=True)
+            write_uncertainty(uncertainty_path, prediction.uncertainty)
         if args.color is not None:
             color_path = args.color if single else args.color / f"{pair.stem}.png"
             color_path.parent.mkdir(parents=True, exist_ok=True)

@@ -6,7 +6,7 @@ import argparse
 from dataclasses import replace
 from pathlib import Path
 
-from training.checkpoint import load_checkpoint
+from model.weights import read_weights
 from training.config import PRESETS, TrainConfig, preset
 from training.distributed import DistributedContext
 from training.trainer import train
@@ -46,7 +46,7 @@ def run(args: argparse.Namespace) -> int:
             raise SystemExit(
                 "crestereo-pp train: --preset cannot be combined with --resume (the checkpoint has its config)"
             )
-        config = replace(TrainConfig.from_dict(load_checkpoint(args.resume)["train_config"]), **overrides)
+        config = replace(TrainConfig.from_dict(read_weights(args.resume)["train_config"]), **overrides)
     else:
         config = preset(args.preset or "pretrain", **overrides)
     result = train(config, resume=args.resume, init_weights=args.init_weights, progress=not args.no_progress)

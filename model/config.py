@@ -4,7 +4,10 @@ paper's ablation switches (Table "ablation")."""
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, fields, replace
-from typing import Any, Literal
+from typing import Any, Literal, get_args
+
+ModelName = Literal["lite", "full"]
+"""The networks there are presets of (``PRESETS``): Lite-CREStereo++ and CREStereo++."""
 
 Warping = Literal["bilinear", "content_aware", "ugac"]
 """How the right feature is aligned to the left before correlation:
@@ -86,7 +89,7 @@ class ModelConfig:
         return ModelConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in values.items()})
 
 
-PRESETS: dict[str, ModelConfig] = {
+PRESETS: dict[ModelName, ModelConfig] = {
     # Channel widths, heads and iterations (2/4/6) as in the paper and the authors' Lite code.
     "lite": ModelConfig(
         fem_channels=(32, 48, 64),
@@ -113,3 +116,7 @@ PRESETS: dict[str, ModelConfig] = {
         gru_kernels="1x5",
     ),
 }
+
+MODEL_NAMES: tuple[ModelName, ...] = get_args(ModelName)
+"""Every model name, in the order the service loads them: the one list (``PRESETS`` has one
+preset per name, which a test checks)."""

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import hashlib
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
@@ -17,9 +16,7 @@ from .calibration import UncertaintyCalibration
 from .config import ModelConfig
 from .network import CREStereoPP, padded_size
 from .upsample import resize_disparity
-
-WEIGHTS_DIR = Path(__file__).parent / "weights"
-"""Bundled weights: ``WEIGHTS_DIR / f"{name}.pt"``."""
+from .weights import WEIGHTS_DIR, file_sha256, network_from_weights, read_weights
 
 Iterations = int | tuple[int, int, int] | None
 """None: the config's iterations; int: iterations of the finest (1/4) stage; or (n16, n8, n4)."""
@@ -33,14 +30,6 @@ class Prediction(NamedTuple):
     uncertainty: np.ndarray | Tensor
 
 
-def file_sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with path.open("rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
-
-
 def load_model(name: str = "lite", weights: str | Path | None = None, device: str | torch.device = "cpu") -> StereoPredictor:
     """Build the ``name`` network (``lite`` | ``full``) and load its weights.
 
@@ -48,11 +37,8 @@ def load_model(name: str = "lite", weights: str | Path | None = None, device: st
     ``"config"``); None loads the bundled ``model/weights/{name}.pt`` if present, else the network is
     randomly initialised (seed 0, so every process gets the same one) with a warning.
     """
-    config = ModelConfig.preset(name)
     path = Path(weights) if weights is not None else WEIGHTS_DIR / f"{name}.pt"
-    if weights is not None and not path.is_file():
-        raise FileNotFoundError(f"weights file not found: {path}")
-    if not path.is_file():
+    if weights is None and not path.is_file():
         warnings.warn(
             f"no weights at {path}: the {name!r} model is randomly initialised and its predictions are meaningless",
             RuntimeWarning,
@@ -60,24 +46,18 @@ def load_model(name: str = "lite", weights: str | Path | None = None, device: st
         )
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(0)
-            network = CREStereoPP(config)
+            network = CREStereoPP(ModelConfig.preset(name))
         return StereoPredictor(network, name, None, device)
 
-    checkpoint = torch.load(path, map_location="cpu", weights_only=True)
-    if not isinstance(checkpoint, dict) or "model" not in checkpoint:
-        raise ValueError(f"{path} is not a weights file: expected a dict with a 'model' state_dict")
-    if "config" in checkpoint:
-        config = ModelConfig.from_dict(dict(checkpoint["config"]))
-    network = CREStereoPP(config)
-    network.load_state_dict({k: v.float() for k, v in checkpoint["model"].items()})
-    calibration = checkpoint.get("calibration")
+    payload = read_weights(path)
+    calibration = payload.get("calibration")
     return StereoPredictor(
-        network,
+        network_from_weights(payload, name),
         name,
         file_sha256(path),
         device,
         UncertaintyCalibration.from_dict(calibration) if calibration is not None else None,
-        checkpoint.get("training"),
+        payload.get("training"),
     )
 
 

@@ -8,7 +8,7 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, model_validator
 
-from service.settings import ModelName
+from model.config import ModelName
 
 
 class OutputFormat(StrEnum):

@@ -14,10 +14,10 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from model.config import MODEL_NAMES, ModelName
 from service import DEFAULT_MAX_IMAGE_PIXELS
 
 ENV_PREFIX = "CRESTEREO_"
-ModelName = Literal["lite", "full"]
 
 
 class Settings(BaseModel):
@@ -26,7 +26,7 @@ class Settings(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid")
 
     models: tuple[ModelName, ...] = Field(
-        ("lite", "full"), min_length=1, description="Comma-separated models to load at startup."
+        MODEL_NAMES, min_length=1, description="Comma-separated models to load at startup."
     )
     weights: dict[ModelName, Path] = Field(
         default_factory=dict,

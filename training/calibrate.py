@@ -15,9 +15,8 @@ from scipy.optimize import isotonic_regression
 
 from model import StereoPredictor, load_model
 from model.calibration import UncertaintyCalibration
+from model.weights import read_weights, write_weights
 from stereo_data.synthetic import SceneConfig, SceneGenerator
-
-from .checkpoint import load_checkpoint, save_atomically
 
 CALIBRATION_SEED = 2**40
 """First seed of the calibration scenes (far from any training seed)."""
@@ -79,8 +78,8 @@ def calibrate(
 def calibrate_weights_file(path: Path, scenes: int = 24) -> UncertaintyCalibration:
     """Fit the calibration of the weights (or checkpoint) at `path` and store it in the file
     under "calibration", replacing any earlier one."""
-    payload = load_checkpoint(path)
+    payload = read_weights(path)
     calibration = calibrate(load_model(str(payload.get("model_name") or "lite"), path), scenes)
     payload["calibration"] = calibration.to_dict()
-    save_atomically(payload, path)
+    write_weights(payload, path)
     return calibration

@@ -5,6 +5,8 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field, fields, replace
 from typing import Any, Literal
 
+from model.config import ModelName
+
 SYNTHETIC = "synthetic"
 """The `path` of a DataSource that stands for the procedural scene generator."""
 
@@ -52,7 +54,7 @@ def _knob(default: Any, help: str, metavar: str | None = None) -> Any:
 class TrainConfig:
     """Everything that defines a training run; every field is a `crestereo-pp train` option."""
 
-    model: Literal["lite", "full"] = _knob("lite", "network preset to train")
+    model: ModelName = _knob("lite", "network preset to train")
     sources: tuple[DataSource, ...] = _knob(
         (DataSource(SYNTHETIC),),
         "a training source (repeat for a mixture; replaces the default); PATH 'synthetic' is the procedural generator",

@@ -63,13 +63,3 @@ class DistributedContext:
         value = torch.tensor([1.0 if flag else 0.0], device=device)
         dist.all_reduce(value, op=dist.ReduceOp.MAX)
         return bool(value.item() > 0)
-
-
-def resolve_device(name: str, local_rank: int) -> torch.device:
-    """ "auto" is cuda:LOCAL_RANK when CUDA is available, else cpu; "cuda" also takes LOCAL_RANK."""
-    if name == "auto":
-        name = "cuda" if torch.cuda.is_available() else "cpu"
-    device = torch.device(name)
-    if device.type == "cuda" and device.index is None:
-        device = torch.device("cuda", local_rank)
-    return device

@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from .checkpoint import load_checkpoint, save_atomically
+from model.weights import read_weights, write_weights
 
 
 def export_weights(checkpoint: Path, output: Path, half: bool = False) -> dict[str, Any]:
@@ -13,10 +13,10 @@ def export_weights(checkpoint: Path, output: Path, half: bool = False) -> dict[s
     "calibration"}
     from a checkpoint, dropping the optimiser, scheduler and RNG states.
 
-    half: store floating-point tensors as float16 (half the size; `load_model` and
-    `--init-weights` cast them back to float32). Returns the written payload.
+    half: store floating-point tensors as float16 (half the size; `model.weights.load_state`
+    casts them back to float32). Returns the written payload.
     """
-    source = load_checkpoint(checkpoint)
+    source = read_weights(checkpoint)
     state = source["model"]
     if half:
         state = {name: t.half() if t.is_floating_point() else t for name, t in state.items()}
@@ -30,5 +30,5 @@ def export_weights(checkpoint: Path, output: Path, half: bool = False) -> dict[s
         "calibration": source.get("calibration"),  # fitted for these weights (model.calibration)
         "dtype": "float16" if half else "float32",
     }
-    save_atomically(payload, output)
+    write_weights(payload, output)
     return payload

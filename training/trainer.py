@@ -13,12 +13,14 @@ from tqdm import tqdm
 
 from evaluation.evaluate import evaluate
 from model import CREStereoPP, ModelConfig, StereoPredictor, matching_loss, sequence_loss
+from model.device import resolve_device
+from model.weights import load_state, model_config_of, read_weights, write_weights
 from stereo_data.readers import open_dataset
 
-from .checkpoint import load_checkpoint, restore_rng_state, rng_state, save_atomically
+from .checkpoint import restore_rng_state, rng_state
 from .config import TrainConfig
 from .data import TrainingBatch, TrainingData
-from .distributed import DistributedContext, resolve_device
+from .distributed import DistributedContext
 from .history import RunRecord, TrainingHistory
 from .records import CsvLog, plot_curves, read_csv
 from .schedule import build_scheduler
@@ -82,14 +84,10 @@ class Trainer:
         init_weights: Path | None,
     ) -> None:
         self.config, self.context, self.device = config, context, device
-        source = load_checkpoint(resume or init_weights) if (resume or init_weights) else None
+        source = read_weights(resume or init_weights) if (resume or init_weights) else None
         if source is not None and source.get("model_name", config.model) != config.model:
             raise ValueError(f"{resume or init_weights} holds {source['model_name']!r} weights, not {config.model!r}")
-        self.model_config = (
-            ModelConfig.from_dict(dict(source["config"]))
-            if source and "config" in source
-            else ModelConfig.preset(config.model)
-        )
+        self.model_config = model_config_of(source, config.model) if source else ModelConfig.preset(config.model)
         torch.manual_seed(config.seed)
         self.network = CREStereoPP(self.model_config).to(device)
         self.optimizer = torch.optim.AdamW(
@@ -101,7 +99,7 @@ class Trainer:
         self.history = TrainingHistory.from_dict(source.get("training") if source else None)
         self.start_step = 0
         if source is not None:
-            self.network.load_state_dict({name: tensor.float() for name, tensor in source["model"].items()})
+            load_state(self.network, source)
         if resume is not None:
             self.optimizer.load_state_dict(source["optimizer"])
             self.scheduler.load_state_dict(source["scheduler"])
@@ -232,7 +230,7 @@ class Trainer:
                     **record.validation,
                 )
             )
-        save_atomically(
+        write_weights(
             {
                 "model": self.network.state_dict(),
                 "config": self.model_config.to_dict(),

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from model import ModelConfig, load_model
-from model.inference import file_sha256
+from model.weights import file_sha256
 
 
 @pytest.fixture(scope="module")

@@ -12,7 +12,7 @@ import training.trainer
 from cli.main import main
 from model import load_model
 from stereo_data.readers import StereoSample
-from training.checkpoint import load_checkpoint
+from model.weights import read_weights
 from training.config import DataSource, TrainConfig
 from training.records import read_csv
 from training.trainer import train
@@ -82,7 +82,7 @@ def test_train_command_runs_steps_on_procedural_scenes_and_leaves_checkpoint_log
         ]
     )
     assert status == 0
-    checkpoint = load_checkpoint(out / "checkpoint.pt")
+    checkpoint = read_weights(out / "checkpoint.pt")
     assert {
         "model",
         "config",
@@ -116,17 +116,17 @@ def test_a_resumed_run_repeats_the_uninterrupted_run_exactly(tmp_path, real_pair
 
     assert result.step == 4
     assert losses(tmp_path / "split") == losses(tmp_path / "whole")  # bit-exact, all four steps
-    a = load_checkpoint(tmp_path / "whole" / "checkpoint.pt")["model"]
-    b = load_checkpoint(tmp_path / "split" / "checkpoint.pt")["model"]
+    a = read_weights(tmp_path / "whole" / "checkpoint.pt")["model"]
+    b = read_weights(tmp_path / "split" / "checkpoint.pt")["model"]
     assert all(torch.equal(a[name], b[name]) for name in a)
-    history = load_checkpoint(tmp_path / "split" / "checkpoint.pt")["training"]
+    history = read_weights(tmp_path / "split" / "checkpoint.pt")["training"]
     assert [run["origin"] for run in history["runs"]] == ["scratch", "resume"] and history["total_steps"] == 4
 
 
 def test_the_time_budget_stops_after_the_current_step_and_saves_it(tmp_path, real_pairs):
     result = train(tiny(tmp_path, sources=(real_pairs,), max_steps=50, max_minutes=0.0), progress=False)
     assert result.out_of_time and result.step == 1
-    assert load_checkpoint(result.checkpoint)["step"] == 1
+    assert read_weights(result.checkpoint)["step"] == 1
 
 
 def test_resume_options_override_the_checkpoint_config(tmp_path, real_pairs):
@@ -148,9 +148,9 @@ def test_init_weights_start_a_fresh_run_that_carries_the_history(tmp_path, real_
     )
 
     assert result.step == 2
-    start = load_checkpoint(weights)["model"]
+    start = read_weights(weights)["model"]
     assert all(torch.equal(start[name], tensor) for name, tensor in result.network.state_dict().items())
-    history = load_checkpoint(result.checkpoint)["training"]
+    history = read_weights(result.checkpoint)["training"]
     assert [run["origin"] for run in history["runs"]] == ["scratch", "init-weights"]
     assert history["total_steps"] == 3 and history["total_pairs"] == 3
 
@@ -167,7 +167,7 @@ def test_validation_at_checkpoints_is_logged(tmp_path, real_pairs):
     assert [int(r["step"]) for r in rows] == [1, 2]
     assert all(float(r["epe"]) >= 0 and 0 <= float(r["bad2"]) <= 100 for r in rows)
     assert (tmp_path / "validation_curve.png").is_file()
-    assert load_checkpoint(tmp_path / "checkpoint.pt")["training"]["runs"][-1]["validation"]["bad2"] == float(
+    assert read_weights(tmp_path / "checkpoint.pt")["training"]["runs"][-1]["validation"]["bad2"] == float(
         rows[-1]["bad2"]
     )
 
@@ -178,7 +178,7 @@ def test_fp16_export_halves_the_file_and_predicts_like_fp32(tmp_path, real_pairs
     assert main(["export", str(tmp_path / "checkpoint.pt"), "-o", str(full)]) == 0
     assert main(["export", str(tmp_path / "checkpoint.pt"), "-o", str(half), "--fp16"]) == 0
 
-    exported = load_checkpoint(half)
+    exported = read_weights(half)
     assert {"model", "config", "training"} <= set(exported) and "optimizer" not in exported
     assert half.stat().st_size < 0.6 * full.stat().st_size
     pair = textured_pair(7)

@@ -1,0 +1,47 @@
+"""Command-line options that several commands share: the model, its weights, device and knobs."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from model import StereoPredictor, load_model
+from model.config import MODEL_NAMES
+from model.device import resolve_device
+
+
+def add_model_options(parser: argparse.ArgumentParser) -> None:
+    """--model, --weights, --device and the inference knobs: shared by eval and predict."""
+    parser.add_argument("--model", choices=MODEL_NAMES, default="lite", help="network [lite]")
+    parser.add_argument("--weights", type=Path, help="weights file or checkpoint [the bundled model/weights/MODEL.pt]")
+    parser.add_argument("--device", default="auto", help="auto (cuda if available), cpu, cuda, cuda:N [auto]")
+    parser.add_argument("--two-pass", action="store_true", help="half-resolution pass, then full-resolution refinement")
+    parser.add_argument(
+        "--iters",
+        type=int,
+        nargs="+",
+        metavar="N",
+        help="ARM iterations: N at 1/4 resolution, or N16 N8 N4 for the three stages [the model's]",
+    )
+    parser.add_argument(
+        "--scale",
+        type=float,
+        default=1.0,
+        help="run the network on the pair resized by this factor in (0, 1] (faster; maps at full size) [1]",
+    )
+
+
+def iterations(args: argparse.Namespace) -> int | tuple[int, int, int] | None:
+    """--iters as `StereoPredictor.predict` takes it; a usage error unless 1 or 3 counts."""
+    if args.iters is None:
+        return None
+    if len(args.iters) == 1:
+        return args.iters[0]
+    if len(args.iters) == 3:
+        return (args.iters[0], args.iters[1], args.iters[2])
+    raise SystemExit(f"crestereo-pp: --iters takes 1 or 3 counts, got {len(args.iters)}")
+
+
+def load_predictor(args: argparse.Namespace) -> StereoPredictor:
+    """The predictor that --model, --weights and --device name."""
+    return load_model(args.model, args.weights, resolve_device(args.device, 0))

@@ -1,0 +1,15 @@
+"""Which torch device a run uses, from the names the CLI, the service and training configs take."""
+
+from __future__ import annotations
+
+import torch
+
+
+def resolve_device(name: str, local_rank: int) -> torch.device:
+    """ "auto" is cuda:LOCAL_RANK when CUDA is available, else cpu; "cuda" also takes LOCAL_RANK."""
+    if name == "auto":
+        name = "cuda" if torch.cuda.is_available() else "cpu"
+    device = torch.device(name)
+    if device.type == "cuda" and device.index is None:
+        device = torch.device("cuda", local_rank)
+    return device

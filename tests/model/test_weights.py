@@ -1,0 +1,39 @@
+"""The weights file format (model.weights) and the one list of model names."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from model import CREStereoPP, ModelConfig
+from model.config import MODEL_NAMES, PRESETS
+from model.weights import model_config_of, network_from_weights, read_weights, write_weights
+
+
+def test_every_model_name_has_exactly_one_preset():
+    assert MODEL_NAMES == ("lite", "full")
+    assert set(PRESETS) == set(MODEL_NAMES)
+
+
+def test_a_written_file_reads_back_and_leaves_no_temporary_file(tmp_path):
+    path = tmp_path / "sub" / "w.pt"
+    network = CREStereoPP(ModelConfig.preset("lite", iters=(1, 1, 1)))
+    write_weights({"model": network.state_dict(), "config": network.config.to_dict(), "step": 3}, path)
+    payload = read_weights(path)
+    assert payload["step"] == 3 and [p.name for p in path.parent.iterdir()] == ["w.pt"]
+    rebuilt = network_from_weights(payload, "lite")
+    assert rebuilt.config == network.config
+    for a, b in zip(rebuilt.state_dict().values(), network.state_dict().values()):
+        assert torch.equal(a, b)
+
+
+def test_a_payload_without_a_state_dict_is_refused_and_the_old_file_kept(tmp_path):
+    path = tmp_path / "w.pt"
+    write_weights({"model": {"x": torch.ones(2)}}, path)
+    with pytest.raises(ValueError, match="'model' state_dict"):
+        write_weights({"step": 1}, path)
+    assert torch.equal(read_weights(path)["model"]["x"], torch.ones(2))
+
+
+def test_a_file_without_a_config_uses_the_preset_of_its_name():
+    assert model_config_of({"model": {}}, "full") == ModelConfig.preset("full")
