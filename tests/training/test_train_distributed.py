@@ -8,9 +8,9 @@ import torch
 import torch.multiprocessing as mp
 
 from model import CREStereoPP, ModelConfig
-from training.config import TrainConfig
 from training.records import read_csv
 from training.trainer import train
+from training_helpers import tiny
 
 WORLD_SIZE = 2
 
@@ -27,16 +27,7 @@ def train_as_rank(rank: int, port: int, out_dir: str) -> None:
         RANK=str(rank), LOCAL_RANK=str(rank), WORLD_SIZE=str(WORLD_SIZE), MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port)
     )
     torch.set_num_threads(1)
-    config = TrainConfig(
-        crop_height=64,
-        crop_width=96,
-        batch_size=1,
-        max_steps=2,
-        log_every=1,
-        num_workers=0,
-        device="cpu",
-        out_dir=out_dir,
-    )
+    config = tiny(Path(out_dir))
     result = train(config, progress=False)
     torch.save(result.network.state_dict(), Path(out_dir) / f"rank{rank}.pt")
 

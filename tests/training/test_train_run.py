@@ -16,6 +16,7 @@ from model.weights import read_weights
 from training.config import DataSource, TrainConfig
 from training.records import read_csv
 from training.trainer import train
+from training_helpers import tiny
 
 
 def textured_pair(seed: int, disparity: float = 3.0) -> StereoSample:
@@ -35,24 +36,6 @@ def real_pairs(monkeypatch) -> DataSource:
     monkeypatch.setattr(training.data, "open_dataset", lambda path: pairs)
     monkeypatch.setattr(training.trainer, "open_dataset", lambda path: pairs)
     return DataSource("/in-memory", 1.0)
-
-
-def tiny(out_dir: Path, **overrides) -> TrainConfig:
-    """Lite at 64x96, one pair per step, every step logged, fp32 on the CPU."""
-    values = dict(
-        crop_height=64,
-        crop_width=96,
-        batch_size=1,
-        max_steps=2,
-        log_every=1,
-        checkpoint_every=1000,
-        num_workers=0,
-        device="cpu",
-        out_dir=str(out_dir),
-        warmup_fraction=0.0,
-        real_scale_range=(1.0, 1.0),
-    )
-    return TrainConfig(**{**values, **overrides})
 
 
 def losses(out_dir: Path) -> list[float]:
