@@ -11,7 +11,7 @@ from model import load_model
 from service.errors import install_error_handlers
 from service.logs import configure_logging
 from service.middleware import RequestSizeLimitMiddleware, RequestContextMiddleware
-from service.routes import disparity, health, metrics, models
+from service.routes import disparity, health, metrics, models, page
 from service.runtime import ModelLoader, ServiceRuntime
 from service.settings import Settings
 
@@ -53,4 +53,5 @@ def create_app(settings: Settings | None = None, loader: ModelLoader = load_mode
     app.include_router(health.router)
     app.include_router(metrics.router)
     app.include_router(models.router)
+    app.include_router(page.router)  # the web page at `/` and its files under /static/
     return app
