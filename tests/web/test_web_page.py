@@ -1,0 +1,256 @@
+"""The web page at `/`, in a real headless Chromium against the real app on a real uvicorn: it loads
+with nothing from another origin, runs a bundled example pair into three pictures with colour bars
+in px, shows the values under the mouse (and metric depth with a calibration), downloads every
+format, accepts dropped files, and shows the service's own JSON error for a bad upload."""
+
+from __future__ import annotations
+
+import base64
+import importlib.util
+import json
+import re
+from pathlib import Path
+from typing import Any
+
+import cv2
+import httpx
+import numpy as np
+import pytest
+
+expect = pytest.importorskip("playwright.sync_api", reason="the playwright package is missing (pip install -e '.[test]')").expect
+
+from service.routes.page import STATIC_DIR
+from service.schemas import OutputFormat
+from service_helpers import Server
+from stereo_data.visualize import DISPARITY_COLORMAP, colorize, robust_range
+from web_helpers import WebPage
+
+EXAMPLE = "shapes-192x128"  # the smallest bundled pair: lite computes it in a fraction of a second
+EXAMPLE_DIR = STATIC_DIR / "examples" / EXAMPLE
+WIDTH, HEIGHT = 192, 128
+
+
+def example_bytes(name: str = EXAMPLE) -> tuple[bytes, bytes]:
+    folder = STATIC_DIR / "examples" / name
+    return (folder / "left.png").read_bytes(), (folder / "right.png").read_bytes()
+
+
+def served_maps(server: Server, **options: str) -> dict[str, np.ndarray]:
+    """The example's maps straight from `POST /disparity?format=json` (the page's reference)."""
+    left, right = example_bytes()
+    response = httpx.post(server.base_url + "/disparity", params={"format": "json", **options},
+                          files={"left": ("left.png", left), "right": ("right.png", right)},
+                          timeout=60)
+    assert response.status_code == 200, response.text
+    body = response.json()
+    return {name: np.frombuffer(base64.b64decode(body[name]["data"]), "<f4").reshape(body[name]["shape"])
+            for name in ("disparity", "uncertainty", "depth") if body.get(name)}
+
+
+def run_example(web: WebPage, **options: str) -> None:
+    """Choose the example pair, fill in `options` (form control id = API option), compute."""
+    page = web.page
+    page.select_option("#example", EXAMPLE)
+    expect(page.locator("#status")).to_contain_text("loaded")
+    for name, value in options.items():
+        page.fill(f"#{name}", value)
+    page.click("#run")
+    page.wait_for_selector("#results", state="visible")
+
+
+def canvas_rgb(web: WebPage, canvas_id: str) -> np.ndarray:
+    """The pixels of a canvas of the page, uint8 HxWx3."""
+    url = web.page.evaluate("(id) => document.getElementById(id).toDataURL('image/png')", canvas_id)
+    png = base64.b64decode(url.removeprefix("data:image/png;base64,"))
+    bgr = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
+    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+
+
+def number(text: str) -> float:
+    match = re.search(r"-?\d+(\.\d+)?(e[-+]?\d+)?", text)
+    assert match, f"no number in {text!r}"
+    return float(match.group())
+
+
+# --- the page's routes and assets (no browser) ---------------------------------------------------
+
+
+def test_page_and_static_files_are_served_with_a_strict_policy(default_server: Server) -> None:
+    page = httpx.get(default_server.base_url + "/")
+    assert page.status_code == 200 and page.headers["content-type"].startswith("text/html")
+    assert "default-src 'none'" in page.headers["content-security-policy"]
+    assert "connect-src 'self'" in page.headers["content-security-policy"]
+    script = httpx.get(default_server.base_url + "/static/app.js")
+    assert script.status_code == 200 and script.headers["content-type"].startswith("text/javascript")
+    for missing in ("/static/make_assets.py", "/static/nothing.js", "/static/%2e%2e/routes/page.py"):
+        answer = httpx.get(default_server.base_url + missing)
+        assert answer.status_code == 404, missing
+        assert answer.json()["error"]["code"] == "not_found"
+    paths = httpx.get(default_server.base_url + "/openapi.json").json()["paths"]
+    assert "/" not in paths and not any(path.startswith("/static") for path in paths)
+
+
+def test_generated_assets_are_current() -> None:
+    """colormaps.js is OpenCV's tables (as make_assets.py writes them); examples.json lists real
+    pairs of the sizes it says."""
+    spec = importlib.util.spec_from_file_location("make_assets", STATIC_DIR / "make_assets.py")
+    assert spec is not None and spec.loader is not None
+    make_assets = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(make_assets)
+    assert (STATIC_DIR / "colormaps.js").read_text() == make_assets.colormaps_js()
+    listing = json.loads((STATIC_DIR / "examples" / "examples.json").read_text())["examples"]
+    assert [entry["name"] for entry in listing] == [name for name, *_ in make_assets.EXAMPLES]
+    for entry in listing:
+        for side in ("left", "right"):
+            image = cv2.imread(str(STATIC_DIR / entry[side]))
+            assert image is not None and image.shape == (entry["height"], entry["width"], 3)
+
+
+# --- in the browser ------------------------------------------------------------------------------
+
+
+def test_page_loads_without_external_requests(web: WebPage) -> None:
+    page, base = web.page, web.server.base_url
+    expect(page.locator("#model-info")).to_contain_text("parameters")
+    external = [url for url in web.requests
+                if not url.startswith((base + "/", "data:", "blob:"))]
+    assert external == []
+    requested = {url.removeprefix(base) for url in web.requests}
+    assert {"/", "/static/app.js", "/static/style.css", "/static/colormaps.js", "/models",
+            "/static/examples/examples.json"} <= requested
+    assert page.input_value("#model") == "lite"
+    assert page.get_attribute("#iters", "placeholder") == "2,4,6"  # the model's default iterations
+
+
+def test_example_pair_gives_three_pictures_with_colour_bars_in_px(web: WebPage) -> None:
+    run_example(web)
+    page = web.page
+    pictures = {name: canvas_rgb(web, f"{name}-canvas") for name in ("left", "disparity", "uncertainty")}
+    for name, rgb in pictures.items():
+        assert rgb.shape == (HEIGHT, WIDTH, 3), name
+        assert len(np.unique(rgb.reshape(-1, 3), axis=0)) > 50, f"{name} is not a picture"
+    left = cv2.cvtColor(cv2.imread(str(EXAMPLE_DIR / "left.png")), cv2.COLOR_BGR2RGB)
+    assert np.abs(pictures["left"].astype(int) - left).max() <= 2
+
+    maps = served_maps(web.server)
+    low, high = robust_range(maps["disparity"])  # the service's own colour range (format=png)
+    bar = {part: page.inner_text(f"#disparity-bar .{part}") for part in ("low", "mid", "high")}
+    assert all(text.endswith(" px") for text in bar.values()), bar
+    assert number(bar["low"]) == pytest.approx(low, rel=5e-3, abs=5e-3)
+    assert number(bar["high"]) == pytest.approx(high, rel=5e-3)
+    assert number(bar["mid"]) == pytest.approx((low + high) / 2, rel=5e-3)
+    assert "1st-99th percentile" in page.inner_text("#disparity-bar .bar-caption")
+    assert [page.inner_text(f"#uncertainty-bar .{part}") for part in ("low", "mid", "high")] == ["0", "0.5", "1"]
+    # coloured as the service's preview colours it (turbo over the same range)
+    expected = colorize(maps["disparity"], low, high, DISPARITY_COLORMAP)
+    same = np.all(np.abs(pictures["disparity"].astype(int) - expected) <= 8, axis=2).mean()
+    assert same > 0.99
+    assert "lite" in page.inner_text("#summary") and "192x128" in page.inner_text("#summary")
+
+
+def test_colour_range_follows_color_min_and_color_max(web: WebPage) -> None:
+    run_example(web, color_min="2", color_max="30")
+    assert web.page.inner_text("#disparity-bar .low") == "2 px"
+    assert web.page.inner_text("#disparity-bar .high") == "30 px"
+    assert "color_min/color_max" in web.page.inner_text("#disparity-bar .bar-caption")
+
+
+def test_hover_shows_the_value_in_px_and_depth_in_m(web: WebPage) -> None:
+    focal_px, baseline_m = 400.0, 0.12
+    run_example(web, focal_px=str(focal_px), baseline_m=str(baseline_m))
+    maps = served_maps(web.server, focal_px=str(focal_px), baseline_m=str(baseline_m))
+    canvas = web.page.locator("#disparity-canvas")
+    for target_x, target_y in ((48, 38), (134, 77)):
+        canvas.scroll_into_view_if_needed()
+        box = canvas.bounding_box()
+        assert box is not None  # hover at the pixel's centre on the scaled-up canvas
+        canvas.hover(position={"x": (target_x + 0.5) / WIDTH * box["width"],
+                               "y": (target_y + 0.5) / HEIGHT * box["height"]})
+        readout = web.page.inner_text("#readout")
+        found = re.search(r"x (\d+), y (\d+) · disparity (-?[\d.]+) px · uncertainty ([\d.]+) · "
+                          r"depth ([\d.e+-]+) m", readout)
+        assert found, readout
+        x, y = int(found.group(1)), int(found.group(2))
+        assert (x, y) == (target_x, target_y)
+        assert float(found.group(3)) == pytest.approx(maps["disparity"][y, x], abs=0.006)
+        assert float(found.group(4)) == pytest.approx(maps["uncertainty"][y, x], abs=6e-4)
+        assert float(found.group(5)) == pytest.approx(maps["depth"][y, x], rel=1e-3)
+        assert maps["depth"][y, x] == pytest.approx(focal_px * baseline_m / maps["disparity"][y, x], rel=1e-4)
+
+
+def test_every_format_downloads(web: WebPage, tmp_path: Path) -> None:
+    run_example(web)
+    page = web.page
+    offered = page.eval_on_selector_all("#download-list button", "buttons => buttons.map(b => b.dataset.format)")
+    assert sorted(offered) == sorted(fmt.value for fmt in OutputFormat)
+    assert page.is_disabled("#download-list button[data-format=depth_png16]")  # no calibration given
+    maps = served_maps(web.server)
+    saved = {}
+    for fmt in ("json", "npz", "png", "disparity_png16", "ply"):
+        with page.expect_download() as download:
+            page.click(f"#download-list button[data-format={fmt}]")
+        path = tmp_path / download.value.suggested_filename
+        download.value.save_as(path)
+        saved[fmt] = path
+    assert saved["npz"].name == f"{EXAMPLE}_maps.npz"
+    with np.load(saved["npz"]) as archive:
+        np.testing.assert_allclose(archive["disparity"], maps["disparity"], atol=1e-4)
+    body = json.loads(saved["json"].read_text())
+    assert body["image_size"] == {"width": WIDTH, "height": HEIGHT}
+    preview = cv2.imread(str(saved["png"]))
+    assert preview is not None and preview.shape[1] == 2 * WIDTH
+    kitti = cv2.imread(str(saved["disparity_png16"]), cv2.IMREAD_UNCHANGED)
+    assert kitti.dtype == np.uint16 and kitti.shape == (HEIGHT, WIDTH)
+    assert saved["ply"].read_bytes().startswith(b"ply\nformat binary_little_endian")
+    assert web.page.is_hidden("#error")
+
+
+def test_two_dropped_files_become_the_pair(web: WebPage) -> None:
+    """Dropping both files on one zone: the one named `right...` goes right."""
+    page = web.page
+    transfer = page.evaluate_handle("""async () => {
+        const transfer = new DataTransfer();
+        for (const side of ['right', 'left']) {
+            const blob = await (await fetch(`static/examples/shapes-192x128/${side}.png`)).blob();
+            transfer.items.add(new File([blob], `${side}_view.png`, {type: 'image/png'}));
+        }
+        return transfer;
+    }""")
+    page.dispatch_event("#left-drop", "drop", {"dataTransfer": transfer})
+    assert page.inner_text("#left-name") == "left_view.png"
+    assert page.inner_text("#right-name") == "right_view.png"
+    page.click("#run")
+    page.wait_for_selector("#results", state="visible")
+    assert page.inner_text("#disparity-bar .high").endswith(" px")
+
+
+@pytest.mark.parametrize("case", ["text_file", "size_mismatch", "bad_option"])
+def test_bad_upload_shows_the_services_error(web: WebPage, case: str) -> None:
+    page = web.page
+    left, right = example_bytes()
+    if case == "text_file":
+        left_file = {"name": "notes.txt", "mimeType": "text/plain", "buffer": b"not an image\n"}
+        expected = "415 unsupported_media_type: left: not a PNG, JPEG, BMP or TIFF file"
+    elif case == "size_mismatch":
+        left_file = {"name": "left.png", "mimeType": "image/png", "buffer": left}
+        right = example_bytes("shapes-288x192")[1]
+        expected = "422 size_mismatch: left is 192x128 but right is 288x192"
+    else:
+        left_file = {"name": "left.png", "mimeType": "image/png", "buffer": left}
+        page.fill("#scale", "2")
+        expected = "422 invalid_request: query.scale"
+    page.set_input_files("#left-file", files=[left_file])
+    page.set_input_files("#right-file", files=[{"name": "right.png", "mimeType": "image/png", "buffer": right}])
+    page.click("#run")
+    page.wait_for_selector("#error", state="visible")
+    assert page.inner_text("#error").startswith(expected)
+    assert page.is_hidden("#results")
+    assert page.is_enabled("#run")
+
+
+def test_missing_image_is_said_before_sending(web: WebPage) -> None:
+    page = web.page
+    page.click("#run")
+    page.wait_for_selector("#error", state="visible")
+    assert "choose a left and a right image" in page.inner_text("#error")
+    assert not any(url.endswith("/disparity") or "/disparity?" in url for url in web.requests)
