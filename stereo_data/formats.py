@@ -1,8 +1,13 @@
-"""File formats: PFM, KITTI 16-bit PNG disparity, and 8-bit RGB images.
+"""File formats: PFM, 16-bit PNG maps (KITTI disparity and depth, uncertainty), 8-bit RGB images.
 
 Conventions (see docs/CONTRACTS.md): disparity maps are float32 HxW arrays in pixels of the LEFT
 image, positive, with ``+inf`` where the ground truth is unknown. Images are uint8 RGB HxWx3.
-Every failure to read a file raises :class:`FormatError` (a ``ValueError``) naming the file.
+Every failure to read or write a file raises :class:`FormatError` (a ``ValueError``) naming the file.
+
+16-bit PNG maps follow the KITTI convention for every map (:func:`encode_png16`): the stored value
+is ``round(map x scale)`` (half to even) clipped to [1, 65535], and 0 where the map is not finite
+or not positive. With ``KITTI_SCALE`` (256) that is KITTI's disparity and depth format; with
+``UNCERTAINTY_SCALE`` (65535) an uncertainty in [0, 1] (0 stays 0, a positive one stays >= 1).
 """
 
 from __future__ import annotations
@@ -20,6 +25,12 @@ __all__ = [
     "write_pfm",
     "read_kitti_disparity",
     "write_kitti_disparity",
+    "KITTI_SCALE",
+    "UNCERTAINTY_SCALE",
+    "encode_png",
+    "encode_png16",
+    "write_disparity",
+    "write_uncertainty",
     "read_image",
     "decode_image",
 ]
@@ -29,7 +40,8 @@ PathLike = str | os.PathLike[str]
 # PFM header: "PF" (3 channels) or "Pf" (1 channel), width, height, scale; the sign of the scale gives
 # the byte order (negative = little-endian). Exactly one whitespace byte separates header and data.
 _PFM_HEADER = re.compile(rb"\A(PF|Pf)\s+(\d+)\s+(\d+)\s+([-+0-9.eE]+)\s")
-_KITTI_SCALE = 256.0
+KITTI_SCALE = 256.0  # KITTI 16-bit PNG disparity and depth: value = round(map x 256)
+UNCERTAINTY_SCALE = 65535.0  # 16-bit PNG uncertainty in [0, 1]: value = round(map x 65535)
 
 
 class FormatError(ValueError):
@@ -103,25 +115,71 @@ def read_kitti_disparity(path: PathLike) -> np.ndarray:
             f"{os.fspath(path)!r}: a KITTI disparity map is a 16-bit single-channel PNG, "
             f"got {encoded.dtype} with shape {encoded.shape}"
         )
-    disparity = encoded.astype(np.float32) / _KITTI_SCALE
+    disparity = encoded.astype(np.float32) / KITTI_SCALE
     disparity[encoded == 0] = np.inf
     return disparity
 
 
-def write_kitti_disparity(path: PathLike, disparity: np.ndarray) -> None:
-    """Write a float HxW disparity map as a KITTI 16-bit PNG (value = round(d * 256)).
+def _write_bytes(path: PathLike, data: bytes) -> None:
+    try:
+        Path(path).write_bytes(data)
+    except OSError as error:
+        raise FormatError(f"cannot write {os.fspath(path)!r}: {error.strerror or error}") from error
 
-    ``+inf``, ``nan`` and values <= 0 are written as 0 (unknown). Other values are clipped to
-    [1, 65535], so a tiny positive disparity stays valid and a huge one saturates at 255.996 px.
-    """
-    values = np.asarray(disparity, dtype=np.float64)
+
+def encode_png16(values: np.ndarray, scale: float) -> bytes:
+    """A float HxW map as a single-channel 16-bit PNG (the file's bytes): value = round(map x
+    scale), half to even, in float64, clipped to [1, 65535] so that a tiny positive value stays
+    distinguishable from 0 and a huge one saturates; 0 where the map is ``inf``, ``nan`` or <= 0
+    (KITTI's "unknown")."""
+    values = np.asarray(values, dtype=np.float64)
     if values.ndim != 2:
-        raise ValueError(f"a KITTI disparity map is HxW, got shape {values.shape}")
+        raise ValueError(f"a 16-bit PNG map is HxW, got shape {values.shape}")
     known = np.isfinite(values) & (values > 0)
     encoded = np.zeros(values.shape, dtype=np.uint16)
-    encoded[known] = np.clip(np.rint(values[known] * _KITTI_SCALE), 1, 65535).astype(np.uint16)
-    if not cv2.imwrite(os.fspath(path), encoded):
-        raise FormatError(f"cannot write {os.fspath(path)!r} (is the extension .png?)")
+    encoded[known] = np.clip(np.rint(values[known] * scale), 1, 65535).astype(np.uint16)
+    return encode_png(encoded)
+
+
+def encode_png(image: np.ndarray) -> bytes:
+    """The PNG file bytes of a uint8 or uint16 image: HxW, or HxWx3 RGB."""
+    if image.ndim == 3:
+        image = cv2.cvtColor(image, cv2.COLOR_RGB2BGR)  # OpenCV writes BGR
+    ok, png = cv2.imencode(".png", image)
+    if not ok:
+        raise RuntimeError("PNG encoding failed")
+    return png.tobytes()
+
+
+def write_kitti_disparity(path: PathLike, disparity: np.ndarray) -> None:
+    """Write a float HxW disparity map (px) as a KITTI 16-bit PNG: value = round(d x 256), 0 for
+    ``+inf``, ``nan`` and values <= 0 (unknown), clipped to [1, 65535], so a tiny positive
+    disparity stays valid and a huge one saturates at 255.996 px (see :func:`encode_png16`)."""
+    _write_bytes(path, encode_png16(disparity, KITTI_SCALE))
+
+
+def write_disparity(path: PathLike, disparity: np.ndarray) -> None:
+    """Write a float HxW disparity map (px) by the path's extension: ``.pfm`` (float32, ``+inf``
+    kept), ``.png`` (KITTI 16-bit, x256, 0 = unknown) or ``.npy`` (float32)."""
+    _write_map(path, disparity, KITTI_SCALE)
+
+
+def write_uncertainty(path: PathLike, uncertainty: np.ndarray) -> None:
+    """Write a float HxW uncertainty map in [0, 1] by the path's extension: ``.pfm`` or ``.npy``
+    (float32), or ``.png`` (16-bit, x65535, see :func:`encode_png16`)."""
+    _write_map(path, uncertainty, UNCERTAINTY_SCALE)
+
+
+def _write_map(path: PathLike, values: np.ndarray, png_scale: float) -> None:
+    suffix = Path(path).suffix.lower()
+    if suffix == ".pfm":
+        write_pfm(path, values)
+    elif suffix == ".png":
+        _write_bytes(path, encode_png16(values, png_scale))
+    elif suffix == ".npy":
+        np.save(path, np.asarray(values, dtype=np.float32))
+    else:
+        raise ValueError(f"unknown map format {suffix!r} for {os.fspath(path)}: use .pfm, .png or .npy")
 
 
 def read_image(path: PathLike, *, gray_to_rgb: bool = True) -> np.ndarray:

@@ -62,6 +62,20 @@ def test_the_output_extension_picks_the_format_and_all_formats_agree(pairs_dir, 
         np.testing.assert_array_equal(np.load(tmp_path / "d.npy"), reference)
 
 
+def test_a_png_uncertainty_is_16_bit_by_the_one_rule_of_the_formats(pairs_dir, tmp_path):
+    pair = pairs_dir / "shift4"
+    args = ["predict", str(pair / "left.png"), str(pair / "right.png"), "-o", str(tmp_path / "d.pfm"),
+            "--device", "cpu"]
+    main([*args, "--uncertainty", str(tmp_path / "u.npy")])
+    main([*args, "--uncertainty", str(tmp_path / "u.png")])
+    uncertainty = np.load(tmp_path / "u.npy").astype(np.float64)
+    encoded = cv2.imread(str(tmp_path / "u.png"), cv2.IMREAD_UNCHANGED)
+    assert encoded.dtype == np.uint16
+    # stereo_data.formats.encode_png16: round(u x 65535), half to even; a positive u stays >= 1
+    expected = np.where(uncertainty > 0, np.clip(np.rint(uncertainty * 65535), 1, 65535), 0)
+    np.testing.assert_array_equal(encoded, expected)
+
+
 def test_two_folders_pair_images_by_name_and_write_a_folder(tmp_path, pairs_dir):
     lefts, rights = tmp_path / "left", tmp_path / "right"
     lefts.mkdir(), rights.mkdir()

@@ -12,7 +12,7 @@ import pytest
 from pydantic import ValidationError
 
 from service.cpu import cgroup_cpu_quota, usable_cpus
-from service.encoding import depth_from_disparity, encode_png16, encode_preview
+from service.encoding import depth_from_disparity, encode_preview
 from stereo_data.visualize import BAR_HEIGHT, scale_range
 from service.images import ImageError, decode_rgb, read_header
 from service.settings import Settings
@@ -148,14 +148,6 @@ def test_depth_is_focal_times_baseline_over_disparity_and_inf_where_disparity_is
     depth = depth_from_disparity(np.array([[10.0, 0.0, -1.0]], np.float32), 700.0, 0.5)
     assert depth.dtype == np.float32
     assert depth.tolist() == [[35.0, np.inf, np.inf]]
-
-
-def test_png16_scales_values_and_marks_invalid_pixels_zero():
-    values = np.array([[1.5, 0.0, np.inf, 1000.0, 1e-4]], np.float32)
-    decoded = cv2.imdecode(np.frombuffer(encode_png16(values, 256.0), np.uint8),
-                           cv2.IMREAD_UNCHANGED)
-    assert decoded.dtype == np.uint16
-    assert decoded.tolist() == [[384, 0, 0, 65535, 1]]  # valid values never round to 0
 
 
 def test_preview_puts_disparity_left_of_uncertainty_with_colour_bars_on_their_scales():

@@ -1,4 +1,4 @@
-"""Spec of stereo_data.formats: PFM, KITTI 16-bit PNG disparity, RGB images, errors."""
+"""Spec of stereo_data.formats: PFM, 16-bit PNG maps (KITTI), map writers, RGB images, errors."""
 
 from pathlib import Path
 
@@ -7,13 +7,18 @@ import numpy as np
 import pytest
 
 from stereo_data.formats import (
+    KITTI_SCALE,
+    UNCERTAINTY_SCALE,
     FormatError,
     decode_image,
+    encode_png16,
     read_image,
     read_kitti_disparity,
     read_pfm,
+    write_disparity,
     write_kitti_disparity,
     write_pfm,
+    write_uncertainty,
 )
 
 
@@ -96,6 +101,58 @@ def test_kitti_writer_round_trips_to_1_over_256_and_encodes_unknown_as_zero(tmp_
     back = read_kitti_disparity(tmp_path / "d.png")
     assert abs(back[0, 0] - 12.3456) <= 0.5 / 256
     assert np.isinf(back[0, 1:]).all() and np.isinf(back[1, :2]).all()
+
+
+def decode_png16(data: bytes) -> np.ndarray:
+    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    assert image.dtype == np.uint16 and image.ndim == 2
+    return image
+
+
+def test_the_one_16_bit_png_rule_rounds_half_to_even_keeps_positive_values_and_zeroes_unknown():
+    # KITTI's convention for every map: round(value x scale), half to even, clipped to [1, 65535];
+    # 0 only where the value is inf, nan or <= 0, so a tiny positive value never reads as unknown.
+    disparity = np.array([[1.5, 0.0, np.inf, 1000.0, 1e-4, -3.0, np.nan, 1.5 / 256, 2.5 / 256]],
+                         np.float32)
+    assert decode_png16(encode_png16(disparity, KITTI_SCALE)).tolist() == [
+        [384, 0, 0, 65535, 1, 0, 0, 2, 2]]
+    uncertainty = np.array([[0.0, 1.0, 0.5, 0.25, 1e-6, 2.0, np.nan]], np.float32)
+    assert decode_png16(encode_png16(uncertainty, UNCERTAINTY_SCALE)).tolist() == [
+        [0, 65535, 32768, 16384, 1, 65535, 0]]
+    with pytest.raises(ValueError, match="HxW"):
+        encode_png16(np.ones((2, 2, 3)), KITTI_SCALE)
+
+
+def test_write_kitti_disparity_writes_the_png16_encoding(tmp_path: Path) -> None:
+    disparity = np.array([[12.3456, np.inf], [0.0, 300.0]], np.float32)
+    write_kitti_disparity(tmp_path / "d.png", disparity)
+    assert (tmp_path / "d.png").read_bytes() == encode_png16(disparity, KITTI_SCALE)
+    with pytest.raises(FormatError, match="missing"):
+        write_kitti_disparity(tmp_path / "missing" / "d.png", disparity)
+
+
+@pytest.mark.parametrize("suffix", [".pfm", ".png", ".npy"])
+def test_map_writers_pick_the_format_by_extension(tmp_path: Path, suffix: str) -> None:
+    disparity = np.array([[12.25, np.inf], [0.0, 3.5]], np.float32)
+    uncertainty = np.array([[0.0, 0.25], [1.0, 1e-6]], np.float32)
+    write_disparity(tmp_path / f"d{suffix}", disparity)
+    write_uncertainty(tmp_path / f"u{suffix}", uncertainty)
+    if suffix == ".png":  # the one 16-bit rule, x256 for disparity and x65535 for uncertainty
+        assert (tmp_path / "d.png").read_bytes() == encode_png16(disparity, KITTI_SCALE)
+        assert (tmp_path / "u.png").read_bytes() == encode_png16(uncertainty, UNCERTAINTY_SCALE)
+        return
+    read = read_pfm if suffix == ".pfm" else np.load
+    for name, values in (("d", disparity), ("u", uncertainty)):
+        back = read(tmp_path / f"{name}{suffix}")
+        assert back.dtype == np.float32
+        np.testing.assert_array_equal(back, values)
+
+
+def test_map_writers_refuse_an_unknown_extension(tmp_path: Path) -> None:
+    for writer in (write_disparity, write_uncertainty):
+        with pytest.raises(ValueError, match="use .pfm, .png or .npy"):
+            writer(tmp_path / "m.tif", np.ones((2, 2), np.float32))
+    assert not list(tmp_path.iterdir())
 
 
 def test_kitti_reader_rejects_8_bit_png(tmp_path: Path) -> None:
