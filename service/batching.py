@@ -1,15 +1,11 @@
 """Dynamic batching: requests queue per model and run, one batch at a time, on one worker thread.
 
-A batch holds requests of one model and one padded input shape. The scheduler picks, whenever
-the worker is free:
-1. the oldest group if its oldest request has waited `max_wait_ms`;
-2. else the oldest group that is full (`max_batch_size`, or `max_batch_pixels` reached);
-3. else, when no other request is still being received or decoded, the oldest group at once
-   (an idle server runs a lone request immediately);
-4. else it waits for more requests, at most until rule 1 applies.
-Before a batch runs, requests whose client has gone, whose deadline has passed or cannot be met
-(estimated from measured compute time per pixel) are dropped. An exception in the network fails
-only the batch it happened in.
+A batch holds requests of one model, one set of inference options and one input shape
+(`service.scheduling.batch_key`). Whenever the worker is free, `service.scheduling.choose_batch`
+picks the next batch from the queued requests and those still being received or decoded. Before
+a batch runs, requests whose client has gone, whose deadline has passed or cannot be met
+(estimated from the measured compute time per pixel, `service.scheduling.ComputeTimes`) are
+dropped. An exception in the network fails only the batch it happened in.
 """
 
 from __future__ import annotations
@@ -29,15 +25,22 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from model import Iterations, ModelConfig, Prediction, padded_size
+from model import Iterations, ModelConfig, Prediction
 from model.calibration import UncertaintyCalibration
 
 from service.metrics import Metrics
+from service.scheduling import (
+    BatchKey,
+    BatchLimits,
+    ComputeTime,
+    ComputeTimes,
+    Knobs,
+    batch_key,
+    choose_batch,
+)
 from service.settings import Settings
 
 logger = logging.getLogger(__name__)
-
-_EMA_WEIGHT = 0.2  # weight of the newest batch in the running means of compute time
 
 
 class Predictor(Protocol):
@@ -81,39 +84,6 @@ class InferenceFailed(BatchingError):
     def __init__(self, error_id: str) -> None:
         super().__init__(f"inference failed; logged as error id {error_id}")
         self.error_id = error_id
-
-
-@dataclass(frozen=True)
-class Knobs:
-    """The inference options of a request (`StereoPredictor.predict`'s keywords)."""
-
-    two_pass: bool = False
-    iters: Iterations = None
-    scale: float = 1.0
-    raw_uncertainty: bool = False
-
-
-@dataclass(frozen=True)
-class BatchKey:
-    """Requests with equal keys may share a batch."""
-
-    model: str
-    knobs: Knobs
-    height: int  # input shape of the batch: padded to a multiple of 32, or exact (see batch_key)
-    width: int
-
-    @property
-    def pixels(self) -> int:
-        return self.height * self.width
-
-
-def batch_key(model: str, knobs: Knobs, height: int, width: int) -> BatchKey:
-    """Plain requests batch by padded shape: padding them to it is what the network does anyway.
-    Two-pass and scaled requests batch by exact shape, since their resized passes see the
-    unpadded image."""
-    if knobs.two_pass or knobs.scale != 1.0:
-        return BatchKey(model, knobs, height, width)
-    return BatchKey(model, knobs, padded_size(height), padded_size(width))
 
 
 @dataclass(frozen=True)
@@ -178,8 +148,9 @@ class Batcher:
         self._pending: dict[str, int] = dict.fromkeys(predictors, 0)
         self._running: list[_Job] = []
         self._running_since = 0.0
-        self._seconds_per_pixel: dict[str, float] = {}
-        self._mean_pixels: dict[str, float] = {}  # padded pixels per request, running mean
+        self._limits = BatchLimits(settings.max_batch_size, settings.max_batch_pixels,
+                                   settings.max_wait_ms / 1000)
+        self._times = ComputeTimes()
         self._changed = asyncio.Event()
         self._draining = False
         self._task: asyncio.Task[None] | None = None
@@ -226,17 +197,18 @@ class Batcher:
         of the running batch, plus every queued request at its padded size and every request
         still being received or decoded at the mean size seen so far, at the measured seconds
         per pixel. None before any batch of the model has been measured."""
-        per_pixel = self._seconds_per_pixel.get(model)
-        if per_pixel is None:
-            return None
+        times = self._times.get(model)
+        return None if times is None else self._work_ahead_s(model, times)
+
+    def _work_ahead_s(self, model: str, times: ComputeTime) -> float:
         queued = self._queues[model]
         decoding = self._pending[model] - len(queued)
-        pixels = sum(job.key.pixels for job in queued) + decoding * self._mean_pixels[model]
+        pixels = sum(job.key.pixels for job in queued) + decoding * times.pixels_per_request
         running = 0.0
         if self._running and self._running[0].key.model == model:
             batch_pixels = len(self._running) * self._running[0].key.pixels
-            running = max(0.0, batch_pixels * per_pixel - (time.monotonic() - self._running_since))
-        return running + pixels * per_pixel
+            running = max(0.0, times.seconds(batch_pixels) - (time.monotonic() - self._running_since))
+        return running + times.seconds(pixels)
 
     def retry_after(self, model: str) -> int:
         """Seconds after which a retry likely finds the model's queue worked off: the work ahead
@@ -255,9 +227,9 @@ class Batcher:
             raise Draining("server is shutting down")
         if self._pending[model] >= self._settings.max_queue:
             raise QueueFull(self.retry_after(model))
-        ahead = self.work_ahead_s(model)
-        if deadline is not None and pixels is not None and ahead is not None:
-            finish = time.monotonic() + ahead + pixels * self._seconds_per_pixel[model]
+        times = self._times.get(model)
+        if deadline is not None and pixels is not None and times is not None:
+            finish = time.monotonic() + self._work_ahead_s(model, times) + times.seconds(pixels)
             if finish > deadline:
                 raise DeadlineExceeded(f"deadline cannot be met: about {finish - time.monotonic():.1f} s "
                                        "of compute would be needed")
@@ -292,42 +264,15 @@ class Batcher:
     async def _next_batch(self) -> list[_Job]:
         while True:
             self._changed.clear()
-            batch, wait_s = self._choose(time.monotonic())
+            queued = [job for queue in self._queues.values() for job in queue]
+            incoming = sum(self._pending.values()) - len(queued)
+            batch, wait_s = choose_batch(queued, incoming, time.monotonic(), self._limits)
             if batch:
                 if await self._drop_unservable(batch):
                     continue  # the batch changed: choose again, with the requests still here
                 return batch
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(self._changed.wait(), wait_s)
-
-    def _choose(self, now: float) -> tuple[list[_Job], float | None]:
-        """The batch to run now, or none and how long to wait (None: until something changes)."""
-        queued = sorted((job for queue in self._queues.values() for job in queue),
-                        key=lambda job: job.enqueued_at)
-        groups: dict[BatchKey, list[_Job]] = {}
-        for job in queued:
-            groups.setdefault(job.key, []).append(job)
-        if not groups:
-            return [], None
-        candidates: list[tuple[list[_Job], bool]] = []  # (batch, is full), oldest first
-        for jobs in groups.values():
-            capacity = self._capacity(jobs[0].key)
-            candidates.append((jobs[:capacity], len(jobs) >= capacity))
-        max_wait_s = self._settings.max_wait_ms / 1000
-        oldest, _ = candidates[0]
-        if now - oldest[0].enqueued_at >= max_wait_s:
-            return oldest, None
-        full = [jobs for jobs, is_full in candidates if is_full]
-        if full:
-            return full[0], None
-        incoming = sum(self._pending.values()) - len(queued)
-        if incoming == 0:
-            return oldest, None
-        return [], oldest[0].enqueued_at + max_wait_s - now
-
-    def _capacity(self, key: BatchKey) -> int:
-        return max(1, min(self._settings.max_batch_size,
-                          self._settings.max_batch_pixels // key.pixels))
 
     async def _drop_unservable(self, batch: list[_Job]) -> bool:
         """Drop requests of `batch` whose client left or whose deadline cannot be met; True when
@@ -337,8 +282,8 @@ class Batcher:
             if await job.is_disconnected():
                 self._drop(job, ClientDisconnected("client disconnected before compute"))
                 changed = True
-        estimate = self._seconds_per_pixel.get(batch[0].key.model, 0.0) * len(batch) \
-            * batch[0].key.pixels
+        times = self._times.get(batch[0].key.model)
+        estimate = 0.0 if times is None else times.seconds(len(batch) * batch[0].key.pixels)
         finish = time.monotonic() + estimate
         for job in batch:
             if job.deadline is not None and finish > job.deadline and not job.future.done():
@@ -376,20 +321,13 @@ class Batcher:
         finally:
             self._running = []
         compute = time.monotonic() - started
-        self._record_batch(key, len(batch), compute)
+        self._metrics.compute.labels(model=key.model).observe(compute)
+        self._metrics.batch_size.labels(model=key.model).observe(len(batch))
+        self._times.record(key.model, key.pixels, len(batch), compute)
         for job, (disparity, uncertainty) in zip(batch, outputs, strict=True):
             if not job.future.done():
                 job.future.set_result(JobResult(disparity, uncertainty, len(batch),
                                                 started - job.enqueued_at, compute))
-
-    def _record_batch(self, key: BatchKey, size: int, seconds: float) -> None:
-        self._metrics.compute.labels(model=key.model).observe(seconds)
-        self._metrics.batch_size.labels(model=key.model).observe(size)
-        per_pixel = seconds / (size * key.pixels)
-        for means, value in ((self._mean_pixels, float(key.pixels)), (self._seconds_per_pixel, per_pixel)):
-            previous = means.get(key.model)
-            means[key.model] = value if previous is None else \
-                (1 - _EMA_WEIGHT) * previous + _EMA_WEIGHT * value
 
     def _set_pending(self, model: str, delta: int) -> None:
         self._pending[model] += delta

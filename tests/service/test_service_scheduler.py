@@ -1,20 +1,121 @@
-"""The batch scheduler's rules, driven directly through `Batcher.admit` with the real lite model."""
+"""The batch scheduler: the choice of the next batch and the compute-time statistics as pure units
+(no event loop, no model), then its rules driven through `Batcher.admit` with the real lite model."""
 
 from __future__ import annotations
 
 from collections.abc import AsyncIterator
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import asynccontextmanager
+from dataclasses import dataclass
 
 import anyio
 import pytest
 
-from service.batching import Batcher, JobResult, Knobs
+from service.batching import Batcher, JobResult
 from service.metrics import Metrics
+from service.scheduling import BatchKey, BatchLimits, ComputeTimes, Knobs, batch_key, choose_batch
 from service_helpers import GatedPredictor, lite_settings, quiet_load_model, stereo_pair
 
-pytestmark = pytest.mark.anyio
+pytestmark = pytest.mark.anyio  # the async tests; the sync ones ignore it
 LEFT, RIGHT = stereo_pair()
+
+# --- the choice of the next batch (pure) -------------------------------------------------------
+
+LIMITS = BatchLimits(max_batch_size=3, max_batch_pixels=64 * 96 * 3, max_wait_s=0.010)
+SMALL = batch_key("lite", Knobs(), 64, 96)
+LARGE = batch_key("lite", Knobs(), 128, 192)  # twice as large each way: one per batch
+
+
+@dataclass(frozen=True)
+class QueuedRequest:
+    key: BatchKey
+    enqueued_at: float
+
+
+def queue(*requests: tuple[BatchKey, float]) -> list[QueuedRequest]:
+    return [QueuedRequest(key, at) for key, at in requests]
+
+
+def test_nothing_queued_means_nothing_to_run_and_no_timeout():
+    assert choose_batch([], incoming=2, now=5.0, limits=LIMITS) == ([], None)
+
+
+def test_a_lone_request_runs_at_once_when_nothing_else_is_incoming():
+    queued = queue((SMALL, 1.0))
+    assert choose_batch(queued, incoming=0, now=1.0, limits=LIMITS) == (queued, None)
+
+
+def test_a_partial_batch_waits_for_incoming_requests_until_its_oldest_has_waited_max_wait():
+    queued = queue((SMALL, 1.0), (SMALL, 1.002))
+    batch, wait_s = choose_batch(queued, incoming=1, now=1.004, limits=LIMITS)
+    assert batch == [] and wait_s == pytest.approx(0.006)
+    assert choose_batch(queued, incoming=1, now=1.011, limits=LIMITS) == (queued, None)
+
+
+def test_a_full_group_runs_before_an_older_partial_one_that_has_not_waited_long():
+    older = queue((batch_key("lite", Knobs(two_pass=True), 64, 96), 1.0))
+    full = queue((SMALL, 1.001), (SMALL, 1.002), (SMALL, 1.003))
+    assert choose_batch(older + full, incoming=1, now=1.004, limits=LIMITS) == (full, None)
+    # ... but once the older group has waited max_wait it goes first
+    assert choose_batch(older + full, incoming=1, now=1.011, limits=LIMITS) == (older, None)
+
+
+def test_a_batch_takes_the_oldest_requests_of_its_group_up_to_its_capacity():
+    queued = queue((SMALL, 1.004), (SMALL, 1.001), (SMALL, 1.003), (SMALL, 1.002))
+    batch, _ = choose_batch(queued, incoming=0, now=1.005, limits=LIMITS)
+    assert [request.enqueued_at for request in batch] == [1.001, 1.002, 1.003]  # max_batch_size 3
+
+
+def test_the_pixel_limit_caps_a_batch_and_a_larger_image_runs_alone():
+    assert LIMITS.capacity(SMALL) == 3
+    assert LIMITS.capacity(batch_key("lite", Knobs(), 64, 192)) == 1  # the pixel limit: 1.5 fit
+    assert LIMITS.capacity(LARGE) == 1  # beyond the pixel limit: alone, never refused
+    queued = queue((LARGE, 1.0), (LARGE, 1.001))
+    assert choose_batch(queued, incoming=0, now=1.002, limits=LIMITS) == (queued[:1], None)
+
+
+def test_models_knobs_and_shapes_never_share_a_batch():
+    others = [batch_key("full", Knobs(), 64, 96), batch_key("lite", Knobs(iters=4), 64, 96),
+              batch_key("lite", Knobs(), 96, 64)]
+    queued = queue((SMALL, 1.0), *((key, 1.001 + i / 1000) for i, key in enumerate(others)),
+                   (SMALL, 1.005))
+    batch, _ = choose_batch(queued, incoming=0, now=1.006, limits=LIMITS)
+    assert batch == [queued[0], queued[-1]]
+
+
+def test_plain_requests_batch_by_padded_shape_two_pass_and_scaled_ones_by_exact_shape():
+    plain = batch_key("lite", Knobs(), 50, 90)
+    assert plain == batch_key("lite", Knobs(), 64, 96) and (plain.height, plain.width) == (64, 96)
+    for knobs in (Knobs(two_pass=True), Knobs(scale=0.5)):
+        assert batch_key("lite", knobs, 50, 90) != batch_key("lite", knobs, 64, 96)
+        assert batch_key("lite", knobs, 50, 90).pixels == 50 * 90
+
+
+# --- compute-time statistics (pure) ------------------------------------------------------------
+
+
+def test_compute_times_are_unknown_before_the_first_batch_then_exact_for_it():
+    times = ComputeTimes()
+    assert times.get("lite") is None
+    times.record("lite", pixels=1000, batch_size=4, seconds=2.0)
+    lite = times.get("lite")
+    assert lite is not None
+    assert (lite.seconds_per_pixel, lite.pixels_per_request) == (0.0005, 1000.0)
+    assert lite.seconds(3000) == pytest.approx(1.5)
+    assert times.get("full") is None  # one model's batches say nothing about another's
+
+
+def test_compute_times_are_running_means_weighting_the_newest_batch():
+    times = ComputeTimes(weight=0.25)
+    times.record("lite", pixels=1000, batch_size=1, seconds=1.0)
+    times.record("lite", pixels=3000, batch_size=1, seconds=15.0)  # 0.005 s per pixel
+    lite = times.get("lite")
+    assert lite is not None
+    assert lite.seconds_per_pixel == pytest.approx(0.75 * 0.001 + 0.25 * 0.005)
+    assert lite.pixels_per_request == pytest.approx(0.75 * 1000 + 0.25 * 3000)
+
+
+# --- through Batcher.admit ----------------------------------------------------------------------
 
 
 async def connected() -> bool:
