@@ -8,9 +8,67 @@ import io
 import numpy as np
 
 from stereo_data.formats import KITTI_SCALE, UNCERTAINTY_SCALE, encode_png, encode_png16
-from stereo_data.visualize import preview
+from stereo_data.pointcloud import Calibration, encode_ply, point_cloud
+from stereo_data.visualize import preview, scale_range
 
-from service.schemas import EncodedArray
+from service.batching import JobResult
+from service.images import ImageHeader
+from service.schemas import (
+    DisparityOptions,
+    DisparityResponse,
+    EncodedArray,
+    ImageSize,
+    OutputFormat,
+    Timings,
+)
+
+
+def render(options: DisparityOptions, result: JobResult, left: np.ndarray, weights: str,
+           size: ImageHeader) -> tuple[bytes, str]:
+    """The body of the answer in `options.format`, and its media type.
+
+    result: the request's maps (float32 HxW: disparity in px of the left image, uncertainty in
+    [0, 1]) and timings; left: the decoded left image, uint8 HxWx3 RGB (colours of the point
+    cloud); weights: the weights' identity (`service.runtime.weights_identity`); size: the input
+    images' size.
+    """
+    depth = None
+    if options.focal_px is not None and options.baseline_m is not None:
+        depth = depth_from_disparity(result.disparity, options.focal_px, options.baseline_m)
+    match options.format:
+        case OutputFormat.json:
+            body = DisparityResponse(
+                model=options.model, weights=weights,
+                image_size=ImageSize(width=size.width, height=size.height),
+                batch_size=result.batch_size,
+                timings=Timings(queue_ms=round(result.queue_seconds * 1000, 2),
+                                compute_ms=round(result.compute_seconds * 1000, 2)),
+                disparity=encode_array(result.disparity),
+                uncertainty=encode_array(result.uncertainty),
+                depth=None if depth is None else encode_array(depth))
+            return body.model_dump_json().encode(), "application/json"
+        case OutputFormat.npz:
+            maps = {"disparity": result.disparity, "uncertainty": result.uncertainty}
+            if depth is not None:
+                maps["depth"] = depth
+            return encode_npz(maps), "application/x-npz"
+        case OutputFormat.png:
+            disparity_range = scale_range(result.disparity, options.color_min, options.color_max)
+            return encode_preview(result.disparity, result.uncertainty, disparity_range), "image/png"
+        case OutputFormat.disparity_png16:
+            return encode_png16(result.disparity, KITTI_SCALE), "image/png"
+        case OutputFormat.depth_png16:
+            assert depth is not None  # DisparityOptions requires the calibration for it
+            return encode_png16(depth, KITTI_SCALE), "image/png"
+        case OutputFormat.uncertainty_png16:
+            return encode_png16(result.uncertainty, UNCERTAINTY_SCALE), "image/png"
+        case OutputFormat.ply:
+            calibration = None if options.focal_px is None or options.baseline_m is None else \
+                Calibration(options.focal_px, options.baseline_m, options.cx_px, options.cy_px)
+            points, colours = point_cloud(result.disparity, left, result.uncertainty, calibration,
+                                          options.max_uncertainty)
+            return encode_ply(points, colours), "application/x-ply"
+
 
 def depth_from_disparity(disparity: np.ndarray, focal_px: float, baseline_m: float) -> np.ndarray:
     """Metric depth Z = f B / d in metres (float32), +inf where d <= 0."""
@@ -36,4 +94,3 @@ def encode_preview(disparity: np.ndarray, uncertainty: np.ndarray,
     """RGB PNG (`stereo_data.visualize.preview`): disparity (turbo, over `disparity_range` px)
     left of uncertainty (inferno, 0-1), each with a colour bar that prints its range."""
     return encode_png(preview(disparity, uncertainty, disparity_range))
-

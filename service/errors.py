@@ -10,6 +10,15 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
+from service.batching import (
+    Batcher,
+    BatchingError,
+    ClientDisconnected,
+    DeadlineExceeded,
+    Draining,
+    InferenceFailed,
+    QueueFull,
+)
 from service.metrics import Metrics, RejectReason
 from service.schemas import ErrorDetail, ErrorResponse
 
@@ -30,6 +39,40 @@ class ApiError(Exception):
         self.headers = headers or {}
 
 
+def bad_input(status: int, code: str, message: str) -> ApiError:
+    """A request the client must change (413 counts as `too_large`, the rest as `bad_input`)."""
+    reason: RejectReason = "too_large" if status == 413 else "bad_input"
+    return ApiError(status, code, message, reject_reason=reason)
+
+
+def draining(message: str) -> ApiError:
+    """503: the server is shutting down."""
+    return ApiError(503, "draining", message, reject_reason="not_ready", headers={"Retry-After": "1"})
+
+
+def client_gone(message: str) -> ApiError:
+    """499: the client left; nobody reads this answer, it shows in logs and metrics."""
+    return ApiError(499, "client_disconnected", message, reject_reason="disconnect")
+
+
+def batching_answer(exc: BatchingError, batcher: Batcher, model: str) -> ApiError:
+    """The answer to a request of `model` that `batcher` could not compute."""
+    match exc:
+        case QueueFull():
+            return ApiError(503, "queue_full", str(exc), reject_reason="queue_full",
+                            headers={"Retry-After": str(exc.retry_after_s)})
+        case Draining():  # SIGTERM came after admission began, or the drain timed out
+            return draining(str(exc))
+        case DeadlineExceeded():
+            return ApiError(503, "deadline_exceeded", str(exc), reject_reason="deadline",
+                            headers={"Retry-After": str(batcher.retry_after(model))})
+        case ClientDisconnected():
+            return client_gone(str(exc))
+        case InferenceFailed():
+            return ApiError(500, "inference_failed", str(exc))
+    raise TypeError(f"no answer for {type(exc).__name__}")
+
+
 def error_response(status: int, code: str, message: str,
                    headers: dict[str, str] | None = None) -> JSONResponse:
     body = ErrorResponse(error=ErrorDetail(code=code, message=message))
@@ -43,6 +86,11 @@ def install_error_handlers(app: FastAPI, metrics: Metrics) -> None:
         if exc.reject_reason is not None:
             metrics.reject(exc.reject_reason)
         return error_response(exc.status, exc.code, exc.message, exc.headers)
+
+    async def batching_error(request: Request, exc: BatchingError) -> JSONResponse:
+        # Raised by `POST /disparity`, which set `request.state.model`, from the app's batcher.
+        answer = batching_answer(exc, request.app.state.runtime.batcher, request.state.model)
+        return await api_error(request, answer)
 
     async def validation_error(_: Request, exc: RequestValidationError) -> JSONResponse:
         metrics.reject("bad_input")
@@ -61,6 +109,7 @@ def install_error_handlers(app: FastAPI, metrics: Metrics) -> None:
         return error_response(500, "internal_error", f"internal error; logged as error id {error_id}")
 
     app.add_exception_handler(ApiError, api_error)
+    app.add_exception_handler(BatchingError, batching_error)
     app.add_exception_handler(RequestValidationError, validation_error)
     app.add_exception_handler(StarletteHTTPException, http_error)
     app.add_exception_handler(Exception, unexpected_error)
