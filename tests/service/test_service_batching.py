@@ -9,7 +9,8 @@ import io
 import json
 import logging
 import threading
-from collections.abc import Callable
+from collections.abc import AsyncIterator, Callable
+from contextlib import asynccontextmanager
 from typing import Any
 
 import anyio
@@ -67,20 +68,33 @@ class Requests:
         self.tg.start_soon(send)
 
 
+@asynccontextmanager
+async def worker_held(h: Harness, name: str = "busy",
+                      pair: tuple[np.ndarray, np.ndarray] | None = None) -> AsyncIterator[Requests]:
+    """Request `name` (of `pair`, default `stereo_pair()`) computing on the worker, held there by
+    the gate until the body ends; the body posts more requests in the background, and every
+    request is answered before the block exits."""
+    gated = h.predictors["lite"]
+    gated.gate.clear()
+    async with anyio.create_task_group() as tg:
+        requests = Requests(h, tg)
+        requests.post(name, *(pair or stereo_pair()))
+        await eventually(lambda: gated.calls == [1])
+        try:
+            yield requests
+        finally:
+            gated.gate.set()
+
+
 async def test_requests_queued_behind_a_busy_worker_run_as_one_batch_equal_to_single_runs():
     # Three true sizes that all pad to 64x96: they share one batch, each padded like the network does.
     pairs = {size: stereo_pair(*size, seed=i) for i, size in enumerate([(64, 96), (50, 90), (60, 70)])}
     async with serve_asgi() as h:
         gated = h.predictors["lite"]
-        gated.gate.clear()
-        async with anyio.create_task_group() as tg:
-            requests = Requests(h, tg)
-            requests.post("busy", *pairs[(64, 96)])
-            await eventually(lambda: gated.calls == [1])
+        async with worker_held(h, pair=pairs[(64, 96)]) as requests:
             for size, pair in pairs.items():
                 requests.post(size, *pair)
             await wait_queued(h, 3)
-            gated.gate.set()
         metrics = (await h.client.get("/metrics")).text
         singles = {size: gated.predict(torch.from_numpy(np.stack([left])).permute(0, 3, 1, 2).float(),
                                        torch.from_numpy(np.stack([right])).permute(0, 3, 1, 2).float())
@@ -99,37 +113,26 @@ async def test_requests_queued_behind_a_busy_worker_run_as_one_batch_equal_to_si
 
 async def test_batches_respect_max_batch_size_and_never_mix_shapes():
     small, large = stereo_pair(64, 96), stereo_pair(96, 64)
-    async with serve_asgi(lite_settings(max_batch_size=2)) as h:
-        gated = h.predictors["lite"]
-        gated.gate.clear()
-        async with anyio.create_task_group() as tg:
-            requests = Requests(h, tg)
-            requests.post("busy", *small)
-            await eventually(lambda: gated.calls == [1])
-            for queued, (name, pair) in enumerate([("s1", small), ("l1", large), ("s2", small),
-                                                    ("s3", small)], start=1):
-                requests.post(name, *pair)
-                await wait_queued(h, queued)
-            gated.gate.set()
+    async with serve_asgi(lite_settings(max_batch_size=2)) as h, \
+            worker_held(h, pair=small) as requests:
+        for queued, (name, pair) in enumerate([("s1", small), ("l1", large), ("s2", small),
+                                                ("s3", small)], start=1):
+            requests.post(name, *pair)
+            await wait_queued(h, queued)
     sizes = {name: r.json()["batch_size"] for name, r in requests.responses.items()}
     assert sizes == {"busy": 1, "s1": 2, "s2": 2, "l1": 1, "s3": 1}
-    assert gated.calls == [1, 2, 1, 1]
+    assert h.predictors["lite"].calls == [1, 2, 1, 1]
 
 
 async def test_lite_and_full_never_share_a_batch():
     pair = stereo_pair()
     async with serve_asgi(Settings()) as h:  # the default settings serve both models
         lite, full = h.predictors["lite"], h.predictors["full"]
-        lite.gate.clear()
-        async with anyio.create_task_group() as tg:
-            requests = Requests(h, tg)
-            requests.post("busy", *pair)
-            await eventually(lambda: lite.calls == [1])
+        async with worker_held(h, pair=pair) as requests:
             requests.post("lite", *pair)
             await eventually(lambda: requests_queued(h) == 1)
             requests.post("full", *pair, params={"model": "full"})
             await eventually(lambda: requests_queued(h) == 2)
-            lite.gate.set()
         health = (await h.client.get("/health")).json()
     assert set(health["models"]) == {"lite", "full"}
     assert health["models"]["full"]["parameters"] > health["models"]["lite"]["parameters"]
@@ -146,16 +149,10 @@ def requests_queued(h: Harness) -> int:
 
 async def test_a_full_queue_answers_503_with_retry_after():
     async with serve_asgi(lite_settings(max_queue=1, max_batch_size=1)) as h:
-        gated = h.predictors["lite"]
-        gated.gate.clear()
-        async with anyio.create_task_group() as tg:
-            requests = Requests(h, tg)
-            requests.post("busy", *stereo_pair())
-            await eventually(lambda: gated.calls == [1])
+        async with worker_held(h) as requests:
             requests.post("queued", *stereo_pair())
             await wait_queued(h, 1)
             refused = await h.client.post("/disparity", files=pair_files(*stereo_pair()))
-            gated.gate.set()
         metrics = (await h.client.get("/metrics")).text
     assert refused.status_code == 503
     assert refused.json()["error"]["code"] == "queue_full"
@@ -166,22 +163,16 @@ async def test_a_full_queue_answers_503_with_retry_after():
 
 async def test_a_request_whose_deadline_passes_in_the_queue_gets_503_and_is_never_computed():
     async with serve_asgi() as h:
-        gated = h.predictors["lite"]
-        gated.gate.clear()
-        async with anyio.create_task_group() as tg:
-            requests = Requests(h, tg)
-            requests.post("busy", *stereo_pair())
-            await eventually(lambda: gated.calls == [1])
+        async with worker_held(h) as requests:
             late = await h.client.post("/disparity", files=pair_files(*stereo_pair()),
                                        headers={"X-Request-Timeout-Ms": "100"})
             assert await queue_depth(h) == 0  # it left the queue when it gave up
-            gated.gate.set()
         metrics = (await h.client.get("/metrics")).text
     assert late.status_code == 503
     assert late.json()["error"]["code"] == "deadline_exceeded"
     assert "retry-after" in late.headers
     assert requests.responses["busy"].status_code == 200
-    assert gated.calls == [1]
+    assert h.predictors["lite"].calls == [1]
     assert metric_total(metrics, "crestereo_rejected_total", reason="deadline") == 1
 
 
@@ -216,16 +207,10 @@ async def test_an_inference_exception_fails_only_its_batch_and_logs_an_error_id(
     async with serve_asgi() as h:
         logging.getLogger("service").addHandler(handler)  # after create_app set up logging
         try:
-            gated = h.predictors["lite"]
-            gated.gate.clear()
-            async with anyio.create_task_group() as tg:
-                requests = Requests(h, tg)
-                requests.post("before", *stereo_pair())
-                await eventually(lambda: gated.calls == [1])
+            async with worker_held(h, "before") as requests:
                 requests.post("faulty", black, black, headers={"X-Request-Id": "faulty-1"})
                 requests.post("other shape", *stereo_pair(96, 64))
                 await wait_queued(h, 2)
-                gated.gate.set()
             after = await h.client.post("/disparity", files=pair_files(*stereo_pair()))
             ready = await h.client.get("/health/ready")
         finally:
@@ -281,21 +266,23 @@ async def test_models_that_fail_to_load_make_the_process_not_live():
     assert (ready.status_code, ready.json()) == (503, {"status": "failed"})
 
 
+@asynccontextmanager
+async def draining_with_work_admitted(settings: Settings | None = None
+                                      ) -> AsyncIterator[tuple[Harness, Requests]]:
+    """A server draining (as after SIGTERM) with request "running" computing, held by the gate,
+    and "queued" behind it; the body runs during the drain, then the gate opens (`worker_held`)."""
+    async with serve_asgi(settings) as h, worker_held(h, "running") as requests:
+        requests.post("queued", *stereo_pair())
+        await wait_queued(h, 1)
+        h.app.state.runtime.begin_drain()
+        yield h, requests
+
+
 async def test_draining_refuses_new_work_but_finishes_what_was_queued():
-    async with serve_asgi() as h:
-        gated = h.predictors["lite"]
-        gated.gate.clear()
-        async with anyio.create_task_group() as tg:
-            requests = Requests(h, tg)
-            requests.post("running", *stereo_pair())
-            await eventually(lambda: gated.calls == [1])
-            requests.post("queued", *stereo_pair())
-            await wait_queued(h, 1)
-            h.app.state.runtime.begin_drain()
-            refused = await h.client.post("/disparity", files=pair_files(*stereo_pair()))
-            ready = await h.client.get("/health/ready")
-            live = await h.client.get("/health/live")
-            gated.gate.set()
+    async with draining_with_work_admitted() as (h, requests):
+        refused = await h.client.post("/disparity", files=pair_files(*stereo_pair()))
+        ready = await h.client.get("/health/ready")
+        live = await h.client.get("/health/live")
     assert refused.status_code == 503 and refused.json()["error"]["code"] == "draining"
     assert (ready.status_code, ready.json()) == (503, {"status": "draining"})
     assert live.status_code == 200
@@ -303,18 +290,9 @@ async def test_draining_refuses_new_work_but_finishes_what_was_queued():
 
 
 async def test_after_the_drain_timeout_queued_and_computing_requests_get_503():
-    async with serve_asgi(lite_settings(drain_timeout_s=0.05)) as h:
-        gated = h.predictors["lite"]
-        gated.gate.clear()
-        async with anyio.create_task_group() as tg:
-            requests = Requests(h, tg)
-            requests.post("running", *stereo_pair())
-            await eventually(lambda: gated.calls == [1])
-            requests.post("queued", *stereo_pair())
-            await wait_queued(h, 1)
-            h.app.state.runtime.begin_drain()
-            await eventually(lambda: {"queued", "running"} <= set(requests.responses))
-            gated.gate.set()  # the abandoned batch finishes later; nobody waits for it
+    async with draining_with_work_admitted(lite_settings(drain_timeout_s=0.05)) as (_, requests):
+        await eventually(lambda: {"queued", "running"} <= set(requests.responses))
+    # the abandoned batch computes on once the gate opens; nobody waits for its result
     for name in ("running", "queued"):
         assert requests.responses[name].status_code == 503
         assert requests.responses[name].json()["error"]["code"] == "draining"
