@@ -1,1 +1,1 @@
-"""HTTP routers: `/disparity`, `/health*`, `/metrics`."""
+"""HTTP routers: `/disparity`, `/health*`, `/models*`, `/metrics`, and the web page (`/`, `/static/*`)."""
