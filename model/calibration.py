@@ -40,14 +40,14 @@ class UncertaintyCalibration:
             raise ValueError("calibrated probabilities must not decrease")
 
     def apply(self, raw: Tensor) -> Tensor:
-        """P(error > threshold_px) for every value of `raw` (the paper's U, any shape)."""
-        knots = torch.tensor(self.knots, dtype=raw.dtype, device=raw.device)
-        probabilities = torch.tensor(self.probabilities, dtype=raw.dtype, device=raw.device)
-        clamped = raw.clamp(knots[0], knots[-1])
-        upper = torch.searchsorted(knots, clamped.contiguous(), right=True).clamp(1, len(self.knots) - 1)
-        x0, x1 = knots[upper - 1], knots[upper]
-        p0, p1 = probabilities[upper - 1], probabilities[upper]
-        return p0 + (p1 - p0) * (clamped - x0) / (x1 - x0)
+        """P(error > threshold_px) for every value of `raw` (the paper's U, any shape): the
+        piecewise-linear map through the knots, constant beyond the first and last, written as a
+        sum of one clamped ramp per segment (elementwise ops only, so it exports to ONNX)."""
+        probability = torch.full_like(raw, self.probabilities[0])
+        segments = zip(self.knots, self.knots[1:], self.probabilities, self.probabilities[1:])
+        for x0, x1, p0, p1 in segments:
+            probability = probability + (raw - x0).clamp(0.0, x1 - x0) * ((p1 - p0) / (x1 - x0))
+        return probability
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
