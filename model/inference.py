@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any, Literal, NamedTuple
 
 import numpy as np
 import torch
@@ -14,12 +15,16 @@ from torch.nn import functional as F
 
 from .calibration import UncertaintyCalibration
 from .config import ModelConfig
+from .cuda_graphs import Forward, GraphedForward
 from .network import CREStereoPP, padded_size
 from .upsample import resize_disparity
 from .weights import WEIGHTS_DIR, file_sha256, network_from_weights, read_weights
 
 Iterations = int | tuple[int, int, int] | None
 """None: the config's iterations; int: iterations of the finest (1/4) stage; or (n16, n8, n4)."""
+
+Precision = Literal["fp32", "bf16"]
+"""fp32: the network in float32; bf16: under bf16 autocast (CUDA), the maps still float32."""
 
 
 class Prediction(NamedTuple):
@@ -30,12 +35,20 @@ class Prediction(NamedTuple):
     uncertainty: np.ndarray | Tensor
 
 
-def load_model(name: str = "lite", weights: str | Path | None = None, device: str | torch.device = "cpu") -> StereoPredictor:
+def load_model(
+    name: str = "lite",
+    weights: str | Path | None = None,
+    device: str | torch.device = "cpu",
+    *,
+    precision: Precision = "fp32",
+    cuda_graphs: bool = True,
+) -> StereoPredictor:
     """Build the ``name`` network (``lite`` | ``full``) and load its weights.
 
     ``weights``: a weights file or training checkpoint (a dict with ``"model"`` = state_dict and
     ``"config"``); None loads the bundled ``model/weights/{name}.pt`` if present, else the network is
     randomly initialised (seed 0, so every process gets the same one) with a warning.
+    ``precision`` and ``cuda_graphs``: see ``StereoPredictor``.
     """
     path = Path(weights) if weights is not None else WEIGHTS_DIR / f"{name}.pt"
     if weights is None and not path.is_file():
@@ -47,7 +60,7 @@ def load_model(name: str = "lite", weights: str | Path | None = None, device: st
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(0)
             network = CREStereoPP(ModelConfig.preset(name))
-        return StereoPredictor(network, name, None, device)
+        return StereoPredictor(network, name, None, device, precision=precision, cuda_graphs=cuda_graphs)
 
     payload = read_weights(path)
     calibration = payload.get("calibration")
@@ -58,6 +71,8 @@ def load_model(name: str = "lite", weights: str | Path | None = None, device: st
         device,
         UncertaintyCalibration.from_dict(calibration) if calibration is not None else None,
         payload.get("training"),
+        precision=precision,
+        cuda_graphs=cuda_graphs,
     )
 
 
@@ -101,6 +116,22 @@ def pad_to_size(x: Tensor, height: int, width: int) -> Tensor:
     return F.pad(x, (0, width - x.shape[-1], 0, height - x.shape[-2]), mode="replicate")
 
 
+def to_host(disparity: Tensor, uncertainty: Tensor) -> tuple[np.ndarray, np.ndarray]:
+    """Two maps of one shape (float32 tensors on any device) as numpy arrays, in one copy to the
+    host: the only device-to-host transfer of a prediction."""
+    both = torch.stack((disparity, uncertainty)).cpu().numpy()
+    return both[0], both[1]
+
+
+def autocast_bf16(device: torch.device, enabled: bool, *, cache: bool = True) -> contextlib.AbstractContextManager[Any]:
+    """bf16 autocast on `device` when `enabled`, else nothing (so that any device, "meta"
+    included, runs in float32). cache: reuse each weight's bf16 copy within the context (off
+    for a forward that a CUDA graph captures, as the PyTorch CUDA-graph notes ask)."""
+    if not enabled:
+        return contextlib.nullcontext()
+    return torch.autocast(device.type, dtype=torch.bfloat16, cache_enabled=cache)
+
+
 class StereoPredictor:
     """A network ready for inference (eval mode, on ``device``, no gradients).
 
@@ -108,6 +139,10 @@ class StereoPredictor:
     given, ``predict`` returns P(|error| > calibration.threshold_px) as the uncertainty, else the
     paper's raw U. training: the weights file's cumulative training record, as stored there
     ("total_steps", "total_pairs", "total_minutes", "runs" with each run's validation), or None.
+    precision: "fp32", or "bf16" to run the network under bf16 autocast (the maps stay float32;
+    bench/gpu_check.py measures how far they move); may be changed at any time.
+    graphs: on a CUDA device with ``cuda_graphs``, the CUDA-graph replay (``model.cuda_graphs``)
+    that ``predict_batch`` runs its forward through, one graph per padded shape; else None.
     """
 
     def __init__(
@@ -118,6 +153,9 @@ class StereoPredictor:
         device: str | torch.device,
         calibration: UncertaintyCalibration | None = None,
         training: dict[str, Any] | None = None,
+        *,
+        precision: Precision = "fp32",
+        cuda_graphs: bool = True,
     ) -> None:
         self.device = torch.device(device)
         self.network = network.to(self.device).eval()
@@ -125,6 +163,8 @@ class StereoPredictor:
         self.weights_sha256 = weights_sha256
         self.calibration = calibration
         self.training = training
+        self.precision: Precision = precision
+        self.graphs = GraphedForward(self.forward) if cuda_graphs and self.device.type == "cuda" else None
 
     @property
     def config(self) -> ModelConfig:
@@ -167,37 +207,24 @@ class StereoPredictor:
         raw_uncertainty: return the paper's U (in [0, 1], at most 0.5 after the first iteration)
             even when the weights carry a calibration; otherwise the uncertainty is the calibrated
             probability of an error above ``calibration.threshold_px`` where there is one.
+        Tensor input gives tensors on the predictor's device; array input numpy arrays, copied
+        from the device once.
         """
-        if not 0.0 < scale <= 1.0:
-            raise ValueError(f"scale must be in (0, 1], got {scale}")
-        is_array = isinstance(left, np.ndarray)
-        left_batch, right_batch = as_image_batch(left, self.device), as_image_batch(right, self.device)
-        if left_batch.shape != right_batch.shape:
-            raise ValueError(f"left and right differ in size: {tuple(left_batch.shape)} vs {tuple(right_batch.shape)}")
-        counts = self.iterations(iters)
-        height, width = left_batch.shape[-2:]
-        size = (max(1, round(height * scale)), max(1, round(width * scale)))
-        if size != (height, width):
-            left_batch, right_batch = (shrink(image, size) for image in (left_batch, right_batch))
-        init: Tensor | None = None
-        if init_disparity is not None:
-            init = torch.as_tensor(init_disparity, dtype=torch.float32, device=self.device)
-            init = init.reshape(left_batch.shape[0], 1, height, width)
-            init = init if size == (height, width) else resize_disparity(init, *size)
-        elif two_pass:
-            half_size = (max(1, size[0] // 2), max(1, size[1] // 2))
-            coarse, _ = self.run(shrink(left_batch, half_size), shrink(right_batch, half_size), counts, None)
-            init = resize_disparity(coarse, *size)
-        disparity, uncertainty = self.run(left_batch, right_batch, counts, init)
-        if size != (height, width):
-            disparity = resize_disparity(disparity, height, width)
-            uncertainty = F.interpolate(uncertainty, size=(height, width), mode="bilinear", align_corners=False)
-        if self.calibration is not None and not raw_uncertainty:
-            uncertainty = self.calibration.apply(uncertainty)
-        if is_array:
-            return Prediction(disparity[0, 0].cpu().numpy(), uncertainty[0, 0].cpu().numpy())
-        return Prediction(disparity[:, 0], uncertainty[:, 0])
+        disparity, uncertainty = self.maps(
+            as_image_batch(left, self.device),
+            as_image_batch(right, self.device),
+            iters=iters,
+            init_disparity=init_disparity,
+            two_pass=two_pass,
+            scale=scale,
+            raw_uncertainty=raw_uncertainty,
+            graphed=False,
+        )
+        if isinstance(left, np.ndarray):
+            return Prediction(*to_host(disparity[0], uncertainty[0]))
+        return Prediction(disparity, uncertainty)
 
+    @torch.inference_mode()
     def predict_batch(
         self,
         lefts: Sequence[np.ndarray],
@@ -209,7 +236,8 @@ class StereoPredictor:
         raw_uncertainty: bool = False,
     ) -> list[Prediction]:
         """Several pairs (arrays, as ``predict`` takes them) in one forward pass; the maps come
-        back as numpy HxW arrays, copied from the device once for the whole batch.
+        back as numpy HxW arrays, copied from the device once for the whole batch. On CUDA the
+        forward is replayed from a CUDA graph of the padded shape (``self.graphs``).
 
         Pairs of different sizes are replicate-padded at the bottom and right to one shape, a
         multiple of INPUT_MULTIPLE, exactly as ``predict`` pads a single pair, so each result
@@ -217,7 +245,9 @@ class StereoPredictor:
         ``scale`` the resized passes would see the padding: all pairs must then have one size.
         """
         if not lefts or len(lefts) != len(rights):
-            raise ValueError(f"need as many right images as left ones (at least one), got {len(lefts)} and {len(rights)}")
+            raise ValueError(
+                f"need as many right images as left ones (at least one), got {len(lefts)} and {len(rights)}"
+            )
         sizes = [image.shape[:2] for image in lefts]
         if len(set(sizes)) > 1 and (two_pass or scale != 1.0):
             raise ValueError("pairs of different sizes can only be batched without two_pass or scale")
@@ -230,29 +260,91 @@ class StereoPredictor:
             batches = [as_image_batch(image, self.device) for image in images]
             return torch.cat([pad_to_size(b, height, width) for b in batches])
 
-        prediction = self.predict(
-            stack(lefts),
-            stack(rights),
-            iters=iters,
-            two_pass=two_pass,
-            scale=scale,
-            raw_uncertainty=raw_uncertainty,
+        disparity, uncertainty = to_host(
+            *self.maps(
+                stack(lefts),
+                stack(rights),
+                iters=iters,
+                init_disparity=None,
+                two_pass=two_pass,
+                scale=scale,
+                raw_uncertainty=raw_uncertainty,
+                graphed=True,
+            )
         )
-        disparity, uncertainty = prediction.disparity.cpu().numpy(), prediction.uncertainty.cpu().numpy()
         return [
             Prediction(np.ascontiguousarray(disparity[i, :h, :w]), np.ascontiguousarray(uncertainty[i, :h, :w]))
             for i, (h, w) in enumerate(sizes)
         ]
 
-    def run(self, left: Tensor, right: Tensor, iters: tuple[int, int, int], init: Tensor | None) -> tuple[Tensor, Tensor]:
-        """Pad (B,3,H,W) inputs to multiples of 32, run the network, crop back.
-        Returns disparity (clipped at 0) and uncertainty, each (B, 1, H, W)."""
+    def maps(
+        self,
+        left_batch: Tensor,
+        right_batch: Tensor,
+        *,
+        iters: Iterations,
+        init_disparity: np.ndarray | Tensor | None,
+        two_pass: bool,
+        scale: float,
+        raw_uncertainty: bool,
+        graphed: bool,
+    ) -> tuple[Tensor, Tensor]:
+        """``predict`` on (B, 3, H, W) float images on the device: disparity and uncertainty,
+        float32 (B, H, W) on the device. graphed: run the forward through ``self.graphs``
+        (where there are graphs)."""
+        if not 0.0 < scale <= 1.0:
+            raise ValueError(f"scale must be in (0, 1], got {scale}")
+        if left_batch.shape != right_batch.shape:
+            raise ValueError(f"left and right differ in size: {tuple(left_batch.shape)} vs {tuple(right_batch.shape)}")
+        forward = self.graphs if graphed and self.graphs is not None else self.forward
+        counts = self.iterations(iters)
+        height, width = left_batch.shape[-2:]
+        size = (max(1, round(height * scale)), max(1, round(width * scale)))
+        if size != (height, width):
+            left_batch, right_batch = (shrink(image, size) for image in (left_batch, right_batch))
+        init: Tensor | None = None
+        if init_disparity is not None:
+            init = torch.as_tensor(init_disparity, dtype=torch.float32, device=self.device)
+            init = init.reshape(left_batch.shape[0], 1, height, width)
+            init = init if size == (height, width) else resize_disparity(init, *size)
+        elif two_pass:
+            half_size = (max(1, size[0] // 2), max(1, size[1] // 2))
+            coarse, _ = self.run(shrink(left_batch, half_size), shrink(right_batch, half_size), counts, None, forward)
+            init = resize_disparity(coarse, *size)
+        disparity, uncertainty = self.run(left_batch, right_batch, counts, init, forward)
+        if size != (height, width):
+            disparity = resize_disparity(disparity, height, width)
+            uncertainty = F.interpolate(uncertainty, size=(height, width), mode="bilinear", align_corners=False)
+        if self.calibration is not None and not raw_uncertainty:
+            uncertainty = self.calibration.apply(uncertainty)
+        return disparity[:, 0], uncertainty[:, 0]
+
+    def run(
+        self,
+        left: Tensor,
+        right: Tensor,
+        iters: tuple[int, int, int],
+        init: Tensor | None,
+        forward: Forward | None = None,
+    ) -> tuple[Tensor, Tensor]:
+        """Pad (B,3,H,W) inputs to multiples of 32, run `forward` (default ``self.forward``),
+        crop back. Returns disparity (clipped at 0) and uncertainty, each (B, 1, H, W)."""
         height, width = left.shape[-2:]
-        out = self.network(
+        disparity, uncertainty = (forward or self.forward)(
             pad_to_multiple(left),
             pad_to_multiple(right),
-            iters=iters,
-            init_disparity=None if init is None else pad_to_multiple(init),
+            None if init is None else pad_to_multiple(init),
+            iters,
+            self.precision == "bf16",
         )
-        disparity = out.disparity[..., :height, :width].clamp(min=0.0)
-        return disparity, out.uncertainty[..., :height, :width]
+        return disparity[..., :height, :width].clamp(min=0.0), uncertainty[..., :height, :width]
+
+    def forward(
+        self, left: Tensor, right: Tensor, init: Tensor | None, iters: tuple[int, int, int], bf16: bool
+    ) -> tuple[Tensor, Tensor]:
+        """The network, eagerly, on padded (B, 3, H, W) images in [0, 255] (H, W multiples of 32)
+        and an optional (B, 1, H, W) warm start (px), under bf16 autocast when `bf16`: disparity
+        and uncertainty, float32 (B, 1, H, W). The function ``self.graphs`` captures."""
+        with autocast_bf16(self.device, bf16, cache=False):
+            out = self.network(left, right, iters=iters, init_disparity=init)
+        return out.disparity.float(), out.uncertainty.float()
