@@ -12,6 +12,7 @@ SYNTHETIC = "synthetic"
 
 Schedule = Literal["one-cycle", "linear", "constant", "flat-decay"]
 Precision = Literal["auto", "fp32", "bf16"]
+Switch = Literal["auto", "on", "off"]
 
 
 @dataclass(frozen=True)
@@ -98,6 +99,12 @@ class TrainConfig:
     )
     max_minutes: float | None = _knob(None, "stop after this many minutes of this run, saving a checkpoint")
     precision: Precision = _knob("auto", "auto: bf16 autocast on CUDA, fp32 on CPU")
+    fused_adamw: Switch = _knob("auto", "AdamW as one fused kernel per step (auto: on CUDA only)")
+    compile: bool = _knob(
+        False,
+        "torch.compile the network for training: fewer, fused kernels per step after a compile of a "
+        "minute or more (for long CUDA runs; the checkpoints are the same)",
+    )
     device: str = _knob("auto", "auto (cuda if available, else cpu), cpu, cuda, cuda:N")
     seed: int = _knob(0, "seed of the initial weights and of every batch")
     out_dir: str = _knob("runs/train", "folder for checkpoints, the CSV log and the loss curve")

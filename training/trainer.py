@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import datetime as dt
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -12,13 +13,14 @@ from torch.nn.parallel import DistributedDataParallel
 from tqdm import tqdm
 
 from evaluation.evaluate import evaluate
-from model import CREStereoPP, ModelConfig, StereoPredictor, matching_loss, sequence_loss
+from model import CREStereoPP, ModelConfig, NetworkOutput, StereoPredictor, matching_loss, sequence_loss
 from model.device import resolve_device
+from model.inference import autocast_bf16
 from model.weights import load_state, model_config_of, read_weights, write_weights
 from stereo_data.readers import open_dataset
 
 from .checkpoint import restore_rng_state, rng_state
-from .config import TrainConfig
+from .config import Switch, TrainConfig
 from .data import TrainingBatch, TrainingData
 from .distributed import DistributedContext
 from .history import RunRecord, TrainingHistory
@@ -91,7 +93,11 @@ class Trainer:
         torch.manual_seed(config.seed)
         self.network = CREStereoPP(self.model_config).to(device)
         self.optimizer = torch.optim.AdamW(
-            self.network.parameters(), lr=config.lr, betas=config.betas, weight_decay=config.weight_decay
+            self.network.parameters(),
+            lr=config.lr,
+            betas=config.betas,
+            weight_decay=config.weight_decay,
+            fused=True if is_on(config.fused_adamw, device) else None,  # None: torch's default (foreach on CUDA)
         )
         self.scheduler = build_scheduler(
             self.optimizer, config.schedule_length, config.schedule, config.warmup_fraction, config.decay_steps
@@ -130,10 +136,11 @@ class Trainer:
             else None
         )
         device_ids = [device.index] if device.type == "cuda" else None
-        self.model = (
-            DistributedDataParallel(self.network, device_ids=device_ids) if context.is_distributed else self.network
-        )
+        model = DistributedDataParallel(self.network, device_ids=device_ids) if context.is_distributed else self.network
+        self.model: Callable[..., NetworkOutput] = torch.compile(model) if config.compile else model
         self.use_bf16 = config.precision == "bf16" or (config.precision == "auto" and device.type == "cuda")
+        if device.type == "cuda":
+            torch.backends.cudnn.benchmark = True  # the crops have one shape: pick the fastest convolutions once
 
     def run(self, progress: bool) -> TrainResult:
         """Train from start_step until max_steps or the time budget; log, checkpoint, return."""
@@ -194,7 +201,7 @@ class Trainer:
     def train_step(self, batch: TrainingBatch) -> torch.Tensor:
         """One optimiser step on `batch`; returns (loss, train EPE in px), detached, on the device."""
         config = self.config
-        with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.use_bf16):
+        with autocast_bf16(self.device, self.use_bf16):
             output = self.model(batch.left, batch.right, iters=config.train_iters)
         predictions = [[p.float() for p in stage] for stage in output.predictions]
         loss = sequence_loss(predictions, batch.disparity, batch.valid, config.gamma, config.loss_max_disparity)
@@ -256,6 +263,11 @@ def follow_config(
     factor = scheduler.lr_lambdas[0](scheduler.last_epoch)
     for group in optimizer.param_groups:
         group.update(initial_lr=config.lr, lr=config.lr * factor, betas=config.betas, weight_decay=config.weight_decay)
+
+
+def is_on(switch: Switch, device: torch.device) -> bool:
+    """An "auto" | "on" | "off" option: "auto" is on for CUDA devices only."""
+    return switch == "on" or (switch == "auto" and device.type == "cuda")
 
 
 def end_point_error(disparity: torch.Tensor, batch: TrainingBatch) -> torch.Tensor:

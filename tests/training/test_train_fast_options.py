@@ -1,0 +1,51 @@
+"""The fast-step options of TrainConfig (fused AdamW, torch.compile): their plumbing on the CPU.
+Their speed is a CUDA matter (bench/gpu_check.py measures it)."""
+
+import pytest
+import torch
+from training_helpers import tiny
+
+from training.config import TrainConfig
+from training.distributed import DistributedContext
+from training.trainer import Trainer, is_on, train
+
+CPU = torch.device("cpu")
+ONE_PROCESS = DistributedContext(rank=0, world_size=1, local_rank=0)
+
+
+@pytest.mark.parametrize(
+    ("switch", "device", "expected"),
+    [("auto", "cuda", True), ("auto", "cpu", False), ("on", "cpu", True), ("off", "cuda", False)],
+)
+def test_auto_switches_are_on_for_cuda_only(switch, device, expected):
+    assert is_on(switch, torch.device(device)) is expected
+
+
+def test_defaults_keep_the_cpu_step_as_it_was():
+    config = TrainConfig()
+    assert (config.fused_adamw, config.compile) == ("auto", False)
+
+
+@pytest.mark.parametrize(("switch", "fused"), [("auto", False), ("on", True)])
+def test_the_fused_adamw_switch_reaches_the_optimiser_and_a_fused_step_runs(tmp_path, switch, fused):
+    result = train(tiny(tmp_path, fused_adamw=switch, max_steps=1, train_iters=(1, 1, 1)), progress=False)
+    trainer = Trainer(tiny(tmp_path / "again", fused_adamw=switch), ONE_PROCESS, CPU, None, None)
+    assert bool(trainer.optimizer.defaults["fused"]) is fused
+    assert result.checkpoint.is_file()
+
+
+def test_compile_traces_the_training_forward_and_saves_plain_weights(tmp_path, monkeypatch):
+    compiled = []
+    real_compile = torch.compile
+
+    def compile_without_inductor(model, **options):
+        compiled.append(model)
+        return real_compile(model, backend="aot_eager", fullgraph=True, **options)  # one graph, no C++ build
+
+    monkeypatch.setattr(torch, "compile", compile_without_inductor)
+    torch._dynamo.reset()
+    result = train(tiny(tmp_path, compile=True, max_steps=2, train_iters=(1, 1, 1)), progress=False)
+    torch._dynamo.reset()
+    assert len(compiled) == 1 and compiled[0] is result.network
+    saved = torch.load(result.checkpoint, weights_only=True)["model"]
+    assert set(saved) == set(result.network.state_dict())  # no "_orig_mod." prefixes
