@@ -22,3 +22,11 @@ serve: setup
 
 test: setup
 	$(PY) -m pytest -q
+
+# The prepared GPU check (bench/gpu_check.py; README, "Development"): for a GPU machine with torch
+# preinstalled and no package index, so it runs that machine's python3 from the tree, not the venv.
+GPU_PYTHON ?= python3
+GPU_OUT ?= $(or $(OUT),gpu-check)
+.PHONY: gpu
+gpu:
+	PYTHONPATH=. $(GPU_PYTHON) bench/gpu_check.py --out $(GPU_OUT)
