@@ -85,7 +85,8 @@ class CREStereoPP(nn.Module):
         if init_disparity is None:
             first_stage = 0
             f_left = pyramid[0][0]
-            disparity = f_left.new_zeros(f_left.shape[0], 1, *f_left.shape[-2:])
+            # float32 even under bf16 autocast: the disparity accumulates over every iteration
+            disparity = f_left.new_zeros(f_left.shape[0], 1, *f_left.shape[-2:], dtype=torch.float32)
         else:
             first_stage = len(SCALES) - 1
             disparity = F.avg_pool2d(init_disparity, SCALES[-1]) / SCALES[-1]
@@ -102,7 +103,7 @@ class CREStereoPP(nn.Module):
                 disparity = disparity.detach()
                 volume, next_uncertainty = self.ugac(f_left, f_right, disparity, uncertainty, n)
                 hidden, delta = self.update(hidden, context, volume, disparity)
-                disparity = disparity + delta
+                disparity = disparity + delta.float()
                 uncertainty = next_uncertainty
                 if self.training:
                     stage_predictions.append(self.full_resolution(disparity, hidden, height, width))

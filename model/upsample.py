@@ -20,7 +20,7 @@ def convex_upsample(disparity: Tensor, mask_logits: Tensor) -> Tensor:
     """
     b, _, h, w = disparity.shape
     f = UPSAMPLE_FACTOR
-    weights = mask_logits.view(b, 1, 9, f, f, h, w).softmax(dim=2)
+    weights = mask_logits.float().view(b, 1, 9, f, f, h, w).softmax(dim=2)  # float32 under bf16 autocast
     neighbours = F.unfold(f * disparity, kernel_size=3, padding=1).view(b, 1, 9, 1, 1, h, w)
     fine = (weights * neighbours).sum(dim=2)  # (B, 1, f, f, h, w)
     return fine.permute(0, 1, 4, 2, 5, 3).reshape(b, 1, f * h, f * w)

@@ -16,15 +16,16 @@ KERNEL_POINTS = 9
 
 
 def pixel_grid(height: int, width: int, like: Tensor) -> tuple[Tensor, Tensor]:
-    """Pixel-centre coordinates: xs (1,1,1,W) and ys (1,1,H,1), on ``like``'s device and dtype."""
-    xs = torch.arange(width, device=like.device, dtype=like.dtype).view(1, 1, 1, width)
-    ys = torch.arange(height, device=like.device, dtype=like.dtype).view(1, 1, height, 1)
+    """Pixel-centre coordinates: xs (1,1,1,W) and ys (1,1,H,1), float32 on ``like``'s device."""
+    # float32 whatever `like` is: bf16 cannot hold pixel positions above 256 exactly
+    xs = torch.arange(width, device=like.device, dtype=torch.float32).view(1, 1, 1, width)
+    ys = torch.arange(height, device=like.device, dtype=torch.float32).view(1, 1, height, 1)
     return xs, ys
 
 
 def kernel_offsets(like: Tensor) -> tuple[Tensor, Tensor]:
     """kx, ky of the K = 9 points, each shaped (1,1,9,1,1) for broadcasting over (B,G,K,h,w)."""
-    steps = torch.arange(-1, 2, device=like.device, dtype=like.dtype)
+    steps = torch.arange(-1, 2, device=like.device, dtype=torch.float32)
     ky, kx = torch.meshgrid(steps, steps, indexing="ij")
     return kx.reshape(1, 1, KERNEL_POINTS, 1, 1), ky.reshape(1, 1, KERNEL_POINTS, 1, 1)
 
