@@ -21,7 +21,7 @@ from service.worker import DaemonWorker
 
 logger = logging.getLogger(__name__)
 
-ModelLoader = Callable[..., Predictor]  # called as loader(name, weights=..., device=...)
+ModelLoader = Callable[..., Predictor]  # called as loader(name, weights=..., device=..., precision=...)
 
 
 def weights_identity(predictor: Predictor) -> str:
@@ -107,7 +107,8 @@ class ServiceRuntime:
             for name in self.settings.models:
                 weights: Path | None = self.settings.weights.get(name)
                 self.predictors[name] = await loop.run_in_executor(self._executor, partial(
-                    self._loader, name, weights=weights, device=self.settings.device))
+                    self._loader, name, weights=weights, device=self.settings.device,
+                    precision=self.settings.precision))
                 logger.info("model loaded", extra={
                     "model": name, "parameters": self.predictors[name].num_parameters,
                     "weights": weights_identity(self.predictors[name])})

@@ -15,6 +15,7 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from model.config import MODEL_NAMES, ModelName
+from model.inference import Precision
 from service import DEFAULT_MAX_IMAGE_PIXELS
 
 ENV_PREFIX = "CRESTEREO_"
@@ -34,6 +35,9 @@ class Settings(BaseModel):
         "packaged weights (`model/weights/<name>.pt`, random initialisation when absent).",
     )
     device: str = Field("cpu", description="Torch device the models run on.")
+    precision: Precision = Field(
+        "fp32", description="`bf16`: the networks run under bf16 autocast (for CUDA; maps stay float32); `fp32` otherwise."
+    )
     threads: int = Field(
         0, ge=0, description="Torch intra-op threads; 0 = the container's CPU quota (cgroup), "
         "else the number of usable cores."

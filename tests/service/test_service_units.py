@@ -31,10 +31,10 @@ def test_settings_come_from_crestereo_environment_variables():
     settings = Settings.from_env({
         "CRESTEREO_MODELS": "lite", "CRESTEREO_MAX_BATCH_SIZE": "4",
         "CRESTEREO_WEIGHTS": "lite=/w/lite.pt, full=/w/full.pt", "CRESTEREO_API_KEY": "k",
-        "CRESTEREO_MAX_WAIT_MS": "2.5", "OTHER_MAX_BATCH_SIZE": "99"})
+        "CRESTEREO_MAX_WAIT_MS": "2.5", "OTHER_MAX_BATCH_SIZE": "99", "CRESTEREO_PRECISION": "bf16"})
     assert settings.models == ("lite",) and settings.max_batch_size == 4
     assert settings.weights == {"lite": Path("/w/lite.pt"), "full": Path("/w/full.pt")}
-    assert settings.api_key == "k" and settings.max_wait_ms == 2.5
+    assert settings.api_key == "k" and settings.max_wait_ms == 2.5 and settings.precision == "bf16"
 
 
 def test_each_model_has_its_pixel_limit_under_the_global_one():
@@ -48,7 +48,8 @@ def test_each_model_has_its_pixel_limit_under_the_global_one():
 @pytest.mark.parametrize("environ", [
     {"CRESTEREO_MODELS": "lite,huge"}, {"CRESTEREO_MAX_BATCH_SIZE": "0"},
     {"CRESTEREO_WEIGHTS": "lite"}, {"CRESTEREO_MODELS": ""},
-    {"CRESTEREO_MODEL_MAX_PIXELS": "full=many"}, {"CRESTEREO_MODEL_MAX_PIXELS": "huge=5"}])
+    {"CRESTEREO_MODEL_MAX_PIXELS": "full=many"}, {"CRESTEREO_MODEL_MAX_PIXELS": "huge=5"},
+    {"CRESTEREO_PRECISION": "fp16"}])
 def test_invalid_settings_stop_the_service_from_starting(environ):
     with pytest.raises(ValidationError):
         Settings.from_env(environ)
