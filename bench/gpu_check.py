@@ -373,7 +373,7 @@ def write_summary(out: Path, plan: Plan, data: Path | None, results: dict[str, S
     lines = [
         f"# GPU check: {plan.label}",
         "",
-        f"{dt.datetime.now(dt.timezone.utc).isoformat(timespec='seconds')}, budget {plan.minutes:g} min; "
+        f"{dt.datetime.now(dt.UTC).isoformat(timespec='seconds')}, budget {plan.minutes:g} min; "
         f"device: {environment.get('device', '?')}; torch {environment.get('torch', '?')}; "
         f"Python {platform.python_version()}; dev pairs: {data or 'none (procedural scenes)'}",
         "",

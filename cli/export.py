@@ -53,10 +53,13 @@ def run_onnx(args: argparse.Namespace) -> int:
     if args.fp16:
         raise SystemExit("crestereo-pp export: --fp16 applies to weights files, not to --onnx")
     try:
-        from model.onnx_export import export_onnx
         import onnxscript  # noqa: F401  (the exporter needs it; say so plainly when it is missing)
+
+        from model.onnx_export import export_onnx
     except ImportError as error:
-        raise SystemExit(f"crestereo-pp export: --onnx needs the onnx extra (pip install 'crestereo-pp[onnx]'): {error}")
+        raise SystemExit(
+            f"crestereo-pp export: --onnx needs the onnx extra (pip install 'crestereo-pp[onnx]'): {error}"
+        ) from error
     name = str(read_weights(args.checkpoint).get("model_name") or "lite")
     predictor = load_model(name, args.checkpoint, "cpu")
     export_onnx(predictor, args.output, args.height, args.width, args.batch, iterations(args))

@@ -15,6 +15,7 @@ from tqdm import tqdm
 from model import Prediction, StereoPredictor
 from model.inference import Iterations
 from stereo_data.readers import StereoSample
+from stereo_data.visualize import UNCERTAINTY_COLORMAP, colorize
 
 from .metrics import (
     DisparityMetrics,
@@ -28,8 +29,6 @@ from .metrics import (
     sparsification,
 )
 from .sgbm import sgbm_disparity
-from stereo_data.visualize import UNCERTAINTY_COLORMAP, colorize
-
 from .visualize import Panel, compose_sheet, disparity_panels, line_plot
 
 SGBM = "sgbm"
@@ -218,12 +217,12 @@ def evaluate(
         methods = {}
         for name, (disparity, uncertainty, seconds) in outputs.items():
             errors, trust = np.abs(disparity - sample.disparity)[known], uncertainty[known]
-            calibrated = name == predictor.name and calibration is not None
+            calibrated = calibration if name == predictor.name else None
             methods[name] = MethodResult(
                 compute_metrics(disparity, sample.disparity, known),
                 seconds,
                 sparsification(errors, trust),
-                reliability(errors, trust, calibration.threshold_px) if calibrated else None,
+                reliability(errors, trust, calibrated.threshold_px) if calibrated is not None else None,
             )
         height, width = sample.disparity.shape
         report.pairs.append(PairResult(sample.name, width, height, methods))

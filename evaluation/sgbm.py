@@ -22,7 +22,7 @@ def sgbm_num_disparities(max_disparity: float) -> int:
 def create_sgbm(max_disparity: float) -> cv2.StereoSGBM:
     """A StereoSGBM matcher with the baseline settings, searching 0..`max_disparity` px."""
     block_size = 5
-    return cv2.StereoSGBM_create(
+    return cv2.StereoSGBM.create(
         minDisparity=0,
         numDisparities=sgbm_num_disparities(max_disparity),
         blockSize=block_size,

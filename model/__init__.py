@@ -8,7 +8,7 @@ Disparity is positive everywhere, in pixels of the left image (the right match i
 """
 
 from .config import ModelConfig
-from .inference import Iterations, Prediction, StereoPredictor, load_model
+from .inference import Iterations, Prediction, StereoPredictor, TensorPrediction, load_model
 from .loss import matching_loss, sequence_loss
 from .network import CREStereoPP, NetworkOutput, padded_size
 
@@ -19,6 +19,7 @@ __all__ = [
     "NetworkOutput",
     "Prediction",
     "StereoPredictor",
+    "TensorPrediction",
     "load_model",
     "matching_loss",
     "padded_size",

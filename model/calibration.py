@@ -12,6 +12,7 @@ by a non-decreasing piecewise-linear function of U (fitted by `training.calibrat
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
+from itertools import pairwise
 from typing import Any
 
 import torch
@@ -34,9 +35,9 @@ class UncertaintyCalibration:
     def __post_init__(self) -> None:
         if len(self.knots) != len(self.probabilities) or len(self.knots) < 2:
             raise ValueError("a calibration needs at least two (knot, probability) points")
-        if any(b <= a for a, b in zip(self.knots, self.knots[1:])):
+        if any(b <= a for a, b in pairwise(self.knots)):
             raise ValueError("calibration knots must increase")
-        if any(b < a for a, b in zip(self.probabilities, self.probabilities[1:])):
+        if any(b < a for a, b in pairwise(self.probabilities)):
             raise ValueError("calibrated probabilities must not decrease")
 
     def apply(self, raw: Tensor) -> Tensor:
@@ -44,8 +45,8 @@ class UncertaintyCalibration:
         piecewise-linear map through the knots, constant beyond the first and last, written as a
         sum of one clamped ramp per segment (elementwise ops only, so it exports to ONNX)."""
         probability = torch.full_like(raw, self.probabilities[0])
-        segments = zip(self.knots, self.knots[1:], self.probabilities, self.probabilities[1:])
-        for x0, x1, p0, p1 in segments:
+        segments = zip(pairwise(self.knots), pairwise(self.probabilities), strict=True)
+        for (x0, x1), (p0, p1) in segments:
             probability = probability + (raw - x0).clamp(0.0, x1 - x0) * ((p1 - p0) / (x1 - x0))
         return probability
 

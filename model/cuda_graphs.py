@@ -114,7 +114,7 @@ class GraphedForward:
         self._lock = threading.Lock()
 
     def __call__(self, left: Tensor, right: Tensor, init: Tensor | None, iters: Iters, bf16: bool) -> Maps:
-        key = GraphKey(tuple(left.shape), init is not None, tuple(iters), bf16)  # type: ignore[arg-type]
+        key = GraphKey(tuple(left.shape), init is not None, (*iters,), bf16)
         with self._lock:
             graph = self._graph_for(key, left, right, init)
             if graph is None:

@@ -47,7 +47,8 @@ class FeatureExtractor(nn.Module):
         for m in self.modules():
             if isinstance(m, nn.Conv2d):
                 nn.init.kaiming_normal_(m.weight, mode="fan_out", nonlinearity="relu")
-                nn.init.zeros_(m.bias)
+                if m.bias is not None:
+                    nn.init.zeros_(m.bias)
 
     def forward(self, image: Tensor) -> Tensor:
         return self.head(self.stages(self.stem(image)))

@@ -6,7 +6,7 @@ import contextlib
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, Literal, NamedTuple
+from typing import Any, Literal, NamedTuple, overload
 
 import numpy as np
 import torch
@@ -28,11 +28,19 @@ Precision = Literal["fp32", "bf16"]
 
 
 class Prediction(NamedTuple):
-    """Disparity (positive, pixels of the left image) and uncertainty (in [0, 1]) maps, float32:
-    numpy HxW for a single image pair given as arrays, torch (B, H, W) for batched tensors."""
+    """Disparity (positive, pixels of the left image) and uncertainty (in [0, 1]) maps of a pair
+    given as arrays (``predict``, ``predict_batch``): float32 numpy HxW, on the host."""
 
-    disparity: np.ndarray | Tensor
-    uncertainty: np.ndarray | Tensor
+    disparity: np.ndarray
+    uncertainty: np.ndarray
+
+
+class TensorPrediction(NamedTuple):
+    """The maps of ``Prediction`` for pairs given as tensors (``predict``): float32 torch
+    (B, H, W) on the predictor's device."""
+
+    disparity: Tensor
+    uncertainty: Tensor
 
 
 def load_model(
@@ -181,7 +189,33 @@ class StereoPredictor:
             return (*self.config.iters[:2], iters)
         if len(iters) != 3:
             raise ValueError(f"iters must be an int or three counts (1/16, 1/8, 1/4), got {iters}")
-        return tuple(iters)  # type: ignore[return-value]
+        return (*iters,)  # a tuple also when given as a list
+
+    @overload
+    def predict(
+        self,
+        left: np.ndarray,
+        right: np.ndarray | Tensor,
+        *,
+        iters: Iterations = None,
+        init_disparity: np.ndarray | Tensor | None = None,
+        two_pass: bool = False,
+        scale: float = 1.0,
+        raw_uncertainty: bool = False,
+    ) -> Prediction: ...
+
+    @overload
+    def predict(
+        self,
+        left: Tensor,
+        right: np.ndarray | Tensor,
+        *,
+        iters: Iterations = None,
+        init_disparity: np.ndarray | Tensor | None = None,
+        two_pass: bool = False,
+        scale: float = 1.0,
+        raw_uncertainty: bool = False,
+    ) -> TensorPrediction: ...
 
     @torch.inference_mode()
     def predict(
@@ -194,7 +228,7 @@ class StereoPredictor:
         two_pass: bool = False,
         scale: float = 1.0,
         raw_uncertainty: bool = False,
-    ) -> Prediction:
+    ) -> Prediction | TensorPrediction:
         """Disparity and uncertainty of a rectified pair of any size (see ``as_image_batch``).
 
         init_disparity: warm start (e.g. the previous video frame's result), HxW array or
@@ -207,8 +241,8 @@ class StereoPredictor:
         raw_uncertainty: return the paper's U (in [0, 1], at most 0.5 after the first iteration)
             even when the weights carry a calibration; otherwise the uncertainty is the calibrated
             probability of an error above ``calibration.threshold_px`` where there is one.
-        Tensor input gives tensors on the predictor's device; array input numpy arrays, copied
-        from the device once.
+        A ``left`` array gives a ``Prediction`` (numpy arrays, copied from the device once); a
+        ``left`` tensor a ``TensorPrediction`` (tensors on the predictor's device).
         """
         disparity, uncertainty = self.maps(
             as_image_batch(left, self.device),
@@ -222,7 +256,7 @@ class StereoPredictor:
         )
         if isinstance(left, np.ndarray):
             return Prediction(*to_host(disparity[0], uncertainty[0]))
-        return Prediction(disparity, uncertainty)
+        return TensorPrediction(disparity, uncertainty)
 
     @torch.inference_mode()
     def predict_batch(

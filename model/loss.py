@@ -81,9 +81,9 @@ def matching_loss(
         shifted = F.pad(right_features[..., : w - k], (k, 0)) if k else right_features
         correlations.append((left_features * shifted).sum(1, keepdim=True))
     logits = torch.cat(correlations, dim=1) / math.sqrt(c)  # (B, K, h, w)
-    k = torch.arange(candidates, device=gt.device, dtype=gt.dtype).view(1, candidates, 1, 1)
-    logits = logits.masked_fill(xs - k < 0, float("-inf"))  # candidates left of the right map
-    weights = (1.0 - (k - target).abs()).clamp(min=0.0)  # two-hot: linear interpolation
+    shifts = torch.arange(candidates, device=gt.device, dtype=gt.dtype).view(1, candidates, 1, 1)
+    logits = logits.masked_fill(xs - shifts < 0, float("-inf"))  # candidates left of the right map
+    weights = (1.0 - (shifts - target).abs()).clamp(min=0.0)  # two-hot: linear interpolation
     log_probabilities = torch.log_softmax(logits, dim=1)
     per_pixel = -(weights * torch.where(weights > 0, log_probabilities, 0.0)).sum(1, keepdim=True)
     return torch.where(counted, per_pixel, 0.0).sum() / counted.sum().clamp(min=1)

@@ -80,7 +80,7 @@ class CREStereoPP(nn.Module):
         iters = iters or self.config.iters
         images = torch.cat((left, right), dim=0) * (2.0 / 255.0) - 1.0
         left_features, right_features = self.fem(images).chunk(2, dim=0)
-        pyramid = list(zip(feature_pyramid(left_features), feature_pyramid(right_features)))
+        pyramid = list(zip(feature_pyramid(left_features), feature_pyramid(right_features), strict=True))
 
         if init_disparity is None:
             first_stage = 0

@@ -29,11 +29,13 @@ class WideHorizontalConv(nn.Conv2d):
     the transposed map as a kx1 convolution; the result is the same up to float rounding."""
 
     def forward(self, x: Tensor) -> Tensor:
+        padding = self.padding
+        assert not isinstance(padding, str)  # always built with a (0, k // 2) tuple
         out = F.conv2d(
             x.transpose(2, 3),
             self.weight.transpose(2, 3),
             self.bias,
-            padding=(self.padding[1], self.padding[0]),
+            padding=(padding[1], padding[0]),
             groups=self.groups,
         )
         return out.transpose(2, 3)

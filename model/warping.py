@@ -96,8 +96,10 @@ class OffsetNet(nn.Module):
             nn.LeakyReLU(0.1, inplace=True),
             nn.Conv2d(hidden, groups * KERNEL_POINTS, 3, padding=1),
         )
-        nn.init.zeros_(self.layers[-1].weight)
-        nn.init.zeros_(self.layers[-1].bias)
+        head = self.layers[-1]
+        assert isinstance(head, nn.Conv2d) and head.bias is not None
+        nn.init.zeros_(head.weight)
+        nn.init.zeros_(head.bias)
 
     def forward(self, left: Tensor, coarse_warp: Tensor, disparity: Tensor) -> Tensor:
         raw = self.layers(torch.cat((left, coarse_warp, disparity), dim=1))
@@ -120,6 +122,7 @@ class ContentAwareWarp(nn.Module):
         super().__init__()
         self.offsets = OffsetNet(feature_dim, offset_hidden, groups, max_offset)
         conv = nn.Conv2d(feature_dim, feature_dim, 3)  # holds the default-initialised W and bias
+        assert conv.bias is not None
         self.weight = nn.Parameter(conv.weight.detach().clone())  # (C_out, C_in, 3, 3)
         self.bias = nn.Parameter(conv.bias.detach().clone())  # (C_out,)
 

@@ -13,13 +13,23 @@ import argparse
 import logging
 import math
 import os
+from typing import TypedDict
 
 import uvicorn
 
 from service.settings import Settings
 from service.worker import any_busy
 
-SERVER_LIMITS = {
+
+class ServerLimits(TypedDict):
+    """uvicorn.run's keywords for the server limits (typed, so that they are checked against it)."""
+
+    limit_concurrency: int
+    timeout_keep_alive: int
+    h11_max_incomplete_event_size: int
+
+
+SERVER_LIMITS: ServerLimits = {
     # Open connections plus running requests before uvicorn answers 503 itself: room for two full
     # model queues (2 x CRESTEREO_MAX_QUEUE) and the probes, far below what exhausts memory.
     "limit_concurrency": 128,

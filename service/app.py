@@ -10,7 +10,7 @@ from fastapi import FastAPI
 from model import load_model
 from service.errors import install_error_handlers
 from service.logs import configure_logging
-from service.middleware import RequestSizeLimitMiddleware, RequestContextMiddleware
+from service.middleware import RequestContextMiddleware, RequestSizeLimitMiddleware
 from service.routes import disparity, health, metrics, models, page
 from service.runtime import ModelLoader, ServiceRuntime
 from service.settings import Settings

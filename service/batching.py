@@ -27,7 +27,6 @@ import numpy as np
 
 from model import Iterations, ModelConfig, Prediction
 from model.calibration import UncertaintyCalibration
-
 from service.metrics import Metrics
 from service.scheduling import (
     BatchKey,
@@ -48,10 +47,14 @@ class Predictor(Protocol):
 
     name: str
     weights_sha256: str | None
-    num_parameters: int
-    config: ModelConfig
     calibration: UncertaintyCalibration | None
     training: dict[str, Any] | None
+
+    @property
+    def num_parameters(self) -> int: ...
+
+    @property
+    def config(self) -> ModelConfig: ...
 
     def predict_batch(self, lefts: Sequence[np.ndarray], rights: Sequence[np.ndarray], *,
                       iters: Iterations = None, two_pass: bool = False, scale: float = 1.0,

@@ -7,10 +7,6 @@ import io
 
 import numpy as np
 
-from stereo_data.formats import KITTI_SCALE, UNCERTAINTY_SCALE, encode_png, encode_png16
-from stereo_data.pointcloud import Calibration, encode_ply, point_cloud
-from stereo_data.visualize import preview, scale_range
-
 from service.batching import JobResult
 from service.images import ImageHeader
 from service.schemas import (
@@ -21,6 +17,9 @@ from service.schemas import (
     OutputFormat,
     Timings,
 )
+from stereo_data.formats import KITTI_SCALE, UNCERTAINTY_SCALE, encode_png, encode_png16
+from stereo_data.pointcloud import Calibration, encode_ply, point_cloud
+from stereo_data.visualize import preview, scale_range
 
 
 def render(options: DisparityOptions, result: JobResult, left: np.ndarray, weights: str,
@@ -85,7 +84,8 @@ def encode_array(values: np.ndarray) -> EncodedArray:
 
 def encode_npz(maps: dict[str, np.ndarray]) -> bytes:
     buffer = io.BytesIO()
-    np.savez(buffer, **maps)
+    # float maps only, so no pickling; naming the keyword also keeps `**maps` off it for mypy
+    np.savez(buffer, allow_pickle=False, **maps)
     return buffer.getvalue()
 
 

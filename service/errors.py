@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import uuid
+from collections.abc import Mapping
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
@@ -74,24 +75,28 @@ def batching_answer(exc: BatchingError, batcher: Batcher, model: str) -> ApiErro
 
 
 def error_response(status: int, code: str, message: str,
-                   headers: dict[str, str] | None = None) -> JSONResponse:
+                   headers: Mapping[str, str] | None = None) -> JSONResponse:
     body = ErrorResponse(error=ErrorDetail(code=code, message=message))
     return JSONResponse(body.model_dump(), status_code=status, headers=headers)
 
 
 def install_error_handlers(app: FastAPI, metrics: Metrics) -> None:
-    """Route every exception the app can raise to a JSON error body."""
+    """Route every exception the app can raise to a JSON error body (registered with FastAPI's
+    `exception_handler` decorator, which keeps each handler's own exception type)."""
 
+    @app.exception_handler(ApiError)
     async def api_error(_: Request, exc: ApiError) -> JSONResponse:
         if exc.reject_reason is not None:
             metrics.reject(exc.reject_reason)
         return error_response(exc.status, exc.code, exc.message, exc.headers)
 
+    @app.exception_handler(BatchingError)
     async def batching_error(request: Request, exc: BatchingError) -> JSONResponse:
         # Raised by `POST /disparity`, which set `request.state.model`, from the app's batcher.
         answer = batching_answer(exc, request.app.state.runtime.batcher, request.state.model)
         return await api_error(request, answer)
 
+    @app.exception_handler(RequestValidationError)
     async def validation_error(_: Request, exc: RequestValidationError) -> JSONResponse:
         metrics.reject("bad_input")
         problems = "; ".join(
@@ -99,17 +104,13 @@ def install_error_handlers(app: FastAPI, metrics: Metrics) -> None:
             for error in exc.errors())
         return error_response(422, "invalid_request", problems)
 
+    @app.exception_handler(StarletteHTTPException)
     async def http_error(_: Request, exc: StarletteHTTPException) -> JSONResponse:
         code = {404: "not_found", 405: "method_not_allowed"}.get(exc.status_code, "http_error")
         return error_response(exc.status_code, code, str(exc.detail), exc.headers)
 
+    @app.exception_handler(Exception)
     async def unexpected_error(_: Request, exc: Exception) -> JSONResponse:
         error_id = uuid.uuid4().hex[:12]
         logger.error("unhandled error", exc_info=exc, extra={"error_id": error_id})
         return error_response(500, "internal_error", f"internal error; logged as error id {error_id}")
-
-    app.add_exception_handler(ApiError, api_error)
-    app.add_exception_handler(BatchingError, batching_error)
-    app.add_exception_handler(RequestValidationError, validation_error)
-    app.add_exception_handler(StarletteHTTPException, http_error)
-    app.add_exception_handler(Exception, unexpected_error)

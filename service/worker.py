@@ -17,7 +17,6 @@ from collections.abc import Callable
 from concurrent.futures import Executor, Future
 from typing import Any
 
-
 _WORKERS: weakref.WeakSet[DaemonWorker] = weakref.WeakSet()
 
 

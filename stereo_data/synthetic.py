@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from functools import reduce
 
 import torch
 import torch.nn.functional as F
@@ -85,12 +86,12 @@ class SceneConfig:
     photometric: PhotometricConfig | None = field(default_factory=PhotometricConfig)
 
     def __post_init__(self) -> None:
-        if self.max_disparity is None:
-            object.__setattr__(self, "max_disparity", 192.0 * self.width / 512.0)
+        max_disparity = 192.0 * self.width / 512.0 if self.max_disparity is None else self.max_disparity
+        object.__setattr__(self, "max_disparity", max_disparity)
         if self.height < 1 or self.width < 1:
             raise ValueError(f"image size must be positive, got {self.height}x{self.width}")
-        if not 0 < self.max_disparity:
-            raise ValueError(f"max_disparity must be positive, got {self.max_disparity}")
+        if not 0 < max_disparity:
+            raise ValueError(f"max_disparity must be positive, got {max_disparity}")
         if not 0 <= self.max_slope < 1:
             raise ValueError("max_slope must be in [0, 1): the right view needs 1 - a > 0")
         if not 1 <= self.min_surfaces <= self.surfaces:
@@ -242,6 +243,7 @@ class SceneGenerator:
 
     def _sample_scene(self, batch_size: int, draw: _Draw) -> Scene:
         cfg = self.config
+        assert cfg.max_disparity is not None  # __post_init__ resolved it
         height, width, max_disparity = cfg.height, cfg.width, float(cfg.max_disparity)
         shape = (batch_size, cfg.surfaces + 1)  # surface 0 is the background
 
@@ -395,7 +397,7 @@ def _nearest_surface(
     """
     surfaces = scene.sides.shape[1]
     chunk = math.ceil(surfaces / math.ceil(surfaces / _SURFACES_PER_PASS))
-    nearest = index = x_nearest = None
+    best: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None  # disparity, index, left x
     for first in range(0, surfaces, chunk):
         part = scene.surfaces(slice(first, first + chunk))
         x_left = x if view == "left" else _seen_from_right(part, x, y)
@@ -403,14 +405,18 @@ def _nearest_surface(
         disparity = torch.where(_covers(part, x_left, y), a * x_left + (b * y + c), -math.inf)
         part_nearest, part_index = disparity.max(dim=1, keepdim=True)
         part_x = torch.gather(x_left.expand_as(disparity), 1, part_index)
-        if nearest is None:
-            nearest, index, x_nearest = part_nearest, part_index + first, part_x
+        if best is None:
+            best = part_nearest, part_index + first, part_x
         else:
+            nearest, index, x_nearest = best
             nearer = part_nearest > nearest
-            nearest = torch.where(nearer, part_nearest, nearest)
-            index = torch.where(nearer, part_index + first, index)
-            x_nearest = torch.where(nearer, part_x, x_nearest)
-    return nearest, index, x_nearest
+            best = (
+                torch.where(nearer, part_nearest, nearest),
+                torch.where(nearer, part_index + first, index),
+                torch.where(nearer, part_x, x_nearest),
+            )
+    assert best is not None  # every scene has a surface: the background
+    return best
 
 
 def _covers(scene: Scene, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
@@ -636,9 +642,9 @@ def _gaussian_blur(image: torch.Tensor, sigma: torch.Tensor, radius: int = 3) ->
     Written as shifted sums (no convolution call) so that it is deterministic on every device."""
     offsets = torch.arange(-radius, radius + 1, device=image.device, dtype=image.dtype)
     weights = torch.exp(-offsets.square() / (2 * sigma[..., None].clamp_min(1e-3).square()))
-    weights = (weights / weights.sum(-1, keepdim=True)).unbind(-1)  # taps x (B, 1, 1, 1)
+    taps = (weights / weights.sum(-1, keepdim=True)).unbind(-1)  # taps x (B, 1, 1, 1)
     height, width = image.shape[-2:]
     padded = F.pad(image, (radius, radius, 0, 0), mode="replicate")
-    image = sum(w * padded[..., :, k : k + width] for k, w in enumerate(weights))
+    image = reduce(torch.add, (w * padded[..., :, k : k + width] for k, w in enumerate(taps)))
     padded = F.pad(image, (0, 0, radius, radius), mode="replicate")
-    return sum(w * padded[..., k : k + height, :] for k, w in enumerate(weights))
+    return reduce(torch.add, (w * padded[..., k : k + height, :] for k, w in enumerate(taps)))

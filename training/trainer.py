@@ -86,9 +86,10 @@ class Trainer:
         init_weights: Path | None,
     ) -> None:
         self.config, self.context, self.device = config, context, device
-        source = read_weights(resume or init_weights) if (resume or init_weights) else None
+        source_path = resume or init_weights
+        source = read_weights(source_path) if source_path is not None else None
         if source is not None and source.get("model_name", config.model) != config.model:
-            raise ValueError(f"{resume or init_weights} holds {source['model_name']!r} weights, not {config.model!r}")
+            raise ValueError(f"{source_path} holds {source['model_name']!r} weights, not {config.model!r}")
         self.model_config = model_config_of(source, config.model) if source else ModelConfig.preset(config.model)
         torch.manual_seed(config.seed)
         self.network = CREStereoPP(self.model_config).to(device)
@@ -106,19 +107,19 @@ class Trainer:
         self.start_step = 0
         if source is not None:
             load_state(self.network, source)
-        if resume is not None:
-            self.optimizer.load_state_dict(source["optimizer"])
-            self.scheduler.load_state_dict(source["scheduler"])
-            follow_config(self.optimizer, self.scheduler, config)
-            self.start_step = int(source["step"])
-            restore_rng_state(source["rng"])
+            if resume is not None:  # source is the checkpoint resumed
+                self.optimizer.load_state_dict(source["optimizer"])
+                self.scheduler.load_state_dict(source["scheduler"])
+                follow_config(self.optimizer, self.scheduler, config)
+                self.start_step = int(source["step"])
+                restore_rng_state(source["rng"])
         if self.start_step >= config.max_steps:
             raise ValueError(f"nothing to do: the run is at step {self.start_step} and max_steps is {config.max_steps}")
 
         self.pairs_per_step = config.batch_size * context.world_size
         self.prior_minutes = self.history.total_minutes
         self.record = RunRecord(
-            started=dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
+            started=dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
             origin="resume" if resume else "init-weights" if init_weights else "scratch",
             model=config.model,
             device=torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
@@ -278,6 +279,8 @@ def end_point_error(disparity: torch.Tensor, batch: TrainingBatch) -> torch.Tens
 
 def validate(network: CREStereoPP, config: TrainConfig, device: torch.device) -> dict[str, float]:
     """Mean EPE, bad-1/2/3 and D1-all of `network` on config.val_data; leaves it in train mode."""
+    if config.val_data is None:
+        raise ValueError("validation needs config.val_data")
     predictor = StereoPredictor(network, config.model, None, device)
     report = evaluate(open_dataset(config.val_data), predictor, dataset_name=config.val_data, progress=False)
     network.train()
@@ -298,8 +301,8 @@ def draw_curves(out_dir: Path) -> None:
     validation = read_csv(out_dir / "validation.csv")
     if validation:
         minutes = [float(r["minutes"]) for r in validation]
-        series = {
+        validation_series = {
             name: (minutes, [float(r[column]) for r in validation])
             for name, column in (("dev bad-2 %", "bad2"), ("dev EPE px", "epe"))
         }
-        plot_curves(series, out_dir / "validation_curve.png", "cumulative training minutes", "dev metric")
+        plot_curves(validation_series, out_dir / "validation_curve.png", "cumulative training minutes", "dev metric")

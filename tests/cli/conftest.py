@@ -6,9 +6,9 @@ import cv2
 import numpy as np
 import pytest
 
+from shared_data import STEREO_DEV
 from stereo_data.formats import write_pfm
 
-from shared_data import STEREO_DEV
 SMALL_STEREO_DEV_PAIR = "middlebury2001_tsukuba"  # 384x288, the smallest pair: keeps CPU tests fast
 
 

@@ -8,9 +8,9 @@ import pytest
 
 from evaluation.evaluate import SGBM, evaluate
 from evaluation.visualize import PANEL_WIDTH
-from stereo_data.visualize import colorize
 from model import Prediction
 from stereo_data.readers import StereoSample
+from stereo_data.visualize import colorize
 
 
 class OffsetPredictor:

@@ -7,8 +7,8 @@ import warnings
 import numpy as np
 import pytest
 import torch
-from fake_accelerator import replay_eagerly
 
+from fake_accelerator import replay_eagerly
 from model import load_model
 from model.cuda_graphs import GraphedForward, GraphKey, capture_cuda_graph
 

@@ -4,9 +4,9 @@ the CPU with a predictor and a trainer on the data-less "meta" device (fake_acce
 import numpy as np
 import pytest
 import torch
-from fake_accelerator import DEVICE, DeviceTransfers, replay_eagerly
 
 from evaluation.evaluate import evaluate
+from fake_accelerator import DEVICE, DeviceTransfers, replay_eagerly
 from model import CREStereoPP, ModelConfig, StereoPredictor
 from model.cuda_graphs import GraphedForward
 from stereo_data.readers import StereoSample

@@ -103,7 +103,7 @@ def test_missing_weights_warn_and_give_the_same_random_network_in_every_process(
     assert first.weights_sha256 is None
     with pytest.warns(RuntimeWarning):
         second = load_model("lite")
-    for a, b in zip(first.network.state_dict().values(), second.network.state_dict().values()):
+    for a, b in zip(first.network.state_dict().values(), second.network.state_dict().values(), strict=True):
         assert torch.equal(a, b)
 
 
@@ -158,7 +158,7 @@ def test_a_scale_runs_the_network_on_the_resized_pair_and_answers_in_input_pixel
 
 def test_a_batch_of_pairs_of_different_sizes_equals_each_pair_alone_as_host_arrays(lite):
     pairs = [random_pair(64, 96, seed=1), random_pair(50, 90, seed=2), random_pair(60, 70, seed=3)]
-    batch = lite.predict_batch([l for l, _ in pairs], [r for _, r in pairs], iters=(1, 1, 2))
+    batch = lite.predict_batch([left for left, _ in pairs], [right for _, right in pairs], iters=(1, 1, 2))
     for (left, right), result in zip(pairs, batch, strict=True):
         alone = lite.predict(left, right, iters=(1, 1, 2))
         assert isinstance(result.disparity, np.ndarray) and result.disparity.shape == left.shape[:2]

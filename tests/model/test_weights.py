@@ -23,7 +23,7 @@ def test_a_written_file_reads_back_and_leaves_no_temporary_file(tmp_path):
     assert payload["step"] == 3 and [p.name for p in path.parent.iterdir()] == ["w.pt"]
     rebuilt = network_from_weights(payload, "lite")
     assert rebuilt.config == network.config
-    for a, b in zip(rebuilt.state_dict().values(), network.state_dict().values()):
+    for a, b in zip(rebuilt.state_dict().values(), network.state_dict().values(), strict=True):
         assert torch.equal(a, b)
 
 

@@ -13,7 +13,6 @@ import httpx
 import numpy as np
 import pytest
 
-from stereo_data.formats import read_image, read_pfm
 from service_helpers import (
     STEREO_DEV,
     Server,
@@ -23,6 +22,7 @@ from service_helpers import (
     run_uvicorn,
     stereo_pair,
 )
+from stereo_data.formats import read_image, read_pfm
 
 REAL_PAIR = STEREO_DEV / "middlebury2003_teddy"
 SCALE = 4  # the real pair is downscaled by this factor to keep the test fast on a small CPU

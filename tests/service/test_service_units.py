@@ -13,10 +13,10 @@ from pydantic import ValidationError
 
 from service.cpu import cgroup_cpu_quota, usable_cpus
 from service.encoding import depth_from_disparity, encode_preview
-from stereo_data.visualize import BAR_HEIGHT, scale_range
 from service.images import ImageError, decode_rgb, read_header
 from service.settings import Settings
 from service_helpers import REPO, encode, stereo_pair
+from stereo_data.visualize import BAR_HEIGHT, scale_range
 
 # --- settings ----------------------------------------------------------------------------------
 

@@ -8,8 +8,8 @@ import cv2
 import numpy as np
 import pytest
 
-from stereo_data.formats import FormatError, write_kitti_disparity, write_pfm
 from shared_data import STEREO_DEV
+from stereo_data.formats import FormatError, write_kitti_disparity, write_pfm
 from stereo_data.readers import LAYOUTS, StereoSample, open_dataset
 
 HEIGHT, WIDTH = 6, 10

@@ -3,11 +3,11 @@ Their speed is a CUDA matter (bench/gpu_check.py measures it)."""
 
 import pytest
 import torch
-from training_helpers import tiny
 
 from training.config import TrainConfig
 from training.distributed import DistributedContext
 from training.trainer import Trainer, is_on, train
+from training_helpers import tiny
 
 CPU = torch.device("cpu")
 ONE_PROCESS = DistributedContext(rank=0, world_size=1, local_rank=0)

@@ -11,8 +11,8 @@ import training.data
 import training.trainer
 from cli.main import main
 from model import load_model
-from stereo_data.readers import StereoSample
 from model.weights import read_weights
+from stereo_data.readers import StereoSample
 from training.config import DataSource, TrainConfig
 from training.records import read_csv
 from training.trainer import train

@@ -10,14 +10,11 @@ import importlib.util
 import json
 import re
 from pathlib import Path
-from typing import Any
 
 import cv2
 import httpx
 import numpy as np
 import pytest
-
-expect = pytest.importorskip("playwright.sync_api", reason="the playwright package is missing (pip install -e '.[test]')").expect
 
 from service.routes.page import STATIC_DIR
 from service.schemas import OutputFormat
@@ -25,6 +22,7 @@ from service_helpers import Server
 from stereo_data.visualize import DISPARITY_COLORMAP, colorize, robust_range
 from web_helpers import WebPage
 
+expect = pytest.importorskip("playwright.sync_api", reason="the playwright package is missing (pip install -e '.[test]')").expect
 EXAMPLE = "shapes-192x128"  # the smallest bundled pair: lite computes it in a fraction of a second
 EXAMPLE_DIR = STATIC_DIR / "examples" / EXAMPLE
 WIDTH, HEIGHT = 192, 128

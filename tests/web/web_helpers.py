@@ -54,7 +54,7 @@ class WebPage:
 
 
 @pytest.fixture
-def web(browser: Any, default_server: Server) -> Iterator[WebPage]:
+def web(browser: Any, default_server: Server) -> Iterator[WebPage]:  # noqa: F811  (the fixture, by name)
     """`/` loaded (models listed, example pairs listed) in a new context that accepts downloads."""
     context = browser.new_context(accept_downloads=True, viewport={"width": 1280, "height": 900})
     page = context.new_page()
