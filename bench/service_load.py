@@ -59,8 +59,10 @@ def stereo_pair_files(height: int, width: int, shift: int = 8) -> dict[str, tupl
     coarse = rng.integers(0, 256, (height // 8 + 1, (width + shift) // 8 + 1, 3), dtype=np.uint8)
     texture = cv2.resize(coarse, (width + shift, height), interpolation=cv2.INTER_CUBIC)
     left, right = texture[:, shift:], texture[:, :width]
-    return {name: (f"{name}.png", cv2.imencode(".png", image)[1].tobytes())
-            for name, image in (("left", left), ("right", right))}
+    return {
+        name: (f"{name}.png", cv2.imencode(".png", image)[1].tobytes())
+        for name, image in (("left", left), ("right", right))
+    }
 
 
 def free_port() -> int:
@@ -71,14 +73,34 @@ def free_port() -> int:
 
 def start_server(max_batch_size: int, threads: int, log_dir: Path) -> tuple[subprocess.Popen, str]:
     port = free_port()
-    env = {**os.environ, "CRESTEREO_MODELS": "lite", "CRESTEREO_MAX_BATCH_SIZE": str(max_batch_size),
-           "CRESTEREO_THREADS": str(threads), "CRESTEREO_LOG_LEVEL": "warning",
-           "PYTHONWARNINGS": "ignore::RuntimeWarning"}
+    env = {
+        **os.environ,
+        "CRESTEREO_MODELS": "lite",
+        "CRESTEREO_MAX_BATCH_SIZE": str(max_batch_size),
+        "CRESTEREO_THREADS": str(threads),
+        "CRESTEREO_LOG_LEVEL": "warning",
+        "PYTHONWARNINGS": "ignore::RuntimeWarning",
+    }
     log = (log_dir / f"uvicorn-batch{max_batch_size}.log").open("wb")
     process = subprocess.Popen(
-        [sys.executable, "-m", "uvicorn", "service.app:create_app", "--factory",
-         "--host", "127.0.0.1", "--port", str(port), "--log-level", "warning"],
-        cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT)
+        [
+            sys.executable,
+            "-m",
+            "uvicorn",
+            "service.app:create_app",
+            "--factory",
+            "--host",
+            "127.0.0.1",
+            "--port",
+            str(port),
+            "--log-level",
+            "warning",
+        ],
+        cwd=REPO,
+        env=env,
+        stdout=log,
+        stderr=subprocess.STDOUT,
+    )
     base_url = f"http://127.0.0.1:{port}"
     deadline = time.monotonic() + 120
     while True:
@@ -93,11 +115,11 @@ def start_server(max_batch_size: int, threads: int, log_dir: Path) -> tuple[subp
         time.sleep(0.2)
 
 
-def run_cell(base_url: str, files: dict, concurrency: int,
-             requests: int) -> tuple[float, list[float], list[int]]:
+def run_cell(base_url: str, files: dict, concurrency: int, requests: int) -> tuple[float, list[float], list[int]]:
     """Send `requests` requests from `concurrency` threads; wall seconds, latencies, batch sizes."""
     limits = httpx.Limits(max_connections=concurrency)
     with httpx.Client(base_url=base_url, timeout=600, limits=limits) as client:
+
         def one(_: int) -> tuple[float, int]:
             started = time.perf_counter()
             response = client.post("/disparity", params={"format": "npz"}, files=files)
@@ -121,8 +143,7 @@ def measure(batching: bool, args: argparse.Namespace, log_dir: Path) -> list[Cel
             for concurrency in args.concurrency:
                 requests = max(args.requests, 2 * concurrency)
                 seconds, latencies, batches = run_cell(base_url, files, concurrency, requests)
-                cell = Cell(batching, (height, width), concurrency, requests, seconds, latencies,
-                            batches)
+                cell = Cell(batching, (height, width), concurrency, requests, seconds, latencies, batches)
                 cells.append(cell)
                 print(row(cell), flush=True)
     finally:
@@ -133,10 +154,12 @@ def measure(batching: bool, args: argparse.Namespace, log_dir: Path) -> list[Cel
 
 def row(cell: Cell) -> str:
     height, width = cell.size
-    return (f"| {'on' if cell.batching else 'off'} | {height}x{width} | {cell.concurrency} | "
-            f"{cell.requests} | {cell.throughput:.2f} | {cell.percentile(50):.0f} | "
-            f"{cell.percentile(95):.0f} | {cell.percentile(99):.0f} | "
-            f"{statistics.mean(cell.batch_sizes):.2f} |")
+    return (
+        f"| {'on' if cell.batching else 'off'} | {height}x{width} | {cell.concurrency} | "
+        f"{cell.requests} | {cell.throughput:.2f} | {cell.percentile(50):.0f} | "
+        f"{cell.percentile(95):.0f} | {cell.percentile(99):.0f} | "
+        f"{statistics.mean(cell.batch_sizes):.2f} |"
+    )
 
 
 def parse_size(text: str) -> tuple[int, int]:
@@ -146,11 +169,11 @@ def parse_size(text: str) -> tuple[int, int]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--sizes", nargs="+", type=parse_size, default=[(256, 512), (384, 1248)],
-                        help="HEIGHTxWIDTH image sizes")
+    parser.add_argument(
+        "--sizes", nargs="+", type=parse_size, default=[(256, 512), (384, 1248)], help="HEIGHTxWIDTH image sizes"
+    )
     parser.add_argument("--concurrency", nargs="+", type=int, default=[1, 4, 16])
-    parser.add_argument("--requests", type=int, default=12,
-                        help="requests per cell (at least 2 x concurrency)")
+    parser.add_argument("--requests", type=int, default=12, help="requests per cell (at least 2 x concurrency)")
     parser.add_argument("--max-batch-size", type=int, default=8, help="with batching on")
     parser.add_argument("--threads", type=int, default=0, help="CRESTEREO_THREADS (0 = CPU quota)")
     args = parser.parse_args()
@@ -159,19 +182,26 @@ def main() -> None:
     print("| batching | size | concurrency | requests | req/s | p50 | p95 | p99 | mean batch |")
     print("|---|---|---|---|---|---|---|---|---|")
     with tempfile.TemporaryDirectory() as log_dir:
-        cells = {(c.batching, c.size, c.concurrency): c
-                 for batching in (True, False) for c in measure(batching, args, Path(log_dir))}
+        cells = {
+            (c.batching, c.size, c.concurrency): c
+            for batching in (True, False)
+            for c in measure(batching, args, Path(log_dir))
+        }
 
     key = (256, 512)
     if key in args.sizes and 16 in args.concurrency:
         gain = cells[True, key, 16].throughput / cells[False, key, 16].throughput
-        print(f"\n256x512, concurrency 16: batching throughput = {gain:.2f}x no batching "
-              f"(goal >= 1.3x: {'met' if gain >= 1.3 else 'NOT met'})")
+        print(
+            f"\n256x512, concurrency 16: batching throughput = {gain:.2f}x no batching "
+            f"(goal >= 1.3x: {'met' if gain >= 1.3 else 'NOT met'})"
+        )
     for size in args.sizes:
         if 1 in args.concurrency:
             ratio = cells[True, size, 1].percentile(50) / cells[False, size, 1].percentile(50)
-            print(f"{size[0]}x{size[1]}, concurrency 1: batching p50 = {ratio:.2f}x no batching "
-                  f"(goal <= 1.10x: {'met' if ratio <= 1.10 else 'NOT met'})")
+            print(
+                f"{size[0]}x{size[1]}, concurrency 1: batching p50 = {ratio:.2f}x no batching "
+                f"(goal <= 1.10x: {'met' if ratio <= 1.10 else 'NOT met'})"
+            )
 
 
 if __name__ == "__main__":

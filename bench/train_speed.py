@@ -101,7 +101,9 @@ def main() -> None:
 
     import torch
 
-    print(f"torch {torch.__version__}, CPU capability {torch.backends.cpu.get_cpu_capability()}, {os.cpu_count()} CPUs\n")
+    print(
+        f"torch {torch.__version__}, CPU capability {torch.backends.cpu.get_cpu_capability()}, {os.cpu_count()} CPUs\n"
+    )
     print("| row | setting | s/step | pairs/s | vs today |")
     print("|---|---|---|---|---|")
     today = None
@@ -114,7 +116,10 @@ def main() -> None:
         result = json.loads(subprocess.run(command, check=True, stdout=subprocess.PIPE, text=True, env=env).stdout)
         today = today or (result["pairs_per_s"] if name == "today" else None)
         ratio = f"{result['pairs_per_s'] / today:.2f}x" if today else "-"
-        print(f"| {name} | {row.description} | {result['step_s']:.3f} | {result['pairs_per_s']:.2f} | {ratio} |", flush=True)
+        print(
+            f"| {name} | {row.description} | {result['step_s']:.3f} | {result['pairs_per_s']:.2f} | {ratio} |",
+            flush=True,
+        )
 
 
 if __name__ == "__main__":

@@ -33,7 +33,11 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     onnx.add_argument("--width", type=int, help="input width in px of the ONNX model (any size)")
     onnx.add_argument("--batch", type=int, default=1, help="pairs per call of the ONNX model [1]")
     onnx.add_argument(
-        "--iters", type=int, nargs="+", metavar="N", help="ARM iterations baked into the graph: N or N16 N8 N4 [the model's]"
+        "--iters",
+        type=int,
+        nargs="+",
+        metavar="N",
+        help="ARM iterations baked into the graph: N or N16 N8 N4 [the model's]",
     )
     parser.set_defaults(run=run)
 

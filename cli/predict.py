@@ -55,12 +55,23 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("--color", type=Path, metavar="PNG", help="colour-mapped disparity PNG (folder mode: a folder)")
     parser.add_argument(
-        "--color-min", type=float, metavar="PX", help="disparity at the bottom of the colour scale [each map's 1st percentile]"
+        "--color-min",
+        type=float,
+        metavar="PX",
+        help="disparity at the bottom of the colour scale [each map's 1st percentile]",
     )
     parser.add_argument(
-        "--color-max", type=float, metavar="PX", help="disparity at the top of the colour scale [each map's 99th percentile]"
+        "--color-max",
+        type=float,
+        metavar="PX",
+        help="disparity at the top of the colour scale [each map's 99th percentile]",
     )
-    parser.add_argument("--ply", type=Path, metavar="PLY", help="binary PLY point cloud coloured by the left image (folder mode: a folder)")
+    parser.add_argument(
+        "--ply",
+        type=Path,
+        metavar="PLY",
+        help="binary PLY point cloud coloured by the left image (folder mode: a folder)",
+    )
     parser.add_argument("--focal-px", type=float, help="--ply: focal length in px (with --baseline-m: metric points)")
     parser.add_argument("--baseline-m", type=float, help="--ply: stereo baseline in metres")
     parser.add_argument("--cx", type=float, help="--ply: principal point x in px [the image centre]")

@@ -126,19 +126,46 @@ class StereoClient:
     """Synchronous client. `max_retries`: retries of a request refused with 503 `queue_full` or
     `loading`, each after the `Retry-After` the service sent (capped at `max_retry_wait_s`)."""
 
-    def __init__(self, base_url: str = "http://127.0.0.1:8000", *, api_key: str | None = None,
-                 timeout_s: float = 300.0, max_retries: int = 3, max_retry_wait_s: float = 30.0) -> None:
+    def __init__(
+        self,
+        base_url: str = "http://127.0.0.1:8000",
+        *,
+        api_key: str | None = None,
+        timeout_s: float = 300.0,
+        max_retries: int = 3,
+        max_retry_wait_s: float = 30.0,
+    ) -> None:
         headers = {"Authorization": f"Bearer {api_key}"} if api_key else {}
         self._http = httpx.Client(base_url=base_url, headers=headers, timeout=timeout_s)
         self._retries = _Retries(max_retries, max_retry_wait_s)
 
-    def disparity(self, left: Image, right: Image, *, model: str = "lite", iters: int | tuple[int, int, int] | None = None,
-                  scale: float | None = None, two_pass: bool = False, raw_uncertainty: bool = False,
-                  focal_px: float | None = None, baseline_m: float | None = None) -> DisparityResult:
+    def disparity(
+        self,
+        left: Image,
+        right: Image,
+        *,
+        model: str = "lite",
+        iters: int | tuple[int, int, int] | None = None,
+        scale: float | None = None,
+        two_pass: bool = False,
+        raw_uncertainty: bool = False,
+        focal_px: float | None = None,
+        baseline_m: float | None = None,
+    ) -> DisparityResult:
         """Disparity and uncertainty of a rectified pair (raises `ServiceError` on an error answer)."""
-        request = _request(left, right, dict(model=model, iters=iters, scale=scale, two_pass=two_pass,
-                                             raw_uncertainty=raw_uncertainty, focal_px=focal_px,
-                                             baseline_m=baseline_m))
+        request = _request(
+            left,
+            right,
+            dict(
+                model=model,
+                iters=iters,
+                scale=scale,
+                two_pass=two_pass,
+                raw_uncertainty=raw_uncertainty,
+                focal_px=focal_px,
+                baseline_m=baseline_m,
+            ),
+        )
         for attempt in range(self._retries.max_retries + 1):
             try:
                 return _result(self._http.post("/disparity", **request))
@@ -170,19 +197,45 @@ class StereoClient:
 class AsyncStereoClient:
     """`StereoClient` for asyncio: the same methods, awaited."""
 
-    def __init__(self, base_url: str = "http://127.0.0.1:8000", *, api_key: str | None = None,
-                 timeout_s: float = 300.0, max_retries: int = 3, max_retry_wait_s: float = 30.0) -> None:
+    def __init__(
+        self,
+        base_url: str = "http://127.0.0.1:8000",
+        *,
+        api_key: str | None = None,
+        timeout_s: float = 300.0,
+        max_retries: int = 3,
+        max_retry_wait_s: float = 30.0,
+    ) -> None:
         headers = {"Authorization": f"Bearer {api_key}"} if api_key else {}
         self._http = httpx.AsyncClient(base_url=base_url, headers=headers, timeout=timeout_s)
         self._retries = _Retries(max_retries, max_retry_wait_s)
 
-    async def disparity(self, left: Image, right: Image, *, model: str = "lite",
-                        iters: int | tuple[int, int, int] | None = None, scale: float | None = None,
-                        two_pass: bool = False, raw_uncertainty: bool = False, focal_px: float | None = None,
-                        baseline_m: float | None = None) -> DisparityResult:
-        request = _request(left, right, dict(model=model, iters=iters, scale=scale, two_pass=two_pass,
-                                             raw_uncertainty=raw_uncertainty, focal_px=focal_px,
-                                             baseline_m=baseline_m))
+    async def disparity(
+        self,
+        left: Image,
+        right: Image,
+        *,
+        model: str = "lite",
+        iters: int | tuple[int, int, int] | None = None,
+        scale: float | None = None,
+        two_pass: bool = False,
+        raw_uncertainty: bool = False,
+        focal_px: float | None = None,
+        baseline_m: float | None = None,
+    ) -> DisparityResult:
+        request = _request(
+            left,
+            right,
+            dict(
+                model=model,
+                iters=iters,
+                scale=scale,
+                two_pass=two_pass,
+                raw_uncertainty=raw_uncertainty,
+                focal_px=focal_px,
+                baseline_m=baseline_m,
+            ),
+        )
         for attempt in range(self._retries.max_retries + 1):
             try:
                 return _result(await self._http.post("/disparity", **request))

@@ -97,9 +97,7 @@ class EvaluationReport:
 
         def row(result: MethodResult) -> str:
             m = result.metrics
-            return (
-                f"{m.epe:>7.3f} {m.bad1:>7.2f} {m.bad2:>7.2f} {m.bad3:>7.2f} {m.d1_all:>8.2f} {result.seconds:>8.3f}"
-            )
+            return f"{m.epe:>7.3f} {m.bad1:>7.2f} {m.bad2:>7.2f} {m.bad3:>7.2f} {m.d1_all:>8.2f} {result.seconds:>8.3f}"
 
         return self._rows(header, row)
 
@@ -132,7 +130,9 @@ class EvaluationReport:
             for index, (predicted, observed, pixels) in enumerate(
                 zip(pooled.predicted, pooled.observed, pooled.pixels, strict=True)
             ):
-                lines.append(f"{index / bins:.1f}-{(index + 1) / bins:.1f}   {predicted:>9.3f} {observed:>9.3f} {pixels:>10}")
+                lines.append(
+                    f"{index / bins:.1f}-{(index + 1) / bins:.1f}   {predicted:>9.3f} {observed:>9.3f} {pixels:>10}"
+                )
             blocks.append("\n".join(lines))
         return "\n\n".join(blocks)
 

@@ -52,8 +52,6 @@ def fill_invalid_from_left(disparity: np.ndarray, valid: np.ndarray) -> np.ndarr
     return np.where(row_has_valid, filled, 0.0).astype(np.float32)
 
 
-
-
 def sgbm_disparity(left: np.ndarray, right: np.ndarray, max_disparity: float) -> tuple[np.ndarray, np.ndarray]:
     """Baseline disparity (float32 HxW, px, positive, no holes: invalid outputs filled from the
     left) of a rectified uint8 HxWx3 pair, and its left-right consistency error as an

@@ -39,9 +39,12 @@ class FeatureExtractor(nn.Module):
             nn.Conv2d(3, c1, 7, stride=2, padding=3), nn.InstanceNorm2d(c1), nn.ReLU(inplace=True)
         )
         self.stages = nn.Sequential(
-            ResidualBlock(c1, c1), ResidualBlock(c1, c1),
-            ResidualBlock(c1, c2, stride=2), ResidualBlock(c2, c2),
-            ResidualBlock(c2, c3), ResidualBlock(c3, c3),
+            ResidualBlock(c1, c1),
+            ResidualBlock(c1, c1),
+            ResidualBlock(c1, c2, stride=2),
+            ResidualBlock(c2, c2),
+            ResidualBlock(c2, c3),
+            ResidualBlock(c3, c3),
         )
         self.head = nn.Conv2d(c3, out_dim, 1)
         for m in self.modules():

@@ -42,9 +42,9 @@ def deformable_sample(feature: Tensor, x: Tensor, y: Tensor) -> Tensor:
     """
     b, c, height, width = feature.shape
     groups, points, h, w = x.shape[1:]
-    grid = torch.stack(
-        (x * (2.0 / max(width - 1, 1)) - 1.0, y * (2.0 / max(height - 1, 1)) - 1.0), dim=-1
-    ).view(b * groups, points * h, w, 2)
+    grid = torch.stack((x * (2.0 / max(width - 1, 1)) - 1.0, y * (2.0 / max(height - 1, 1)) - 1.0), dim=-1).view(
+        b * groups, points * h, w, 2
+    )
     sampled = F.grid_sample(
         feature.reshape(b * groups, c // groups, height, width),
         grid,
@@ -126,9 +126,7 @@ class ContentAwareWarp(nn.Module):
         self.weight = nn.Parameter(conv.weight.detach().clone())  # (C_out, C_in, 3, 3)
         self.bias = nn.Parameter(conv.bias.detach().clone())  # (C_out,)
 
-    def forward(
-        self, left: Tensor, right: Tensor, disparity: Tensor, uncertainty: Tensor | None
-    ) -> Tensor:
+    def forward(self, left: Tensor, right: Tensor, disparity: Tensor, uncertainty: Tensor | None) -> Tensor:
         """left, right: (B,C,h,w) features; disparity: (B,1,h,w) pixels; uncertainty: (B,1,h,w)
         in [0,1] or None (unscaled offsets). Returns the warped right feature (B,C,h,w)."""
         offsets = self.offsets(left, bilinear_warp(right, disparity), disparity)

@@ -46,14 +46,21 @@ uvicorn cancels whatever still runs this long after it (a client that never read
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(prog="python -m service", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        prog="python -m service", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--host", default=os.environ.get("UVICORN_HOST", "127.0.0.1"))
     parser.add_argument("--port", type=int, default=int(os.environ.get("UVICORN_PORT", "8000")))
     args = parser.parse_args(argv)
     shutdown_s = math.ceil(Settings.from_env().drain_timeout_s) + SHUTDOWN_MARGIN_S
-    uvicorn.run("service.app:create_app", factory=True, host=args.host, port=args.port,
-                timeout_graceful_shutdown=shutdown_s, **SERVER_LIMITS)
+    uvicorn.run(
+        "service.app:create_app",
+        factory=True,
+        host=args.host,
+        port=args.port,
+        timeout_graceful_shutdown=shutdown_s,
+        **SERVER_LIMITS,
+    )
     # Only reached where SIGTERM does not end the process (uvicorn re-raises it; PID 1 ignores
     # it). A batch abandoned at the drain timeout may still compute: leave without running
     # torch's static destructors under it, which would abort the process.

@@ -46,8 +46,7 @@ def create_app(settings: Settings | None = None, loader: ModelLoader = load_mode
     )
     app.state.runtime = runtime
     install_error_handlers(app, runtime.metrics)
-    app.add_middleware(RequestSizeLimitMiddleware, max_bytes=settings.max_body_bytes,
-                       metrics=runtime.metrics)
+    app.add_middleware(RequestSizeLimitMiddleware, max_bytes=settings.max_body_bytes, metrics=runtime.metrics)
     app.add_middleware(RequestContextMiddleware, metrics=runtime.metrics)
     app.include_router(disparity.router)
     app.include_router(health.router)

@@ -56,9 +56,16 @@ class Predictor(Protocol):
     @property
     def config(self) -> ModelConfig: ...
 
-    def predict_batch(self, lefts: Sequence[np.ndarray], rights: Sequence[np.ndarray], *,
-                      iters: Iterations = None, two_pass: bool = False, scale: float = 1.0,
-                      raw_uncertainty: bool = False) -> list[Prediction]: ...
+    def predict_batch(
+        self,
+        lefts: Sequence[np.ndarray],
+        rights: Sequence[np.ndarray],
+        *,
+        iters: Iterations = None,
+        two_pass: bool = False,
+        scale: float = 1.0,
+        raw_uncertainty: bool = False,
+    ) -> list[Prediction]: ...
 
 
 class BatchingError(Exception):
@@ -108,8 +115,7 @@ class _Job:
     request_id: str | None
     enqueued_at: float = field(default_factory=time.monotonic)
     dispatched: bool = False  # its batch has started; its admission no longer counts it
-    future: asyncio.Future[JobResult] = field(
-        default_factory=lambda: asyncio.get_running_loop().create_future())
+    future: asyncio.Future[JobResult] = field(default_factory=lambda: asyncio.get_running_loop().create_future())
 
 
 class Admission:
@@ -120,13 +126,19 @@ class Admission:
         self.model = model
         self.job: _Job | None = None
 
-    async def run(self, left: np.ndarray, right: np.ndarray, *, knobs: Knobs,
-                  deadline: float | None, is_disconnected: Callable[[], Awaitable[bool]],
-                  request_id: str | None = None) -> JobResult:
+    async def run(
+        self,
+        left: np.ndarray,
+        right: np.ndarray,
+        *,
+        knobs: Knobs,
+        deadline: float | None,
+        is_disconnected: Callable[[], Awaitable[bool]],
+        request_id: str | None = None,
+    ) -> JobResult:
         """Queue a decoded pair (uint8 HxWx3 RGB) and wait for its result."""
         height, width = left.shape[:2]
-        job = _Job(batch_key(self.model, knobs, height, width), left, right, deadline,
-                   is_disconnected, request_id)
+        job = _Job(batch_key(self.model, knobs, height, width), left, right, deadline, is_disconnected, request_id)
         if deadline is not None and deadline <= job.enqueued_at:
             raise DeadlineExceeded("deadline passed before the request was queued")
         self.job = job
@@ -141,8 +153,9 @@ class Admission:
 class Batcher:
     """Per-model queues, the batch scheduler and the worker thread that computes batches."""
 
-    def __init__(self, settings: Settings, predictors: Mapping[str, Predictor],
-                 executor: Executor, metrics: Metrics) -> None:
+    def __init__(
+        self, settings: Settings, predictors: Mapping[str, Predictor], executor: Executor, metrics: Metrics
+    ) -> None:
         self._settings = settings
         self._predictors = predictors
         self._executor = executor
@@ -151,8 +164,7 @@ class Batcher:
         self._pending: dict[str, int] = dict.fromkeys(predictors, 0)
         self._running: list[_Job] = []
         self._running_since = 0.0
-        self._limits = BatchLimits(settings.max_batch_size, settings.max_batch_pixels,
-                                   settings.max_wait_ms / 1000)
+        self._limits = BatchLimits(settings.max_batch_size, settings.max_batch_pixels, settings.max_wait_ms / 1000)
         self._times = ComputeTimes()
         self._changed = asyncio.Event()
         self._draining = False
@@ -220,8 +232,9 @@ class Batcher:
         return max(1, math.ceil(self._pending[model] + 1 if ahead is None else ahead))
 
     @asynccontextmanager
-    async def admit(self, model: str, pixels: int | None = None,
-                    deadline: float | None = None) -> AsyncIterator[Admission]:
+    async def admit(
+        self, model: str, pixels: int | None = None, deadline: float | None = None
+    ) -> AsyncIterator[Admission]:
         """Reserve a queue place for `model` before the request is decoded (raises `QueueFull`,
         `Draining`, or `DeadlineExceeded` when the work ahead plus this request's `pixels`
         cannot finish by `deadline`); the place is given back when the batch starts or the
@@ -234,8 +247,9 @@ class Batcher:
         if deadline is not None and pixels is not None and times is not None:
             finish = time.monotonic() + self._work_ahead_s(model, times) + times.seconds(pixels)
             if finish > deadline:
-                raise DeadlineExceeded(f"deadline cannot be met: about {finish - time.monotonic():.1f} s "
-                                       "of compute would be needed")
+                raise DeadlineExceeded(
+                    f"deadline cannot be met: about {finish - time.monotonic():.1f} s of compute would be needed"
+                )
         admission = Admission(self, model)
         self._set_pending(model, +1)
         try:
@@ -312,13 +326,25 @@ class Batcher:
         self._running, self._running_since = batch, started
         try:
             outputs = await asyncio.get_running_loop().run_in_executor(
-                self._executor, compute_batch, self._predictors[key.model], key,
-                [job.left for job in batch], [job.right for job in batch])
+                self._executor,
+                compute_batch,
+                self._predictors[key.model],
+                key,
+                [job.left for job in batch],
+                [job.right for job in batch],
+            )
         except Exception as exc:  # any failure of the network fails this batch only
             error_id = uuid.uuid4().hex[:12]
-            logger.error("inference failed", exc_info=exc, extra={
-                "error_id": error_id, "model": key.model, "batch_size": len(batch),
-                "request_ids": [job.request_id for job in batch]})
+            logger.error(
+                "inference failed",
+                exc_info=exc,
+                extra={
+                    "error_id": error_id,
+                    "model": key.model,
+                    "batch_size": len(batch),
+                    "request_ids": [job.request_id for job in batch],
+                },
+            )
             self._fail(batch, InferenceFailed(error_id))
             return
         finally:
@@ -329,8 +355,7 @@ class Batcher:
         self._times.record(key.model, key.pixels, len(batch), compute)
         for job, (disparity, uncertainty) in zip(batch, outputs, strict=True):
             if not job.future.done():
-                job.future.set_result(JobResult(disparity, uncertainty, len(batch),
-                                                started - job.enqueued_at, compute))
+                job.future.set_result(JobResult(disparity, uncertainty, len(batch), started - job.enqueued_at, compute))
 
     def _set_pending(self, model: str, delta: int) -> None:
         self._pending[model] += delta
@@ -343,11 +368,18 @@ class Batcher:
                 job.future.set_exception(error)
 
 
-def compute_batch(predictor: Predictor, key: BatchKey, lefts: Sequence[np.ndarray],
-                  rights: Sequence[np.ndarray]) -> list[tuple[np.ndarray, np.ndarray]]:
+def compute_batch(
+    predictor: Predictor, key: BatchKey, lefts: Sequence[np.ndarray], rights: Sequence[np.ndarray]
+) -> list[tuple[np.ndarray, np.ndarray]]:
     """Run one batch on the calling (worker) thread: `StereoPredictor.predict_batch`, which pads
     every pair to the batch shape the way the network pads one and returns host arrays."""
     knobs = key.knobs
-    predictions = predictor.predict_batch(lefts, rights, two_pass=knobs.two_pass, iters=knobs.iters,
-                                          scale=knobs.scale, raw_uncertainty=knobs.raw_uncertainty)
+    predictions = predictor.predict_batch(
+        lefts,
+        rights,
+        two_pass=knobs.two_pass,
+        iters=knobs.iters,
+        scale=knobs.scale,
+        raw_uncertainty=knobs.raw_uncertainty,
+    )
     return [(p.disparity, p.uncertainty) for p in predictions]

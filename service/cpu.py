@@ -44,5 +44,4 @@ def configure_torch_threads(intra_op: int) -> None:
         try:
             torch.set_num_interop_threads(1)
         except RuntimeError:
-            logger.warning("torch inter-op threads already in use; left at %d",
-                           torch.get_num_interop_threads())
+            logger.warning("torch inter-op threads already in use; left at %d", torch.get_num_interop_threads())

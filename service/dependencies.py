@@ -24,9 +24,7 @@ def get_settings(runtime: Annotated[ServiceRuntime, Depends(get_runtime)]) -> Se
 RuntimeDep = Annotated[ServiceRuntime, Depends(get_runtime)]
 SettingsDep = Annotated[Settings, Depends(get_settings)]
 
-_bearer = HTTPBearer(
-    auto_error=False,
-    description="Required only when the server sets `CRESTEREO_API_KEY`.")
+_bearer = HTTPBearer(auto_error=False, description="Required only when the server sets `CRESTEREO_API_KEY`.")
 
 
 def require_api_key(
@@ -38,5 +36,4 @@ def require_api_key(
         return
     given = credentials.credentials.encode() if credentials is not None else b""
     if not hmac.compare_digest(given, settings.api_key.encode()):
-        raise ApiError(401, "unauthorized", "missing or wrong bearer token",
-                       headers={"WWW-Authenticate": "Bearer"})
+        raise ApiError(401, "unauthorized", "missing or wrong bearer token", headers={"WWW-Authenticate": "Bearer"})

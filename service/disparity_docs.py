@@ -30,15 +30,19 @@ _RESULT_HEADERS = {
 _RETRY_AFTER = {"Retry-After": _header("Seconds to wait before retrying.", "integer")}
 
 
-def _error_doc(description: str, examples: dict[str, str],
-               headers: dict[str, Any] | None = None) -> dict[str, Any]:
+def _error_doc(description: str, examples: dict[str, str], headers: dict[str, Any] | None = None) -> dict[str, Any]:
     return {
         "model": ErrorResponse,
         "description": description,
         "headers": {**_REQUEST_ID, **(headers or {})},
-        "content": {"application/json": {"examples": {
-            code: {"summary": message, "value": {"error": {"code": code, "message": message}}}
-            for code, message in examples.items()}}},
+        "content": {
+            "application/json": {
+                "examples": {
+                    code: {"summary": message, "value": {"error": {"code": code, "message": message}}}
+                    for code, message in examples.items()
+                }
+            }
+        },
     }
 
 
@@ -47,45 +51,71 @@ RESPONSES: dict[int | str, dict[str, Any]] = {
         "description": "The maps, in the requested `format` (`application/json` for json, "
         "`application/x-npz` for npz, `image/png` for the PNG formats, `application/x-ply` for ply).",
         "headers": _RESULT_HEADERS,
-        "content": {**_binary("application/x-npz"), **_binary("image/png"),
-                    **_binary("application/x-ply")},
+        "content": {**_binary("application/x-npz"), **_binary("image/png"), **_binary("application/x-ply")},
     },
-    401: _error_doc("`CRESTEREO_API_KEY` is set and the bearer token is missing or wrong.",
-                    {"unauthorized": "missing or wrong bearer token"},
-                    {"WWW-Authenticate": _header("`Bearer`.")}),
-    413: _error_doc("The body or an image is larger than the server's limits.", {
-        "body_too_large": "request body larger than 33554432 bytes",
-        "image_too_large": "left image has 8294400 pixels; the limit for model `lite` is 4194304"}),
-    415: _error_doc("Not multipart/form-data, or an upload that is not a supported image.", {
-        "unsupported_media_type": "left: not a PNG, JPEG, BMP or TIFF file"}),
-    422: _error_doc("Invalid options, fields or images.", {
-        "invalid_request": "query.format: Input should be 'json', 'npz', 'png', ...",
-        "missing_field": "multipart field `right` is missing",
-        "unknown_field": "unknown multipart field `model`; options go in the query string",
-        "size_mismatch": "left is 640x480 but right is 640x479",
-        "image_too_small": "left is 16x480; width and height must be at least 32",
-        "undecodable_image": "right: cannot decode the PNG data",
-        "model_not_loaded": "model `full` is not loaded by this server (loaded: lite)"}),
-    500: _error_doc("The network failed on the batch this request was in.", {
-        "inference_failed": "inference failed; logged as error id 3f9a1c2b7d4e"}),
-    503: _error_doc("Not ready, shutting down, queue full or deadline unmeetable; retry later.", {
-        "queue_full": "queue full; retry in 2 s",
-        "deadline_exceeded": "deadline passed while waiting for the result",
-        "loading": "models are still loading",
-        "draining": "server is shutting down",
-        "unavailable": "models failed to load; see the server log"}, _RETRY_AFTER),
+    401: _error_doc(
+        "`CRESTEREO_API_KEY` is set and the bearer token is missing or wrong.",
+        {"unauthorized": "missing or wrong bearer token"},
+        {"WWW-Authenticate": _header("`Bearer`.")},
+    ),
+    413: _error_doc(
+        "The body or an image is larger than the server's limits.",
+        {
+            "body_too_large": "request body larger than 33554432 bytes",
+            "image_too_large": "left image has 8294400 pixels; the limit for model `lite` is 4194304",
+        },
+    ),
+    415: _error_doc(
+        "Not multipart/form-data, or an upload that is not a supported image.",
+        {"unsupported_media_type": "left: not a PNG, JPEG, BMP or TIFF file"},
+    ),
+    422: _error_doc(
+        "Invalid options, fields or images.",
+        {
+            "invalid_request": "query.format: Input should be 'json', 'npz', 'png', ...",
+            "missing_field": "multipart field `right` is missing",
+            "unknown_field": "unknown multipart field `model`; options go in the query string",
+            "size_mismatch": "left is 640x480 but right is 640x479",
+            "image_too_small": "left is 16x480; width and height must be at least 32",
+            "undecodable_image": "right: cannot decode the PNG data",
+            "model_not_loaded": "model `full` is not loaded by this server (loaded: lite)",
+        },
+    ),
+    500: _error_doc(
+        "The network failed on the batch this request was in.",
+        {"inference_failed": "inference failed; logged as error id 3f9a1c2b7d4e"},
+    ),
+    503: _error_doc(
+        "Not ready, shutting down, queue full or deadline unmeetable; retry later.",
+        {
+            "queue_full": "queue full; retry in 2 s",
+            "deadline_exceeded": "deadline passed while waiting for the result",
+            "loading": "models are still loading",
+            "draining": "server is shutting down",
+            "unavailable": "models failed to load; see the server log",
+        },
+        _RETRY_AFTER,
+    ),
 }
 
 UPLOAD_BODY = {
     "required": True,
-    "content": {"multipart/form-data": {"schema": {
-        "type": "object",
-        "required": list(IMAGE_FIELDS),
-        "additionalProperties": False,
-        "properties": {name: {
-            "type": "string", "format": "binary",
-            "description": f"{name.capitalize()} image of the rectified pair: PNG, JPEG, BMP or "
-            "TIFF, 8- or 16-bit, grayscale or colour; both images of equal size."}
-            for name in IMAGE_FIELDS},
-    }}},
+    "content": {
+        "multipart/form-data": {
+            "schema": {
+                "type": "object",
+                "required": list(IMAGE_FIELDS),
+                "additionalProperties": False,
+                "properties": {
+                    name: {
+                        "type": "string",
+                        "format": "binary",
+                        "description": f"{name.capitalize()} image of the rectified pair: PNG, JPEG, BMP or "
+                        "TIFF, 8- or 16-bit, grayscale or colour; both images of equal size.",
+                    }
+                    for name in IMAGE_FIELDS
+                },
+            }
+        }
+    },
 }

@@ -22,8 +22,9 @@ from stereo_data.pointcloud import Calibration, encode_ply, point_cloud
 from stereo_data.visualize import preview, scale_range
 
 
-def render(options: DisparityOptions, result: JobResult, left: np.ndarray, weights: str,
-           size: ImageHeader) -> tuple[bytes, str]:
+def render(
+    options: DisparityOptions, result: JobResult, left: np.ndarray, weights: str, size: ImageHeader
+) -> tuple[bytes, str]:
     """The body of the answer in `options.format`, and its media type.
 
     result: the request's maps (float32 HxW: disparity in px of the left image, uncertainty in
@@ -37,14 +38,17 @@ def render(options: DisparityOptions, result: JobResult, left: np.ndarray, weigh
     match options.format:
         case OutputFormat.json:
             body = DisparityResponse(
-                model=options.model, weights=weights,
+                model=options.model,
+                weights=weights,
                 image_size=ImageSize(width=size.width, height=size.height),
                 batch_size=result.batch_size,
-                timings=Timings(queue_ms=round(result.queue_seconds * 1000, 2),
-                                compute_ms=round(result.compute_seconds * 1000, 2)),
+                timings=Timings(
+                    queue_ms=round(result.queue_seconds * 1000, 2), compute_ms=round(result.compute_seconds * 1000, 2)
+                ),
                 disparity=encode_array(result.disparity),
                 uncertainty=encode_array(result.uncertainty),
-                depth=None if depth is None else encode_array(depth))
+                depth=None if depth is None else encode_array(depth),
+            )
             return body.model_dump_json().encode(), "application/json"
         case OutputFormat.npz:
             maps = {"disparity": result.disparity, "uncertainty": result.uncertainty}
@@ -62,10 +66,14 @@ def render(options: DisparityOptions, result: JobResult, left: np.ndarray, weigh
         case OutputFormat.uncertainty_png16:
             return encode_png16(result.uncertainty, UNCERTAINTY_SCALE), "image/png"
         case OutputFormat.ply:
-            calibration = None if options.focal_px is None or options.baseline_m is None else \
-                Calibration(options.focal_px, options.baseline_m, options.cx_px, options.cy_px)
-            points, colours = point_cloud(result.disparity, left, result.uncertainty, calibration,
-                                          options.max_uncertainty)
+            calibration = (
+                None
+                if options.focal_px is None or options.baseline_m is None
+                else Calibration(options.focal_px, options.baseline_m, options.cx_px, options.cy_px)
+            )
+            points, colours = point_cloud(
+                result.disparity, left, result.uncertainty, calibration, options.max_uncertainty
+            )
             return encode_ply(points, colours), "application/x-ply"
 
 
@@ -89,8 +97,7 @@ def encode_npz(maps: dict[str, np.ndarray]) -> bytes:
     return buffer.getvalue()
 
 
-def encode_preview(disparity: np.ndarray, uncertainty: np.ndarray,
-                   disparity_range: tuple[float, float]) -> bytes:
+def encode_preview(disparity: np.ndarray, uncertainty: np.ndarray, disparity_range: tuple[float, float]) -> bytes:
     """RGB PNG (`stereo_data.visualize.preview`): disparity (turbo, over `disparity_range` px)
     left of uncertainty (inferno, 0-1), each with a colour bar that prints its range."""
     return encode_png(preview(disparity, uncertainty, disparity_range))

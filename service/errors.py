@@ -29,9 +29,15 @@ logger = logging.getLogger(__name__)
 class ApiError(Exception):
     """An error answer; `reject_reason` counts it in `crestereo_rejected_total`."""
 
-    def __init__(self, status: int, code: str, message: str, *,
-                 reject_reason: RejectReason | None = None,
-                 headers: dict[str, str] | None = None) -> None:
+    def __init__(
+        self,
+        status: int,
+        code: str,
+        message: str,
+        *,
+        reject_reason: RejectReason | None = None,
+        headers: dict[str, str] | None = None,
+    ) -> None:
         super().__init__(message)
         self.status = status
         self.code = code
@@ -60,13 +66,19 @@ def batching_answer(exc: BatchingError, batcher: Batcher, model: str) -> ApiErro
     """The answer to a request of `model` that `batcher` could not compute."""
     match exc:
         case QueueFull():
-            return ApiError(503, "queue_full", str(exc), reject_reason="queue_full",
-                            headers={"Retry-After": str(exc.retry_after_s)})
+            return ApiError(
+                503, "queue_full", str(exc), reject_reason="queue_full", headers={"Retry-After": str(exc.retry_after_s)}
+            )
         case Draining():  # SIGTERM came after admission began, or the drain timed out
             return draining(str(exc))
         case DeadlineExceeded():
-            return ApiError(503, "deadline_exceeded", str(exc), reject_reason="deadline",
-                            headers={"Retry-After": str(batcher.retry_after(model))})
+            return ApiError(
+                503,
+                "deadline_exceeded",
+                str(exc),
+                reject_reason="deadline",
+                headers={"Retry-After": str(batcher.retry_after(model))},
+            )
         case ClientDisconnected():
             return client_gone(str(exc))
         case InferenceFailed():
@@ -74,8 +86,7 @@ def batching_answer(exc: BatchingError, batcher: Batcher, model: str) -> ApiErro
     raise TypeError(f"no answer for {type(exc).__name__}")
 
 
-def error_response(status: int, code: str, message: str,
-                   headers: Mapping[str, str] | None = None) -> JSONResponse:
+def error_response(status: int, code: str, message: str, headers: Mapping[str, str] | None = None) -> JSONResponse:
     body = ErrorResponse(error=ErrorDetail(code=code, message=message))
     return JSONResponse(body.model_dump(), status_code=status, headers=headers)
 
@@ -100,8 +111,8 @@ def install_error_handlers(app: FastAPI, metrics: Metrics) -> None:
     async def validation_error(_: Request, exc: RequestValidationError) -> JSONResponse:
         metrics.reject("bad_input")
         problems = "; ".join(
-            f"{'.'.join(str(part) for part in error['loc'])}: {error['msg']}"
-            for error in exc.errors())
+            f"{'.'.join(str(part) for part in error['loc'])}: {error['msg']}" for error in exc.errors()
+        )
         return error_response(422, "invalid_request", problems)
 
     @app.exception_handler(StarletteHTTPException)

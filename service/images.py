@@ -59,12 +59,12 @@ def decode_rgb(data: bytes, header: ImageHeader) -> np.ndarray:
     try:
         image = decode_image(data)
     except FormatError as exc:
-        raise ImageError(f"cannot decode the {header.format} data ({exc})", unsupported=False) \
-            from None
+        raise ImageError(f"cannot decode the {header.format} data ({exc})", unsupported=False) from None
     if image.shape[:2] != (header.height, header.width):
         raise ImageError(
-            f"decoded size {image.shape[1]}x{image.shape[0]} differs from the header's "
-            f"{header.width}x{header.height}", unsupported=False)
+            f"decoded size {image.shape[1]}x{image.shape[0]} differs from the header's {header.width}x{header.height}",
+            unsupported=False,
+        )
     return image
 
 
@@ -95,21 +95,21 @@ def _jpeg_header(data: bytes) -> ImageHeader:
             offset += 1
             fill += 1
             if fill > _JPEG_MAX_FILL:
-                raise ImageError(f"JPEG with more than {_JPEG_MAX_FILL} fill bytes before its "
-                                 "frame header", unsupported=False)
+                raise ImageError(
+                    f"JPEG with more than {_JPEG_MAX_FILL} fill bytes before its frame header", unsupported=False
+                )
         marker = data[offset + 1]
         if marker in _JPEG_NO_LENGTH:
             offset += 2
             continue
         if marker == 0xD9:
             raise ImageError("JPEG without a frame header", unsupported=False)
-        (length,) = struct.unpack(">H", data[offset + 2:offset + 4])
+        (length,) = struct.unpack(">H", data[offset + 2 : offset + 4])
         if marker in _JPEG_SOF:
-            height, width = struct.unpack(">HH", data[offset + 5:offset + 9])
+            height, width = struct.unpack(">HH", data[offset + 5 : offset + 9])
             return ImageHeader("JPEG", width, height)
         offset += 2 + length
-    raise ImageError(f"JPEG without a frame header in its first {_JPEG_MAX_SEGMENTS} segments",
-                     unsupported=False)
+    raise ImageError(f"JPEG without a frame header in its first {_JPEG_MAX_SEGMENTS} segments", unsupported=False)
 
 
 def _bmp_header(data: bytes) -> ImageHeader:
@@ -128,10 +128,10 @@ _TIFF_SHORT, _TIFF_LONG = 3, 4
 def _tiff_header(data: bytes) -> ImageHeader:
     order = "<" if data[:2] == b"II" else ">"
     (ifd,) = struct.unpack(order + "I", data[4:8])
-    (count,) = struct.unpack(order + "H", data[ifd:ifd + 2])
+    (count,) = struct.unpack(order + "H", data[ifd : ifd + 2])
     sizes: dict[int, int] = {}
     for entry in range(ifd + 2, ifd + 2 + 12 * count, 12):
-        tag, kind = struct.unpack(order + "HH", data[entry:entry + 4])
+        tag, kind = struct.unpack(order + "HH", data[entry : entry + 4])
         if tag in (_TIFF_WIDTH, _TIFF_HEIGHT):
             if tag in sizes:  # decoders disagree on which one counts: refuse, never guess
                 raise ImageError("TIFF with a repeated width or height tag", unsupported=False)

@@ -45,7 +45,6 @@ def configure_logging(level: str) -> None:
         logger.setLevel(level.upper())
         logger.propagate = False
     logging.captureWarnings(True)
-    for uvicorn_handler in logging.getLogger("uvicorn.error").handlers + logging.getLogger(
-            "uvicorn").handlers:
+    for uvicorn_handler in logging.getLogger("uvicorn.error").handlers + logging.getLogger("uvicorn").handlers:
         uvicorn_handler.setFormatter(JsonFormatter())
     logging.getLogger("uvicorn.access").disabled = True

@@ -19,26 +19,50 @@ class Metrics:
         ProcessCollector(registry=self.registry)
         ns = "crestereo"
         self.requests = Counter(
-            "requests", "POST /disparity answers by model and HTTP status.",
-            ["model", "status"], namespace=ns, registry=self.registry)
+            "requests",
+            "POST /disparity answers by model and HTTP status.",
+            ["model", "status"],
+            namespace=ns,
+            registry=self.registry,
+        )
         self.latency = Histogram(
-            "request_latency_seconds", "POST /disparity end-to-end time in the server.",
-            ["model"], namespace=ns, registry=self.registry, buckets=_LATENCY_BUCKETS)
+            "request_latency_seconds",
+            "POST /disparity end-to-end time in the server.",
+            ["model"],
+            namespace=ns,
+            registry=self.registry,
+            buckets=_LATENCY_BUCKETS,
+        )
         self.queue_wait = Histogram(
-            "queue_wait_seconds", "Time from admission to the start of the request's batch.",
-            ["model"], namespace=ns, registry=self.registry, buckets=_LATENCY_BUCKETS)
+            "queue_wait_seconds",
+            "Time from admission to the start of the request's batch.",
+            ["model"],
+            namespace=ns,
+            registry=self.registry,
+            buckets=_LATENCY_BUCKETS,
+        )
         self.compute = Histogram(
-            "compute_seconds", "Network time per batch.",
-            ["model"], namespace=ns, registry=self.registry, buckets=_LATENCY_BUCKETS)
+            "compute_seconds",
+            "Network time per batch.",
+            ["model"],
+            namespace=ns,
+            registry=self.registry,
+            buckets=_LATENCY_BUCKETS,
+        )
         self.batch_size = Histogram(
-            "batch_size", "Requests per computed batch.", ["model"], namespace=ns,
-            registry=self.registry, buckets=tuple(range(1, max_batch_size + 1)))
+            "batch_size",
+            "Requests per computed batch.",
+            ["model"],
+            namespace=ns,
+            registry=self.registry,
+            buckets=tuple(range(1, max_batch_size + 1)),
+        )
         self.queue_depth = Gauge(
-            "queue_depth", "Requests admitted and not yet computing.",
-            ["model"], namespace=ns, registry=self.registry)
+            "queue_depth", "Requests admitted and not yet computing.", ["model"], namespace=ns, registry=self.registry
+        )
         self.rejected = Counter(
-            "rejected", "POST /disparity requests refused, by reason.",
-            ["reason"], namespace=ns, registry=self.registry)
+            "rejected", "POST /disparity requests refused, by reason.", ["reason"], namespace=ns, registry=self.registry
+        )
         for reason in get_args(RejectReason):
             self.rejected.labels(reason=reason)  # export every reason from the start, at 0
 

@@ -45,8 +45,7 @@ class RequestContextMiddleware:
             nonlocal status
             if message["type"] == "http.response.start":
                 status = message["status"]
-                message["headers"] = [*message.get("headers", []),
-                                      (b"x-request-id", request_id.encode())]
+                message["headers"] = [*message.get("headers", []), (b"x-request-id", request_id.encode())]
             await send(message)
 
         try:
@@ -60,11 +59,19 @@ class RequestContextMiddleware:
                 self.metrics.requests.labels(model=model, status=str(status)).inc()
                 self.metrics.latency.labels(model=model).observe(seconds)
             level = logging.DEBUG if path.startswith(_QUIET_PATHS) else logging.INFO
-            logger.log(level, "request", extra={
-                "method": scope["method"], "path": path, "status": status,
-                "duration_ms": round(seconds * 1000, 2),
-                "client": scope["client"][0] if scope.get("client") else None,
-                "model": state.get("model"), "batch_size": state.get("batch_size")})
+            logger.log(
+                level,
+                "request",
+                extra={
+                    "method": scope["method"],
+                    "path": path,
+                    "status": status,
+                    "duration_ms": round(seconds * 1000, 2),
+                    "client": scope["client"][0] if scope.get("client") else None,
+                    "model": state.get("model"),
+                    "batch_size": state.get("batch_size"),
+                },
+            )
             request_id_var.reset(token)
 
 
@@ -97,8 +104,9 @@ class RequestSizeLimitMiddleware:
         header_bytes = sum(len(name) + len(value) for name, value in scope["headers"])
         if header_bytes > MAX_HEADER_BYTES:
             self.metrics.reject("too_large")
-            await error_response(431, "headers_too_large", f"request headers of {header_bytes} bytes; "
-                                 f"the limit is {MAX_HEADER_BYTES}")(scope, receive, send)
+            await error_response(
+                431, "headers_too_large", f"request headers of {header_bytes} bytes; the limit is {MAX_HEADER_BYTES}"
+            )(scope, receive, send)
             return
         declared = dict(scope["headers"]).get(b"content-length")
         if declared is not None and declared.isdigit() and int(declared) > self.max_bytes:

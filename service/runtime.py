@@ -49,8 +49,7 @@ class ServiceRuntime:
     async def start(self) -> None:
         configure_torch_threads(self.torch_threads)
         # The single worker thread owns the CPU: it loads the models and computes every batch.
-        self._executor = DaemonWorker(
-            "inference", initializer=configure_torch_threads, initargs=(self.torch_threads,))
+        self._executor = DaemonWorker("inference", initializer=configure_torch_threads, initargs=(self.torch_threads,))
         self._spawn(self._load_models())
         self._hook_sigterm()
 
@@ -62,8 +61,7 @@ class ServiceRuntime:
         if self.batcher is not None:
             await self.batcher.close()
         if self._executor is not None:  # a batch abandoned at the drain timeout is not waited for
-            await asyncio.to_thread(self._executor.shutdown, wait=not self._executor.busy,
-                                    cancel_futures=True)
+            await asyncio.to_thread(self._executor.shutdown, wait=not self._executor.busy, cancel_futures=True)
 
     def begin_drain(self) -> None:
         """Stop admitting work; after `drain_timeout_s`, answer what is still queued or computing
@@ -92,26 +90,39 @@ class ServiceRuntime:
                 max_batch_pixels=self.settings.max_batch_pixels,
                 max_wait_ms=self.settings.max_wait_ms,
                 max_queue=self.settings.max_queue,
-                torch_threads=self.torch_threads))
+                torch_threads=self.torch_threads,
+            ),
+        )
 
     def _model_status(self, name: str) -> ModelStatus:
         predictor = self.predictors.get(name)
         if predictor is None:
             return ModelStatus(loaded=False)
-        return ModelStatus(loaded=True, parameters=predictor.num_parameters,
-                           weights=weights_identity(predictor))
+        return ModelStatus(loaded=True, parameters=predictor.num_parameters, weights=weights_identity(predictor))
 
     async def _load_models(self) -> None:
         loop = asyncio.get_running_loop()
         try:
             for name in self.settings.models:
                 weights: Path | None = self.settings.weights.get(name)
-                self.predictors[name] = await loop.run_in_executor(self._executor, partial(
-                    self._loader, name, weights=weights, device=self.settings.device,
-                    precision=self.settings.precision))
-                logger.info("model loaded", extra={
-                    "model": name, "parameters": self.predictors[name].num_parameters,
-                    "weights": weights_identity(self.predictors[name])})
+                self.predictors[name] = await loop.run_in_executor(
+                    self._executor,
+                    partial(
+                        self._loader,
+                        name,
+                        weights=weights,
+                        device=self.settings.device,
+                        precision=self.settings.precision,
+                    ),
+                )
+                logger.info(
+                    "model loaded",
+                    extra={
+                        "model": name,
+                        "parameters": self.predictors[name].num_parameters,
+                        "weights": weights_identity(self.predictors[name]),
+                    },
+                )
         except Exception:
             logger.exception("model loading failed; the service stays unready")
             self.state = "failed"

@@ -70,8 +70,9 @@ class Queued(Protocol):
 QueuedT = TypeVar("QueuedT", bound=Queued)
 
 
-def choose_batch(queued: Sequence[QueuedT], incoming: int, now: float,
-                 limits: BatchLimits) -> tuple[list[QueuedT], float | None]:
+def choose_batch(
+    queued: Sequence[QueuedT], incoming: int, now: float, limits: BatchLimits
+) -> tuple[list[QueuedT], float | None]:
     """The batch to run now, or none and how long to wait at most (None: until something changes).
 
     queued: every queued request, of every model; incoming: requests admitted but not queued yet
@@ -132,8 +133,10 @@ class ComputeTimes:
         newest = ComputeTime(seconds / (batch_size * pixels), float(pixels))
         previous = self._means.get(model)
         if previous is not None:
-            newest = ComputeTime(self._mix(previous.seconds_per_pixel, newest.seconds_per_pixel),
-                                 self._mix(previous.pixels_per_request, newest.pixels_per_request))
+            newest = ComputeTime(
+                self._mix(previous.seconds_per_pixel, newest.seconds_per_pixel),
+                self._mix(previous.pixels_per_request, newest.pixels_per_request),
+            )
         self._means[model] = newest
 
     def _mix(self, previous: float, newest: float) -> float:

@@ -47,36 +47,48 @@ class DisparityOptions(BaseModel):
         "pixels above `max_uncertainty` are dropped.",
     )
     two_pass: bool = Field(
-        False, description="Cascaded inference: a half-resolution pass initialises the "
-        "full-resolution one (better on large images, slower).")
+        False,
+        description="Cascaded inference: a half-resolution pass initialises the "
+        "full-resolution one (better on large images, slower).",
+    )
     iters: str | None = Field(
-        None, pattern=r"^[1-9][0-9]?(,[1-9][0-9]?,[1-9][0-9]?)?$", examples=["4", "1,2,4"],
+        None,
+        pattern=r"^[1-9][0-9]?(,[1-9][0-9]?,[1-9][0-9]?)?$",
+        examples=["4", "1,2,4"],
         description="ARM iterations: `N` at 1/4 resolution, or `N16,N8,N4` for the three stages "
-        "(1-99 each); fewer is faster and coarser [the model's: lite 2,4,6, full 2,4,8].")
+        "(1-99 each); fewer is faster and coarser [the model's: lite 2,4,6, full 2,4,8].",
+    )
     scale: float = Field(
-        1.0, gt=0, le=1, description="Run the network on the pair resized by this factor (0 < "
+        1.0,
+        gt=0,
+        le=1,
+        description="Run the network on the pair resized by this factor (0 < "
         "scale <= 1): about scale^2 of the time; the maps still come at the input's size, "
-        "disparity in input pixels.")
+        "disparity in input pixels.",
+    )
     raw_uncertainty: bool = Field(
-        False, description="Return the paper's raw U (last iteration, in [0, 0.5] after the first) "
-        "instead of the calibrated probability of an error above 2 px (see `uncertainty`).")
+        False,
+        description="Return the paper's raw U (last iteration, in [0, 0.5] after the first) "
+        "instead of the calibrated probability of an error above 2 px (see `uncertainty`).",
+    )
     color_min: FiniteFloat | None = Field(
-        None, description="`format=png`: disparity (px) at the bottom of the colour scale "
-        "[the map's 1st percentile].")
+        None, description="`format=png`: disparity (px) at the bottom of the colour scale [the map's 1st percentile]."
+    )
     color_max: FiniteFloat | None = Field(
-        None, description="`format=png`: disparity (px) at the top of the colour scale "
-        "[the map's 99th percentile].")
-    cx_px: FiniteFloat | None = Field(
-        None, description="`format=ply`: principal point x in px [the image centre].")
-    cy_px: FiniteFloat | None = Field(
-        None, description="`format=ply`: principal point y in px [the image centre].")
+        None, description="`format=png`: disparity (px) at the top of the colour scale [the map's 99th percentile]."
+    )
+    cx_px: FiniteFloat | None = Field(None, description="`format=ply`: principal point x in px [the image centre].")
+    cy_px: FiniteFloat | None = Field(None, description="`format=ply`: principal point y in px [the image centre].")
     max_uncertainty: FiniteFloat | None = Field(
-        None, ge=0, description="`format=ply`: drop points whose uncertainty is above this.")
+        None, ge=0, description="`format=ply`: drop points whose uncertainty is above this."
+    )
     focal_px: FiniteFloat | None = Field(
-        None, gt=0, description="Focal length in pixels; with `baseline_m` adds a metric depth "
-        "map Z = focal_px x baseline_m / disparity (invalid where disparity <= 0).")
-    baseline_m: FiniteFloat | None = Field(
-        None, gt=0, description="Stereo baseline in metres; see `focal_px`.")
+        None,
+        gt=0,
+        description="Focal length in pixels; with `baseline_m` adds a metric depth "
+        "map Z = focal_px x baseline_m / disparity (invalid where disparity <= 0).",
+    )
+    baseline_m: FiniteFloat | None = Field(None, gt=0, description="Stereo baseline in metres; see `focal_px`.")
 
     @property
     def iterations(self) -> int | tuple[int, int, int] | None:
@@ -96,8 +108,11 @@ class DisparityOptions(BaseModel):
             raise ValueError("cx_px and cy_px need focal_px and baseline_m")
         if self.color_min is not None and self.color_max is not None and self.color_max <= self.color_min:
             raise ValueError("color_max must be above color_min")
-        if self.focal_px is not None and self.baseline_m is not None and (
-                self.focal_px * self.baseline_m > FLOAT32_MAX):
+        if (
+            self.focal_px is not None
+            and self.baseline_m is not None
+            and (self.focal_px * self.baseline_m > FLOAT32_MAX)
+        ):
             raise ValueError(f"focal_px x baseline_m must be at most {FLOAT32_MAX:.4g} (depth is float32)")
         return self
 
@@ -126,15 +141,27 @@ class Timings(BaseModel):
 class DisparityResponse(BaseModel):
     """Body of a `format=json` answer; the same facts come as `X-*` headers in every format."""
 
-    model_config = ConfigDict(json_schema_extra={"examples": [{
-        "model": "lite", "weights": "9f2c4e1a7b3d5c60",
-        "image_size": {"width": 2, "height": 1}, "batch_size": 3,
-        "timings": {"queue_ms": 12.5, "compute_ms": 481.3},
-        "disparity": {"dtype": "float32", "byte_order": "little", "shape": [1, 2],
-                      "data": "AAAgQQAAJEE="},
-        "uncertainty": {"dtype": "float32", "byte_order": "little", "shape": [1, 2],
-                        "data": "zczMPc3MTD4="},
-        "depth": None}]})
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {
+                    "model": "lite",
+                    "weights": "9f2c4e1a7b3d5c60",
+                    "image_size": {"width": 2, "height": 1},
+                    "batch_size": 3,
+                    "timings": {"queue_ms": 12.5, "compute_ms": 481.3},
+                    "disparity": {"dtype": "float32", "byte_order": "little", "shape": [1, 2], "data": "AAAgQQAAJEE="},
+                    "uncertainty": {
+                        "dtype": "float32",
+                        "byte_order": "little",
+                        "shape": [1, 2],
+                        "data": "zczMPc3MTD4=",
+                    },
+                    "depth": None,
+                }
+            ]
+        }
+    )
 
     model: ModelName
     weights: str = Field(description="First 16 hex digits of the weights' sha256, or `random-init`.")
@@ -142,13 +169,16 @@ class DisparityResponse(BaseModel):
     batch_size: int = Field(description="How many requests were computed together with this one.")
     timings: Timings
     disparity: EncodedArray = Field(description="Pixels of the left image, positive; x_right = x - d.")
-    uncertainty: EncodedArray = Field(description="Per-pixel probability that the disparity is off "
-                                      "by more than 2 px, calibrated for the served weights on "
-                                      "procedural scenes (see the model card); with "
-                                      "`raw_uncertainty=true`, or for weights without a "
-                                      "calibration, the paper's U in [0, 1].")
+    uncertainty: EncodedArray = Field(
+        description="Per-pixel probability that the disparity is off "
+        "by more than 2 px, calibrated for the served weights on "
+        "procedural scenes (see the model card); with "
+        "`raw_uncertainty=true`, or for weights without a "
+        "calibration, the paper's U in [0, 1]."
+    )
     depth: EncodedArray | None = Field(
-        None, description="Metres, +inf where disparity <= 0; only with focal_px and baseline_m.")
+        None, description="Metres, +inf where disparity <= 0; only with focal_px and baseline_m."
+    )
 
 
 class ErrorDetail(BaseModel):
@@ -180,18 +210,31 @@ class BatchingConfig(BaseModel):
 
 
 class HealthResponse(BaseModel):
-    model_config = ConfigDict(json_schema_extra={"examples": [{
-        "status": "ready",
-        "models": {"lite": {"loaded": True, "parameters": 629624, "weights": "9f2c4e1a7b3d5c60"},
-                   "full": {"loaded": True, "parameters": 5442712, "weights": "random-init"}},
-        "queue_depth": {"lite": 3, "full": 0},
-        "batching": {"max_batch_size": 8, "max_batch_pixels": 131072, "max_wait_ms": 10.0,
-                     "max_queue": 32, "torch_threads": 2}}]})
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {
+                    "status": "ready",
+                    "models": {
+                        "lite": {"loaded": True, "parameters": 629624, "weights": "9f2c4e1a7b3d5c60"},
+                        "full": {"loaded": True, "parameters": 5442712, "weights": "random-init"},
+                    },
+                    "queue_depth": {"lite": 3, "full": 0},
+                    "batching": {
+                        "max_batch_size": 8,
+                        "max_batch_pixels": 131072,
+                        "max_wait_ms": 10.0,
+                        "max_queue": 32,
+                        "torch_threads": 2,
+                    },
+                }
+            ]
+        }
+    )
 
     status: ServiceState
     models: dict[str, ModelStatus]
-    queue_depth: dict[str, int] = Field(
-        description="Per model: requests admitted and not yet computing.")
+    queue_depth: dict[str, int] = Field(description="Per model: requests admitted and not yet computing.")
     batching: BatchingConfig
 
 
@@ -214,8 +257,10 @@ class TrainingSummary(BaseModel):
     pairs: int
     minutes: float
     dev_metrics: dict[str, float] | None = Field(
-        None, description="Mean EPE (px), bad-1/2/3 and D1-all (%) on the real validation pairs, "
-        "measured when these weights were saved (see the model card).")
+        None,
+        description="Mean EPE (px), bad-1/2/3 and D1-all (%) on the real validation pairs, "
+        "measured when these weights were saved (see the model card).",
+    )
 
 
 class ModelInfo(BaseModel):

@@ -40,32 +40,39 @@ class Settings(BaseModel):
     )
     device: str = Field("cpu", description="Torch device the models run on.")
     precision: Precision = Field(
-        "fp32", description="`bf16`: the networks run under bf16 autocast (for CUDA; maps stay float32); `fp32` otherwise."
+        "fp32",
+        description="`bf16`: the networks run under bf16 autocast (for CUDA; maps stay float32); `fp32` otherwise.",
     )
     threads: int = Field(
-        0, ge=0, description="Torch intra-op threads; 0 = the container's CPU quota (cgroup), "
-        "else the number of usable cores."
+        0,
+        ge=0,
+        description="Torch intra-op threads; 0 = the container's CPU quota (cgroup), else the number of usable cores.",
     )
     max_batch_size: int = Field(8, ge=1, description="Most requests computed together in one batch.")
     max_batch_pixels: int = Field(
-        131_072, ge=1, description="Most padded pixels (batch size x height x width) in one batch; "
+        131_072,
+        ge=1,
+        description="Most padded pixels (batch size x height x width) in one batch; "
         "a single larger image still runs, alone. The default suits a small CPU, where batching "
-        "pays only while images are small (see service/README.md)."
+        "pays only while images are small (see service/README.md).",
     )
     max_wait_ms: float = Field(
-        10.0, ge=0, description="Longest a partial batch is held back while more requests are being "
-        "received, or while full batches run first; an idle server runs a lone request at once."
+        10.0,
+        ge=0,
+        description="Longest a partial batch is held back while more requests are being "
+        "received, or while full batches run first; an idle server runs a lone request at once.",
     )
     max_queue: int = Field(
-        32, ge=1, description="Requests admitted per model and not yet computing (decoding or "
-        "queued); beyond it `/disparity` answers 503 with `Retry-After`."
+        32,
+        ge=1,
+        description="Requests admitted per model and not yet computing (decoding or "
+        "queued); beyond it `/disparity` answers 503 with `Retry-After`.",
     )
-    max_body_bytes: int = Field(
-        32 * 1024 * 1024, ge=1, description="Largest request body in bytes (413 beyond)."
-    )
+    max_body_bytes: int = Field(32 * 1024 * 1024, ge=1, description="Largest request body in bytes (413 beyond).")
     max_image_pixels: int = Field(
-        DEFAULT_MAX_IMAGE_PIXELS, ge=1, description="Largest image (width x height), checked from the file header "
-        "before decoding (413 beyond)."
+        DEFAULT_MAX_IMAGE_PIXELS,
+        ge=1,
+        description="Largest image (width x height), checked from the file header before decoding (413 beyond).",
     )
     model_max_pixels: dict[ModelName, int] = Field(
         default_factory=_default_model_max_pixels,
@@ -75,12 +82,14 @@ class Settings(BaseModel):
     )
     min_image_side: int = Field(32, ge=1, description="Smallest image width or height (422 below).")
     api_key: str | None = Field(
-        None, description="When set, `POST /disparity` requires `Authorization: Bearer <key>`; "
-        "health and metrics stay open."
+        None,
+        description="When set, `POST /disparity` requires `Authorization: Bearer <key>`; health and metrics stay open.",
     )
     drain_timeout_s: float = Field(
-        30.0, ge=0, description="After SIGTERM, how long admitted requests may still be computed; "
-        "those left (queued or computing) then get 503 `draining`."
+        30.0,
+        ge=0,
+        description="After SIGTERM, how long admitted requests may still be computed; "
+        "those left (queued or computing) then get 503 `draining`.",
     )
     log_level: Literal["debug", "info", "warning", "error"] = Field(
         "info", description="Level of the JSON logs on stderr."
@@ -123,7 +132,7 @@ class Settings(BaseModel):
 
 
 def _name_value_pairs(text: str) -> list[tuple[str, str]]:
-    """"a=1, b=2" -> [("a", "1"), ("b", "2")] (the form of the per-model settings)."""
+    """ "a=1, b=2" -> [("a", "1"), ("b", "2")] (the form of the per-model settings)."""
     pairs = [item.split("=", 1) for item in text.split(",") if item.strip()]
     if any(len(pair) != 2 for pair in pairs):
         raise ValueError("expected name=value[,name=value]")

@@ -18,8 +18,7 @@ IMAGE_FIELDS = ("left", "right")
 async def read_uploads(request: Request) -> tuple[bytes, bytes]:
     """The bytes of the multipart files `left` and `right`; nothing else may be in the form."""
     if not request.headers.get("content-type", "").startswith("multipart/form-data"):
-        raise bad_input(415, "unsupported_media_type",
-                        "send multipart/form-data with files `left` and `right`")
+        raise bad_input(415, "unsupported_media_type", "send multipart/form-data with files `left` and `right`")
     try:
         form = await request.form(max_files=len(IMAGE_FIELDS) + 2, max_fields=16)
     except StarletteHTTPException as exc:  # malformed multipart body
@@ -29,8 +28,9 @@ async def read_uploads(request: Request) -> tuple[bytes, bytes]:
     try:
         unknown = sorted(set(form.keys()) - set(IMAGE_FIELDS))
         if unknown:
-            raise bad_input(422, "unknown_field", f"unknown multipart field `{unknown[0]}`; "
-                            "options go in the query string")
+            raise bad_input(
+                422, "unknown_field", f"unknown multipart field `{unknown[0]}`; options go in the query string"
+            )
         files = []
         for name in IMAGE_FIELDS:
             values = form.getlist(name)
@@ -46,20 +46,29 @@ async def read_uploads(request: Request) -> tuple[bytes, bytes]:
 
 def check_headers(settings: Settings, model: str, left: bytes, right: bytes) -> ImageHeader:
     """The left image's header, once both headers pass the size limits of `model` and agree."""
-    headers = {name: _read_header(name, data)
-               for name, data in zip(IMAGE_FIELDS, (left, right), strict=True)}
+    headers = {name: _read_header(name, data) for name, data in zip(IMAGE_FIELDS, (left, right), strict=True)}
     limit = settings.pixel_limit(model)
     for name, header in headers.items():
         if header.pixels > limit:
-            raise bad_input(413, "image_too_large", f"{name} image has {header.pixels} pixels; "
-                            f"the limit for model `{model}` is {limit}")
+            raise bad_input(
+                413,
+                "image_too_large",
+                f"{name} image has {header.pixels} pixels; the limit for model `{model}` is {limit}",
+            )
         if min(header.width, header.height) < settings.min_image_side:
-            raise bad_input(422, "image_too_small", f"{name} is {header.width}x{header.height}; "
-                            f"width and height must be at least {settings.min_image_side}")
+            raise bad_input(
+                422,
+                "image_too_small",
+                f"{name} is {header.width}x{header.height}; "
+                f"width and height must be at least {settings.min_image_side}",
+            )
     left_header, right_header = headers["left"], headers["right"]
     if (left_header.width, left_header.height) != (right_header.width, right_header.height):
-        raise bad_input(422, "size_mismatch", f"left is {left_header.width}x{left_header.height} "
-                        f"but right is {right_header.width}x{right_header.height}")
+        raise bad_input(
+            422,
+            "size_mismatch",
+            f"left is {left_header.width}x{left_header.height} but right is {right_header.width}x{right_header.height}",
+        )
     return left_header
 
 

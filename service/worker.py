@@ -28,10 +28,12 @@ def any_busy() -> bool:
 class DaemonWorker(Executor):
     """An Executor of exactly one daemon thread, started at construction."""
 
-    def __init__(self, name: str, initializer: Callable[..., object] | None = None,
-                 initargs: tuple[Any, ...] = ()) -> None:
-        self._calls: queue.SimpleQueue[tuple[Future[Any], Callable[..., Any], tuple[Any, ...],
-                                             dict[str, Any]] | None] = queue.SimpleQueue()
+    def __init__(
+        self, name: str, initializer: Callable[..., object] | None = None, initargs: tuple[Any, ...] = ()
+    ) -> None:
+        self._calls: queue.SimpleQueue[
+            tuple[Future[Any], Callable[..., Any], tuple[Any, ...], dict[str, Any]] | None
+        ] = queue.SimpleQueue()
         self._initializer, self._initargs = initializer, initargs
         self._closed = False
         self.busy = False

@@ -76,9 +76,7 @@ def read_pfm(path: PathLike) -> np.ndarray:
     count = width * height * channels
     payload = data[header.end() :]
     if len(payload) < 4 * count:
-        raise FormatError(
-            f"{os.fspath(path)!r}: truncated PFM ({len(payload)} data bytes, {4 * count} expected)"
-        )
+        raise FormatError(f"{os.fspath(path)!r}: truncated PFM ({len(payload)} data bytes, {4 * count} expected)")
     dtype = np.dtype("<f4" if scale < 0 else ">f4")
     values = np.frombuffer(payload, dtype=dtype, count=count)
     shape = (height, width, channels) if channels == 3 else (height, width)
@@ -187,9 +185,7 @@ def read_image(path: PathLike, *, gray_to_rgb: bool = True) -> np.ndarray:
     return decode_image(_read_bytes(path), gray_to_rgb=gray_to_rgb, source=path)
 
 
-def decode_image(
-    data: bytes, *, gray_to_rgb: bool = True, source: PathLike = "<bytes>"
-) -> np.ndarray:
+def decode_image(data: bytes, *, gray_to_rgb: bool = True, source: PathLike = "<bytes>") -> np.ndarray:
     """Decode an encoded image (PNG, JPEG, ...) to uint8 RGB HxWx3.
 
     Alpha is dropped; 16-bit images are scaled to 8 bits (value / 257, rounded). A grayscale image

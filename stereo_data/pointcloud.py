@@ -61,8 +61,9 @@ def encode_ply(points: np.ndarray, colours: np.ndarray) -> bytes:
     """Binary little-endian PLY of float32 x, y, z and uint8 red, green, blue per vertex."""
     if points.ndim != 2 or points.shape[1] != 3 or colours.shape != points.shape:
         raise ValueError(f"expected Nx3 points and Nx3 colours, got {points.shape} and {colours.shape}")
-    vertex = np.empty(len(points), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
-                                          ("red", "u1"), ("green", "u1"), ("blue", "u1")])
+    vertex = np.empty(
+        len(points), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")]
+    )
     vertex["x"], vertex["y"], vertex["z"] = points[:, 0], points[:, 1], points[:, 2]
     vertex["red"], vertex["green"], vertex["blue"] = colours[:, 0], colours[:, 1], colours[:, 2]
     header = (

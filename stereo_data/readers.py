@@ -137,9 +137,7 @@ def _scene_folder_finder(grayscale: bool) -> Callable[[Path], list[SampleFiles]]
     disp0GT, mask0nocc. The two are told apart by the colour type in ``im0.png``'s header."""
 
     def find(root: Path) -> list[SampleFiles]:
-        return [
-            files for files in _find_scene_folders(root) if _is_grayscale_png(files.left) == grayscale
-        ]
+        return [files for files in _find_scene_folders(root) if _is_grayscale_png(files.left) == grayscale]
 
     return find
 
@@ -158,9 +156,7 @@ def _find_scene_folders(root: Path) -> list[SampleFiles]:
     ]
 
 
-def _kitti_finder(
-    left: str, right: str, disparity: str, nonoccluded: str
-) -> Callable[[Path], list[SampleFiles]]:
+def _kitti_finder(left: str, right: str, disparity: str, nonoccluded: str) -> Callable[[Path], list[SampleFiles]]:
     """KITTI: parallel folders of ``NNNNNN_10.png`` files (frame 10 is the one with ground truth)."""
 
     def find(root: Path) -> list[SampleFiles]:

@@ -267,8 +267,13 @@ class SceneGenerator:
         radii = torch.where(bar[..., None], math.sqrt(2), radii)  # square corners at (+-1, +-1)
         phase = torch.where(bar, math.pi / 4, draw.uniform(shape, 0, 2 * math.pi))
         hole = torch.stack(
-            [draw.uniform(shape, -0.3, 0.3), draw.uniform(shape, -0.3, 0.3),
-             draw.uniform(shape, 0.15, 0.5), draw.uniform(shape, 0.15, 0.5)], dim=-1
+            [
+                draw.uniform(shape, -0.3, 0.3),
+                draw.uniform(shape, -0.3, 0.3),
+                draw.uniform(shape, 0.15, 0.5),
+                draw.uniform(shape, 0.15, 0.5),
+            ],
+            dim=-1,
         )
         has_hole = draw.chance(shape, cfg.hole_probability) & ~bar
         surface_count = draw.integers((batch_size, 1), cfg.min_surfaces, cfg.surfaces)
@@ -280,36 +285,41 @@ class SceneGenerator:
         extent[:, 0] = math.hypot(width, height) / 2
         cos, sin = torch.cos(angle), torch.sin(angle)
         to_shape = _affine(
-            torch.stack([torch.stack([cos / radius_x, sin / radius_x], -1),
-                         torch.stack([-sin / radius_y, cos / radius_y], -1)], -2),
-            centre_x, centre_y,
+            torch.stack(
+                [torch.stack([cos / radius_x, sin / radius_x], -1), torch.stack([-sin / radius_y, cos / radius_y], -1)],
+                -2,
+            ),
+            centre_x,
+            centre_y,
         )
         to_shape[:, 0] = 0.0
         has_hole[:, 0] = False
 
         # Disparity planes: the background spans at most [0, background_max_fraction * max], the
         # foreground surfaces at most [the background's lowest disparity, max].
-        gradient = torch.where(
-            draw.chance(shape, cfg.slant_probability), draw.uniform(shape, 0, cfg.max_slope), 0.0
-        )
+        gradient = torch.where(draw.chance(shape, cfg.slant_probability), draw.uniform(shape, 0, cfg.max_slope), 0.0)
         gradient_angle = draw.uniform(shape, 0, 2 * math.pi)
         position = draw.uniform(shape, 0, 1)
         background_low = torch.zeros(batch_size, 1, device=self.device)
         background_gradient, background_disparity = _fit_plane(
-            gradient[:, :1], extent[:, :1], position[:, :1],
-            background_low, background_low + cfg.background_max_fraction * max_disparity,
+            gradient[:, :1],
+            extent[:, :1],
+            position[:, :1],
+            background_low,
+            background_low + cfg.background_max_fraction * max_disparity,
         )
         foreground_low = background_disparity - background_gradient * extent[:, :1]
         foreground_gradient, foreground_disparity = _fit_plane(
-            gradient[:, 1:], extent[:, 1:], position[:, 1:],
-            foreground_low, torch.full_like(foreground_low, max_disparity),
+            gradient[:, 1:],
+            extent[:, 1:],
+            position[:, 1:],
+            foreground_low,
+            torch.full_like(foreground_low, max_disparity),
         )
         gradient = torch.cat([background_gradient, foreground_gradient], dim=1)
         centre_disparity = torch.cat([background_disparity, foreground_disparity], dim=1)
         slope_x, slope_y = gradient * torch.cos(gradient_angle), gradient * torch.sin(gradient_angle)
-        plane = torch.stack(
-            [slope_x, slope_y, centre_disparity - slope_x * centre_x - slope_y * centre_y], dim=-1
-        )
+        plane = torch.stack([slope_x, slope_y, centre_disparity - slope_x * centre_x - slope_y * centre_y], dim=-1)
 
         # Appearance.
         texel = scale * draw.log_uniform(shape, *cfg.texel_size)  # output px per texel
@@ -317,7 +327,8 @@ class SceneGenerator:
         cos, sin = torch.cos(texture_angle) / texel, torch.sin(texture_angle) / texel
         to_texture = _affine(
             torch.stack([torch.stack([cos, sin], -1), torch.stack([-sin, cos], -1)], -2),
-            centre_x, centre_y,
+            centre_x,
+            centre_y,
         )
         to_texture[..., 2] += draw.uniform((*shape, 2), 0, cfg.texture_size)
         grey = draw.uniform((*shape, 1), 20, 235)
@@ -348,7 +359,10 @@ class SceneGenerator:
 
 
 def _fit_plane(
-    gradient: torch.Tensor, extent: torch.Tensor, position: torch.Tensor, low: torch.Tensor,
+    gradient: torch.Tensor,
+    extent: torch.Tensor,
+    position: torch.Tensor,
+    low: torch.Tensor,
     high: torch.Tensor,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Fit planes into disparity spans: returns (gradient, centre disparity), each (B, n).
@@ -368,9 +382,7 @@ def _affine(linear: torch.Tensor, centre_x: torch.Tensor, centre_y: torch.Tensor
     return torch.cat([linear, -(linear @ centre)], dim=-1)
 
 
-def _apply(
-    affine: torch.Tensor, x: torch.Tensor, y: torch.Tensor
-) -> tuple[torch.Tensor, torch.Tensor]:
+def _apply(affine: torch.Tensor, x: torch.Tensor, y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Apply (B, S, 2, 3) affine maps to points: x broadcastable to (B, S, H, W), y (1, 1, H, 1)."""
     m = affine[..., None, None]  # (B, S, 2, 3, 1, 1)
     u, v = (m[:, :, row, 0] * x + (m[:, :, row, 1] * y + m[:, :, row, 2]) for row in (0, 1))
@@ -429,9 +441,7 @@ def _covers(scene: Scene, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
     sector = (sector_angle * (sides / (2 * math.pi))).long()  # in [0, sides]: sides is edge 0 again
     edges = _polygon_edges(scene)
     flat_sector = sector.view(batch, surfaces, -1)
-    normal_u, normal_v, offset = (
-        torch.gather(edges[..., k], 2, flat_sector).view_as(u) for k in range(3)
-    )
+    normal_u, normal_v, offset = (torch.gather(edges[..., k], 2, flat_sector).view_as(u) for k in range(3))
     inside = normal_u * u + normal_v * v <= offset
     u0, v0, ru, rv = (part[..., None, None] for part in scene.hole.unbind(-1))
     in_hole = ((u - u0) * (1 / ru)).square() + ((v - v0) * (1 / rv)).square() < 1
@@ -477,9 +487,7 @@ def _shade(scene: Scene, surface: torch.Tensor, x_left: torch.Tensor, y: torch.T
     return colour.clamp(0, 255).view(batch, *surface.shape[2:], 3).permute(0, 3, 1, 2).contiguous()
 
 
-def _sample_wrapped(
-    textures: torch.Tensor, slot: torch.Tensor, u: torch.Tensor, v: torch.Tensor
-) -> torch.Tensor:
+def _sample_wrapped(textures: torch.Tensor, slot: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
     """Bilinear samples of periodic textures: textures (N_t, T, T, 3); slot, u, v (N,) with u the
     column and v the row in texels (any real value: the textures wrap). Returns (N, 3)."""
     size = textures.shape[1]
@@ -588,9 +596,7 @@ def _dead_leaves(shape: tuple[int, int], size: int, draw: _Draw, discs: int = 64
         dv = torch.remainder(v - centre_v[disc] + size / 2, size) - size / 2
         top = torch.where(du.square() + dv.square() < radius[disc].square(), disc + 1, top)
     colours = draw.normal((*shape, discs + 1, 3))  # entry 0 is the ground under all discs
-    return torch.gather(colours, 2, top.flatten(2)[..., None].expand(-1, -1, -1, 3)).view(
-        *shape, size, size, 3
-    )
+    return torch.gather(colours, 2, top.flatten(2)[..., None].expand(-1, -1, -1, 3)).view(*shape, size, size, 3)
 
 
 def _patterns(shape: tuple[int, int], size: int, draw: _Draw) -> torch.Tensor:
@@ -609,8 +615,13 @@ def _patterns(shape: tuple[int, int], size: int, draw: _Draw) -> torch.Tensor:
     # (value, threshold) per kind: stripes with a random duty cycle, checkers, thin grid lines, dots.
     values = torch.stack([cos_a, cos_a * cos_b, torch.maximum(cos_a, cos_b), (cos_a + cos_b) / 2], 2)
     thresholds = torch.stack(
-        [draw.uniform(shape, -0.5, 0.5), torch.zeros(shape, device=draw.device),
-         draw.uniform(shape, 0.5, 0.9), draw.uniform(shape, 0.2, 0.8)], dim=2
+        [
+            draw.uniform(shape, -0.5, 0.5),
+            torch.zeros(shape, device=draw.device),
+            draw.uniform(shape, 0.5, 0.9),
+            draw.uniform(shape, 0.2, 0.8),
+        ],
+        dim=2,
     )
     kind = draw.integers((*shape, 1), 0, 3)
     value = torch.gather(values, 2, kind[..., None, None].expand(*shape, 1, size, size))[:, :, 0]
@@ -625,9 +636,7 @@ def _photometric(image: torch.Tensor, cfg: PhotometricConfig, draw: _Draw) -> to
     """Randomly change one view: (B, 3, H, W) in [0, 255] -> the same, changed per sample."""
     batch = image.shape[0]
     per_sample = (batch, 1, 1, 1)
-    sigma = torch.where(
-        draw.chance(per_sample, cfg.blur_probability), draw.uniform(per_sample, *cfg.blur_sigma), 0.0
-    )
+    sigma = torch.where(draw.chance(per_sample, cfg.blur_probability), draw.uniform(per_sample, *cfg.blur_sigma), 0.0)
     image = _gaussian_blur(image, sigma)
     gamma = draw.uniform(per_sample, *cfg.gamma)
     gain = draw.uniform(per_sample, *cfg.gain) * draw.uniform((batch, 3, 1, 1), *cfg.channel_gain)

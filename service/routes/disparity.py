@@ -43,10 +43,16 @@ async def estimate_disparity(
     request: Request,
     runtime: RuntimeDep,
     options: Annotated[DisparityOptions, Query()],
-    timeout_ms: Annotated[int | None, Header(
-        alias="X-Request-Timeout-Ms", ge=1, le=MAX_TIMEOUT_MS,
-        description="Deadline in milliseconds from arrival: a request that cannot be computed "
-        "in time is dropped before computing and answered 503 `deadline_exceeded`.")] = None,
+    timeout_ms: Annotated[
+        int | None,
+        Header(
+            alias="X-Request-Timeout-Ms",
+            ge=1,
+            le=MAX_TIMEOUT_MS,
+            description="Deadline in milliseconds from arrival: a request that cannot be computed "
+            "in time is dropped before computing and answered 503 `deadline_exceeded`.",
+        ),
+    ] = None,
 ) -> Response:
     """Send the two images as multipart files `left` and `right`; options go in the query string.
 
@@ -59,21 +65,22 @@ async def estimate_disparity(
     batcher = _batcher_for(runtime, options.model)
     left_bytes, right_bytes = await read_uploads(request)
     # header checks are pure Python over untrusted bytes: never on the event loop
-    header = await run_in_threadpool(
-        check_headers, runtime.settings, options.model, left_bytes, right_bytes)
+    header = await run_in_threadpool(check_headers, runtime.settings, options.model, left_bytes, right_bytes)
     async with batcher.admit(options.model, pixels=header.pixels, deadline=deadline) as admission:
         left, right = await run_in_threadpool(decode_pair, left_bytes, right_bytes)
         result = await admission.run(
-            left, right, knobs=Knobs(options.two_pass, options.iterations, options.scale,
-                                      options.raw_uncertainty),
+            left,
+            right,
+            knobs=Knobs(options.two_pass, options.iterations, options.scale, options.raw_uncertainty),
             deadline=deadline,
-            is_disconnected=request.is_disconnected, request_id=request_id_var.get())
+            is_disconnected=request.is_disconnected,
+            request_id=request_id_var.get(),
+        )
     request.state.batch_size = result.batch_size
     predictor = runtime.predictors[options.model]
     weights = weights_identity(predictor)
     content, media_type = await run_in_threadpool(render, options, result, left, weights, header)
-    return Response(content, media_type=media_type,
-                    headers=_result_headers(predictor.name, weights, header, result))
+    return Response(content, media_type=media_type, headers=_result_headers(predictor.name, weights, header, result))
 
 
 def _refuse_repeated_options(request: Request) -> None:
@@ -86,24 +93,33 @@ def _refuse_repeated_options(request: Request) -> None:
 
 def _batcher_for(runtime: ServiceRuntime, model: str) -> Batcher:
     if runtime.state == "failed":
-        raise ApiError(503, "unavailable", "models failed to load; see the server log",
-                       reject_reason="not_ready", headers={"Retry-After": "60"})
+        raise ApiError(
+            503,
+            "unavailable",
+            "models failed to load; see the server log",
+            reject_reason="not_ready",
+            headers={"Retry-After": "60"},
+        )
     if runtime.state == "draining":
         raise draining("server is shutting down")
     if runtime.state == "loading" or runtime.batcher is None:
-        raise ApiError(503, "loading", "models are still loading", reject_reason="not_ready",
-                       headers={"Retry-After": "5"})
+        raise ApiError(
+            503, "loading", "models are still loading", reject_reason="not_ready", headers={"Retry-After": "5"}
+        )
     if model not in runtime.predictors:
-        raise bad_input(422, "model_not_loaded", f"model `{model}` is not loaded by this server "
-                        f"(loaded: {', '.join(runtime.predictors)})")
+        raise bad_input(
+            422,
+            "model_not_loaded",
+            f"model `{model}` is not loaded by this server (loaded: {', '.join(runtime.predictors)})",
+        )
     return runtime.batcher
 
 
-def _result_headers(model: str, weights: str, size: ImageHeader,
-                    result: JobResult) -> dict[str, str]:
+def _result_headers(model: str, weights: str, size: ImageHeader, result: JobResult) -> dict[str, str]:
     """The result facts every answer carries as headers."""
     return {
-        "X-Model": model, "X-Weights": weights,
+        "X-Model": model,
+        "X-Weights": weights,
         "X-Image-Size": f"{size.width}x{size.height}",
         "X-Batch-Size": str(result.batch_size),
         "X-Queue-Ms": f"{result.queue_seconds * 1000:.2f}",

@@ -17,8 +17,9 @@ router = APIRouter(tags=["health"])
     "/health",
     summary="Models, queues and batching configuration",
     response_model=HealthResponse,
-    responses={503: {"model": HealthResponse,
-                     "description": "Loading, draining after SIGTERM, or models failed to load."}},
+    responses={
+        503: {"model": HealthResponse, "description": "Loading, draining after SIGTERM, or models failed to load."}
+    },
 )
 async def health(runtime: RuntimeDep) -> JSONResponse:
     """200 when ready to serve, else 503 with the same body."""
@@ -31,8 +32,9 @@ async def health(runtime: RuntimeDep) -> JSONResponse:
     "/health/live",
     summary="Liveness probe",
     response_model=ProbeResponse,
-    responses={503: {"model": ProbeResponse,
-                     "description": "Dead: models failed to load or the scheduler stopped; restart."}},
+    responses={
+        503: {"model": ProbeResponse, "description": "Dead: models failed to load or the scheduler stopped; restart."}
+    },
 )
 async def live(runtime: RuntimeDep) -> JSONResponse:
     """200 `alive` while the process can serve or is still starting; restart it on 503 `dead`."""

@@ -17,10 +17,14 @@ router = APIRouter(tags=["models"])
 
 _IMAGE = [-1, -1, 3]  # height, width, RGB; grey images are accepted too (repeated to RGB)
 _MAP = [-1, -1]
-INPUTS = [TensorMetadata(name="left", datatype="UINT8", shape=_IMAGE),
-          TensorMetadata(name="right", datatype="UINT8", shape=_IMAGE)]
-OUTPUTS = [TensorMetadata(name="disparity", datatype="FP32", shape=_MAP),
-           TensorMetadata(name="uncertainty", datatype="FP32", shape=_MAP)]
+INPUTS = [
+    TensorMetadata(name="left", datatype="UINT8", shape=_IMAGE),
+    TensorMetadata(name="right", datatype="UINT8", shape=_IMAGE),
+]
+OUTPUTS = [
+    TensorMetadata(name="disparity", datatype="FP32", shape=_MAP),
+    TensorMetadata(name="uncertainty", datatype="FP32", shape=_MAP),
+]
 
 
 @router.get("/models", summary="The models this server has loaded", response_model=ModelList)
@@ -37,8 +41,11 @@ async def list_models(runtime: RuntimeDep) -> ModelList:
 )
 async def get_model(name: str, runtime: RuntimeDep) -> ModelInfo:
     if name not in runtime.predictors:
-        raise ApiError(404, "model_not_found", f"no model `{name}` on this server "
-                       f"(loaded: {', '.join(runtime.predictors) or 'none yet'})")
+        raise ApiError(
+            404,
+            "model_not_found",
+            f"no model `{name}` on this server (loaded: {', '.join(runtime.predictors) or 'none yet'})",
+        )
     return model_info(runtime, name)
 
 

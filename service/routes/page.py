@@ -45,8 +45,11 @@ def static_files(root: Path = STATIC_DIR) -> dict[str, Path]:
     built once: a request can only name one of these files, never walk out of the folder."""
     if not root.is_dir():
         return {}
-    return {path.relative_to(root).as_posix(): path for path in sorted(root.rglob("*"))
-            if path.is_file() and path.suffix in MEDIA_TYPES}
+    return {
+        path.relative_to(root).as_posix(): path
+        for path in sorted(root.rglob("*"))
+        if path.is_file() and path.suffix in MEDIA_TYPES
+    }
 
 
 FILES = static_files()
@@ -65,8 +68,9 @@ def _file(name: str) -> FileResponse:
 async def page() -> FileResponse:
     """The web page (`service/static/index.html`)."""
     if "index.html" not in FILES:
-        raise ApiError(404, "not_found", "the web page is not installed with this service "
-                       f"(no index.html in {STATIC_DIR})")
+        raise ApiError(
+            404, "not_found", f"the web page is not installed with this service (no index.html in {STATIC_DIR})"
+        )
     return _file("index.html")
 
 

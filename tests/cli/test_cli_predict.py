@@ -64,8 +64,15 @@ def test_the_output_extension_picks_the_format_and_all_formats_agree(pairs_dir, 
 
 def test_a_png_uncertainty_is_16_bit_by_the_one_rule_of_the_formats(pairs_dir, tmp_path):
     pair = pairs_dir / "shift4"
-    args = ["predict", str(pair / "left.png"), str(pair / "right.png"), "-o", str(tmp_path / "d.pfm"),
-            "--device", "cpu"]
+    args = [
+        "predict",
+        str(pair / "left.png"),
+        str(pair / "right.png"),
+        "-o",
+        str(tmp_path / "d.pfm"),
+        "--device",
+        "cpu",
+    ]
     main([*args, "--uncertainty", str(tmp_path / "u.npy")])
     main([*args, "--uncertainty", str(tmp_path / "u.png")])
     uncertainty = np.load(tmp_path / "u.npy").astype(np.float64)
@@ -169,8 +176,21 @@ def test_a_metric_point_cloud_is_written_as_ply(pairs_dir, tmp_path):
 
     pair = pairs_dir / "shift4"
     ply = tmp_path / "cloud.ply"
-    argv = ["predict", str(pair / "left.png"), str(pair / "right.png"), "-o", str(tmp_path / "d.pfm"),
-            "--ply", str(ply), "--focal-px", "500", "--baseline-m", "0.1", "--device", "cpu"]
+    argv = [
+        "predict",
+        str(pair / "left.png"),
+        str(pair / "right.png"),
+        "-o",
+        str(tmp_path / "d.pfm"),
+        "--ply",
+        str(ply),
+        "--focal-px",
+        "500",
+        "--baseline-m",
+        "0.1",
+        "--device",
+        "cpu",
+    ]
     assert main(argv) == 0
     vertex = PlyData.read(io.BytesIO(ply.read_bytes()))["vertex"]
     disparity = read_pfm(tmp_path / "d.pfm")

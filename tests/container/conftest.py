@@ -1,3 +1,2 @@
 def pytest_configure(config):
-    config.addinivalue_line(
-        "markers", "container: needs a Docker engine (deselect with -m 'not container')")
+    config.addinivalue_line("markers", "container: needs a Docker engine (deselect with -m 'not container')")

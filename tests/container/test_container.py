@@ -26,8 +26,14 @@ import pytest
 ROOT = Path(__file__).resolve().parents[2]
 IMAGE = os.environ.get("CRESTEREO_TEST_IMAGE", "crestereo-pp:test")
 CONTAINER_PORT = 8000
-STEREO_DEV = next((path for path in (ROOT.parent / "shared" / "data" / "stereo-dev",
-                                      Path("/work/shared/data/stereo-dev")) if path.is_dir()), None)
+STEREO_DEV = next(
+    (
+        path
+        for path in (ROOT.parent / "shared" / "data" / "stereo-dev", Path("/work/shared/data/stereo-dev"))
+        if path.is_dir()
+    ),
+    None,
+)
 PAIR = "middlebury2003_teddy"  # 450x375, sent at half size
 CPUS = 1  # fewer than the machine's cores, so the quota (not the core count) sets the threads
 DRAIN_TIMEOUT_S = 5.0
@@ -49,8 +55,7 @@ def _unavailable(reason: str) -> None:
 @pytest.fixture(scope="module")
 def docker() -> None:
     """A Docker engine that answers; started here (docker/engine.sh) when installed but stopped."""
-    result = subprocess.run(["bash", str(ROOT / "docker" / "engine.sh")],
-                            capture_output=True, text=True, timeout=120)
+    result = subprocess.run(["bash", str(ROOT / "docker" / "engine.sh")], capture_output=True, text=True, timeout=120)
     if result.returncode != 0:
         _unavailable(f"no Docker engine can be started: {result.stderr.strip()}")
 
@@ -59,9 +64,13 @@ def docker() -> None:
 def image(docker: None) -> str:
     """The service image, built from this tree (base image made locally when missing)."""
     started = time.monotonic()
-    result = subprocess.run(["bash", str(ROOT / "docker" / "build.sh")],
-                            env={**os.environ, "IMAGE": IMAGE},
-                            capture_output=True, text=True, timeout=1800)
+    result = subprocess.run(
+        ["bash", str(ROOT / "docker" / "build.sh")],
+        env={**os.environ, "IMAGE": IMAGE},
+        capture_output=True,
+        text=True,
+        timeout=1800,
+    )
     assert result.returncode == 0, f"image build failed:\n{result.stdout[-4000:]}\n{result.stderr[-4000:]}"
     print(f"image {IMAGE} built in {time.monotonic() - started:.0f} s")
     return IMAGE
@@ -72,14 +81,26 @@ def container(image: str) -> Iterator[tuple[str, str]]:
     """A running container (name, base URL), removed whatever happens."""
     name = f"crestereo-test-{uuid.uuid4().hex[:8]}"
     try:
-        _run("docker", "run", "--detach", "--name", name,
-             "--publish", f"127.0.0.1::{CONTAINER_PORT}",  # a free host port, chosen by docker
-             f"--cpus={CPUS}", "--memory=3g",
-             "--read-only", "--tmpfs", "/tmp",
-             "--health-interval=2s",  # the image's HEALTHCHECK command, probed more often
-             "--env", f"CRESTEREO_DRAIN_TIMEOUT_S={DRAIN_TIMEOUT_S}",
-             "--env", "CRESTEREO_LOG_LEVEL=info",
-             image)
+        _run(
+            "docker",
+            "run",
+            "--detach",
+            "--name",
+            name,
+            "--publish",
+            f"127.0.0.1::{CONTAINER_PORT}",  # a free host port, chosen by docker
+            f"--cpus={CPUS}",
+            "--memory=3g",
+            "--read-only",
+            "--tmpfs",
+            "/tmp",
+            "--health-interval=2s",  # the image's HEALTHCHECK command, probed more often
+            "--env",
+            f"CRESTEREO_DRAIN_TIMEOUT_S={DRAIN_TIMEOUT_S}",
+            "--env",
+            "CRESTEREO_LOG_LEVEL=info",
+            image,
+        )
         host_port = _run("docker", "port", name, f"{CONTAINER_PORT}/tcp").stdout.split()[0].rsplit(":", 1)[1]
         yield name, f"http://127.0.0.1:{host_port}"
     finally:
@@ -101,8 +122,10 @@ def ready(container: tuple[str, str]) -> tuple[str, str]:
         state = _state(name)
         assert state["Running"], f"container exited early: {state}"
         try:
-            if (httpx.get(f"{url}/health/ready", timeout=5).status_code == 200
-                    and state.get("Health", {}).get("Status") == "healthy"):
+            if (
+                httpx.get(f"{url}/health/ready", timeout=5).status_code == 200
+                and state.get("Health", {}).get("Status") == "healthy"
+            ):
                 return container
         except httpx.TransportError:
             pass
@@ -115,8 +138,7 @@ def _stereo_pair() -> tuple[bytes, bytes, tuple[int, int]]:
     (the right view is the left one shifted by 8 px); PNG bytes and (height, width)."""
     if STEREO_DEV is not None and (STEREO_DEV / PAIR).is_dir():
         left, right = (cv2.imread(str(STEREO_DEV / PAIR / f"{side}.png")) for side in ("left", "right"))
-        left, right = (cv2.resize(img, None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA)
-                       for img in (left, right))
+        left, right = (cv2.resize(img, None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA) for img in (left, right))
     else:
         rng = np.random.default_rng(0)
         left = cv2.GaussianBlur(rng.integers(0, 256, (192, 256, 3), dtype=np.uint8), (3, 3), 0)
@@ -148,10 +170,12 @@ def test_threads_follow_the_cpu_quota(ready: tuple[str, str]) -> None:
 def test_disparity_of_a_real_pair(ready: tuple[str, str]) -> None:
     _, url = ready
     left, right, (height, width) = _stereo_pair()
-    response = httpx.post(f"{url}/disparity", params={"model": "lite"},
-                          files={"left": ("left.png", left, "image/png"),
-                                 "right": ("right.png", right, "image/png")},
-                          timeout=120)
+    response = httpx.post(
+        f"{url}/disparity",
+        params={"model": "lite"},
+        files={"left": ("left.png", left, "image/png"), "right": ("right.png", right, "image/png")},
+        timeout=120,
+    )
     assert response.status_code == 200, response.text
     body = response.json()
     assert body["image_size"] == {"width": width, "height": height}
@@ -164,10 +188,11 @@ def test_disparity_of_a_real_pair(ready: tuple[str, str]) -> None:
 def test_malformed_request_is_a_json_4xx(ready: tuple[str, str]) -> None:
     _, url = ready
     left, _, _ = _stereo_pair()
-    response = httpx.post(f"{url}/disparity",
-                          files={"left": ("left.png", left, "image/png"),
-                                 "right": ("right.png", b"this is not an image", "image/png")},
-                          timeout=30)
+    response = httpx.post(
+        f"{url}/disparity",
+        files={"left": ("left.png", left, "image/png"), "right": ("right.png", b"this is not an image", "image/png")},
+        timeout=30,
+    )
     assert 400 <= response.status_code < 500, response.text
     assert response.headers["content-type"].startswith("application/json")
     error = response.json()["error"]

@@ -17,8 +17,7 @@ DOCKERFILES = [DOCKER / "Dockerfile", DOCKER / "base.Dockerfile"]
 
 def _tool(name: str) -> str:
     """A tool from the test environment (its bin/ first), or skip (a failure under CI)."""
-    path = shutil.which(name, path=os.pathsep.join([str(Path(sys.executable).parent),
-                                                    os.environ.get("PATH", "")]))
+    path = shutil.which(name, path=os.pathsep.join([str(Path(sys.executable).parent), os.environ.get("PATH", "")]))
     if path is None:
         reason = f"{name} is not installed"
         if os.environ.get("CI"):
@@ -29,14 +28,19 @@ def _tool(name: str) -> str:
 
 @pytest.mark.parametrize("dockerfile", DOCKERFILES, ids=lambda p: p.name)
 def test_hadolint_passes(dockerfile: Path) -> None:
-    result = subprocess.run([_tool("hadolint"), "--no-color", str(dockerfile)],
-                            capture_output=True, text=True, timeout=60)
+    result = subprocess.run(
+        [_tool("hadolint"), "--no-color", str(dockerfile)], capture_output=True, text=True, timeout=60
+    )
     assert result.returncode == 0, result.stdout + result.stderr
 
 
 def test_compose_file_is_valid_and_limits_resources() -> None:
-    result = subprocess.run([_tool("docker-compose"), "--file", str(DOCKER / "compose.yaml"),
-                             "config"], capture_output=True, text=True, timeout=60)
+    result = subprocess.run(
+        [_tool("docker-compose"), "--file", str(DOCKER / "compose.yaml"), "config"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert result.returncode == 0, result.stderr
     config = result.stdout
     for key in ("cpus:", "mem_limit:", "healthcheck:", "restart:", "published:"):
@@ -55,6 +59,9 @@ def test_compose_passes_every_service_setting() -> None:
 def test_container_readme_lists_every_service_setting() -> None:
     settings = pytest.importorskip("service.settings")
     readme = (DOCKER / "README.md").read_text()
-    missing = [settings.ENV_PREFIX + name.upper() for name in settings.Settings.model_fields
-               if f"`{settings.ENV_PREFIX}{name.upper()}`" not in readme]
+    missing = [
+        settings.ENV_PREFIX + name.upper()
+        for name in settings.Settings.model_fields
+        if f"`{settings.ENV_PREFIX}{name.upper()}`" not in readme
+    ]
     assert not missing, f"docker/README.md does not document {missing}"

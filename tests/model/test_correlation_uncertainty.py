@@ -17,13 +17,17 @@ def test_group_correlation_is_the_group_mean_of_channel_products_at_each_candida
     left, right = torch.randn(2, 8, 5, 11), torch.randn(2, 8, 5, 11)
     volume = group_correlation(left, right, groups=4, window=window)
     assert volume.shape == (2, 36, 5, 11)
-    shifts = [(0, dx) for dx in range(-4, 5)] if window == "1x9" else [(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1)]
+    shifts = (
+        [(0, dx) for dx in range(-4, 5)] if window == "1x9" else [(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1)]
+    )
     for b, i, j in [(0, 2, 5), (1, 0, 0), (1, 4, 10), (0, 3, 2)]:
         for g in range(4):
             for r, (dy, dx) in enumerate(shifts):
                 y, x = i + dy, j + dx
                 inside = 0 <= y < 5 and 0 <= x < 11
-                expected = (left[b, 2 * g : 2 * g + 2, i, j] * right[b, 2 * g : 2 * g + 2, y, x]).mean() if inside else 0.0
+                expected = (
+                    (left[b, 2 * g : 2 * g + 2, i, j] * right[b, 2 * g : 2 * g + 2, y, x]).mean() if inside else 0.0
+                )
                 assert volume[b, 9 * g + r, i, j].item() == pytest.approx(float(expected), abs=1e-6)
 
 

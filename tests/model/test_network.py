@@ -42,7 +42,7 @@ def synthetic_pair(height=64, width=96, disparity=5.0, seed=0):
     right = torch.rand(1, 3, height, width + 16, generator=g) * 255
     right = torch.nn.functional.avg_pool2d(right, 3, stride=1, padding=1)
     shift = int(disparity)
-    left = right[..., : width]
+    left = right[..., :width]
     right = right[..., shift : width + shift]  # left(x) = right(x - d)  <=>  right(x) = left(x + d)
     gt = torch.full((1, 1, height, width), disparity)
     return left.contiguous(), right.contiguous(), gt
@@ -112,7 +112,10 @@ def test_every_ablation_switch_builds_and_runs(switch):
 
 
 def test_gru_kernel_ablation_parameter_counts_follow_the_papers_order():
-    counts = {k: count(CREStereoPP(ModelConfig.preset("lite", gru_kernels=k))) for k in ("3x3", "1x5", "1x15", "1x5+1x15", "1x5+1x15+1x31")}
+    counts = {
+        k: count(CREStereoPP(ModelConfig.preset("lite", gru_kernels=k)))
+        for k in ("3x3", "1x5", "1x15", "1x5+1x15", "1x5+1x15+1x31")
+    }
     assert counts["3x3"] < counts["1x5"] < counts["1x15"] < counts["1x5+1x15"] < counts["1x5+1x15+1x31"]
     bilinear = count(CREStereoPP(ModelConfig.preset("lite", warping="bilinear")))
     assert bilinear < counts["1x5+1x15"]

@@ -18,7 +18,21 @@ def test_exported_model_in_onnx_runtime_matches_predict_within_a_thousandth_of_a
     weights = WEIGHTS_DIR / "lite.pt"
     onnx_file = tmp_path / "lite.onnx"
     # 50x90 is not a multiple of 32: the graph pads it as predict does
-    command = ["export", str(weights), "-o", str(onnx_file), "--onnx", "--height", "50", "--width", "90", "--iters", "1", "1", "2"]
+    command = [
+        "export",
+        str(weights),
+        "-o",
+        str(onnx_file),
+        "--onnx",
+        "--height",
+        "50",
+        "--width",
+        "90",
+        "--iters",
+        "1",
+        "1",
+        "2",
+    ]
     assert main(command) == 0
     assert "input 1x3x50x90" in capsys.readouterr().out
 

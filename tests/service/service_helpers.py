@@ -40,13 +40,16 @@ def quiet_load_model(name: str, **kwargs: Any) -> Predictor:
         return load_model(name, **kwargs)
 
 
-def stereo_pair(height: int = HEIGHT, width: int = WIDTH, shift: int = 4,
-                seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+def stereo_pair(
+    height: int = HEIGHT, width: int = WIDTH, shift: int = 4, seed: int = 0
+) -> tuple[np.ndarray, np.ndarray]:
     """A textured RGB uint8 pair whose right view is the left shifted by `shift` px."""
     rng = np.random.default_rng(seed)
-    texture = cv2.resize(rng.integers(0, 256, (height // 4 + 1, (width + shift) // 4 + 1, 3),
-                                      dtype=np.uint8), ((width + shift), height),
-                         interpolation=cv2.INTER_CUBIC)
+    texture = cv2.resize(
+        rng.integers(0, 256, (height // 4 + 1, (width + shift) // 4 + 1, 3), dtype=np.uint8),
+        ((width + shift), height),
+        interpolation=cv2.INTER_CUBIC,
+    )
     return np.ascontiguousarray(texture[:, shift:]), np.ascontiguousarray(texture[:, :width])
 
 
@@ -97,8 +100,9 @@ class Harness:
 
 
 @asynccontextmanager
-async def serve_asgi(settings: Settings | None = None, *, load_gate: threading.Event | None = None,
-                     await_ready: bool = True) -> AsyncIterator[Harness]:
+async def serve_asgi(
+    settings: Settings | None = None, *, load_gate: threading.Event | None = None, await_ready: bool = True
+) -> AsyncIterator[Harness]:
     """The app with its lifespan running, an httpx client on it, and (once loaded) its gated
     predictors. `load_gate` holds model loading back until set; `await_ready` waits for
     readiness before yielding."""
@@ -113,8 +117,7 @@ async def serve_asgi(settings: Settings | None = None, *, load_gate: threading.E
     app = create_app(settings or lite_settings(), loader=loader)
     async with app.router.lifespan_context(app):
         transport = httpx.ASGITransport(app=app)
-        async with httpx.AsyncClient(transport=transport, base_url="http://service",
-                                     timeout=60) as client:
+        async with httpx.AsyncClient(transport=transport, base_url="http://service", timeout=60) as client:
             if await_ready:
                 await wait_ready(client)
             yield Harness(app, client, predictors)
@@ -165,12 +168,20 @@ def run_uvicorn(tmp_path: Path, **env: str) -> Iterator[Server]:
     settings from `env` (lite only unless given); stopped (and killed if need be) on exit."""
     port = free_port()
     log_path = tmp_path / f"uvicorn-{port}.log"
-    environ = {**os.environ, "CRESTEREO_MODELS": "lite", "PYTHONWARNINGS": "ignore::RuntimeWarning",
-               **{f"CRESTEREO_{key.upper()}": value for key, value in env.items()}}
+    environ = {
+        **os.environ,
+        "CRESTEREO_MODELS": "lite",
+        "PYTHONWARNINGS": "ignore::RuntimeWarning",
+        **{f"CRESTEREO_{key.upper()}": value for key, value in env.items()},
+    }
     with log_path.open("wb") as log:
         process = subprocess.Popen(
             [sys.executable, "-m", "service", "--host", "127.0.0.1", "--port", str(port)],
-            cwd=REPO, env=environ, stdout=log, stderr=subprocess.STDOUT)
+            cwd=REPO,
+            env=environ,
+            stdout=log,
+            stderr=subprocess.STDOUT,
+        )
     server = Server(f"http://127.0.0.1:{port}", process, log_path)
     try:
         deadline = time.monotonic() + 90

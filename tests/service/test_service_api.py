@@ -47,17 +47,18 @@ async def test_json_answer_has_maps_equal_to_the_predictor_and_says_how_it_was_c
     assert response.headers["x-weights"] == weights
     assert response.headers["x-image-size"] == f"{WIDTH}x{HEIGHT}"
     assert response.headers["x-batch-size"] == "1"
-    assert float(response.headers["x-compute-ms"]) == pytest.approx(
-        body["timings"]["compute_ms"], abs=0.01)
+    assert float(response.headers["x-compute-ms"]) == pytest.approx(body["timings"]["compute_ms"], abs=0.01)
 
 
 async def test_every_format_encodes_the_same_maps_and_depth_is_focal_times_baseline_over_disparity():
     left, right = stereo_pair()
     calibration = {"focal_px": 700.0, "baseline_m": 0.5}
     async with serve_asgi() as h:
+
         async def get(format: str, **params: float) -> bytes:
-            response = await h.client.post("/disparity", params={"format": format, **params},
-                                           files=pair_files(left, right))
+            response = await h.client.post(
+                "/disparity", params={"format": format, **params}, files=pair_files(left, right)
+            )
             assert response.status_code == 200, response.text
             assert response.headers["x-image-size"] == f"{WIDTH}x{HEIGHT}"
             return response.content
@@ -65,19 +66,22 @@ async def test_every_format_encodes_the_same_maps_and_depth_is_focal_times_basel
         body = json.loads(await get("json", **calibration))
         archive = np.load(io.BytesIO(await get("npz", **calibration)))
         preview = cv2.imdecode(np.frombuffer(await get("png"), np.uint8), cv2.IMREAD_UNCHANGED)
-        png16 = {name: cv2.imdecode(np.frombuffer(await get(f"{name}_png16", **calibration),
-                                                  np.uint8), cv2.IMREAD_UNCHANGED)
-                 for name in ("disparity", "depth", "uncertainty")}
-    disparity, uncertainty, depth = (decode_array(body[name])
-                                     for name in ("disparity", "uncertainty", "depth"))
+        png16 = {
+            name: cv2.imdecode(np.frombuffer(await get(f"{name}_png16", **calibration), np.uint8), cv2.IMREAD_UNCHANGED)
+            for name in ("disparity", "depth", "uncertainty")
+        }
+    disparity, uncertainty, depth = (decode_array(body[name]) for name in ("disparity", "uncertainty", "depth"))
     expected_depth = np.where(disparity > 0, 700.0 * 0.5 / np.maximum(disparity, 1e-30), np.inf)
     np.testing.assert_allclose(depth, expected_depth, rtol=1e-5)
     assert sorted(archive.files) == ["depth", "disparity", "uncertainty"]
     np.testing.assert_allclose(archive["disparity"], disparity, atol=1e-4)
     np.testing.assert_allclose(archive["uncertainty"], uncertainty, atol=1e-4)
     assert preview.shape == (HEIGHT + BAR_HEIGHT, 2 * WIDTH, 3) and preview.dtype == np.uint8  # maps, bars
-    for name, values, scale in (("disparity", disparity, 256), ("depth", depth, 256),
-                                ("uncertainty", uncertainty, 65535)):
+    for name, values, scale in (
+        ("disparity", disparity, 256),
+        ("depth", depth, 256),
+        ("uncertainty", uncertainty, 65535),
+    ):
         image = png16[name]
         assert image.dtype == np.uint16 and image.shape == (HEIGHT, WIDTH)
         valid = np.isfinite(values) & (values > 0) & (values * scale < 65535)
@@ -89,26 +93,34 @@ async def test_grayscale_16_bit_and_jpeg_uploads_are_accepted():
     left, right = stereo_pair()
     grey_left, grey_right = (cv2.cvtColor(image, cv2.COLOR_RGB2GRAY) for image in (left, right))
     async with serve_asgi() as h:
-        sixteen_bit = await h.client.post("/disparity", files={
-            "left": ("l.png", encode(left.astype(np.uint16) * 257)),
-            "right": ("r.png", encode(right.astype(np.uint16) * 257))})
+        sixteen_bit = await h.client.post(
+            "/disparity",
+            files={
+                "left": ("l.png", encode(left.astype(np.uint16) * 257)),
+                "right": ("r.png", encode(right.astype(np.uint16) * 257)),
+            },
+        )
         eight_bit = await h.client.post("/disparity", files=pair_files(left, right))
         grey = await h.client.post("/disparity", files=pair_files(grey_left, grey_right))
         jpeg = await h.client.post("/disparity", files=pair_files(left, right, ".jpg"))
     assert [r.status_code for r in (sixteen_bit, eight_bit, grey, jpeg)] == [200] * 4
     # 16-bit samples are scaled to the 8-bit range: the same picture gives the same answer
-    np.testing.assert_allclose(decode_array(sixteen_bit.json()["disparity"]),
-                               decode_array(eight_bit.json()["disparity"]), atol=1e-4)
+    np.testing.assert_allclose(
+        decode_array(sixteen_bit.json()["disparity"]), decode_array(eight_bit.json()["disparity"]), atol=1e-4
+    )
 
 
-@pytest.mark.parametrize(("params", "knobs"), [
-    ({"two_pass": "true"}, {"two_pass": True}),
-    ({"iters": "3"}, {"iters": 3}),
-    ({"iters": "1,1,2"}, {"iters": (1, 1, 2)}),
-    ({"scale": "0.5"}, {"scale": 0.5}),
-    ({"scale": "0.5", "iters": "2", "two_pass": "true"}, {"scale": 0.5, "iters": 2, "two_pass": True}),
-    ({"raw_uncertainty": "true"}, {"raw_uncertainty": True}),
-])
+@pytest.mark.parametrize(
+    ("params", "knobs"),
+    [
+        ({"two_pass": "true"}, {"two_pass": True}),
+        ({"iters": "3"}, {"iters": 3}),
+        ({"iters": "1,1,2"}, {"iters": (1, 1, 2)}),
+        ({"scale": "0.5"}, {"scale": 0.5}),
+        ({"scale": "0.5", "iters": "2", "two_pass": "true"}, {"scale": 0.5, "iters": 2, "two_pass": True}),
+        ({"raw_uncertainty": "true"}, {"raw_uncertainty": True}),
+    ],
+)
 async def test_inference_options_are_served_as_the_library_computes_them(params, knobs):
     left, right = stereo_pair()
     async with serve_asgi() as h:
@@ -121,8 +133,9 @@ async def test_inference_options_are_served_as_the_library_computes_them(params,
         np.testing.assert_allclose(served, getattr(direct, name), rtol=1e-4, atol=1e-4)
 
 
-@pytest.mark.parametrize("params", [{"iters": "0"}, {"iters": "1,2"}, {"iters": "4,x,6"},
-                                    {"iters": "100"}, {"scale": "0"}, {"scale": "1.5"}])
+@pytest.mark.parametrize(
+    "params", [{"iters": "0"}, {"iters": "1,2"}, {"iters": "4,x,6"}, {"iters": "100"}, {"scale": "0"}, {"scale": "1.5"}]
+)
 async def test_bad_iterations_or_scale_get_422(params):
     async with serve_asgi() as h:
         response = await h.client.post("/disparity", params=params, files=pair_files(*stereo_pair()))
@@ -146,14 +159,22 @@ async def test_logs_are_json_lines_carrying_the_request_id():
     async with serve_asgi() as h:
         logging.getLogger("service").addHandler(handler)
         try:
-            await h.client.post("/disparity", headers={"X-Request-Id": "req-1"},
-                                files=pair_files(*stereo_pair()))
+            await h.client.post("/disparity", headers={"X-Request-Id": "req-1"}, files=pair_files(*stereo_pair()))
         finally:
             logging.getLogger("service").removeHandler(handler)
     lines = [json.loads(line) for line in stream.getvalue().splitlines()]
     access = [line for line in lines if line["message"] == "request"]
-    assert access == [{**access[0], "request_id": "req-1", "method": "POST", "path": "/disparity",
-                       "status": 200, "model": "lite", "batch_size": 1}]
+    assert access == [
+        {
+            **access[0],
+            "request_id": "req-1",
+            "method": "POST",
+            "path": "/disparity",
+            "status": 200,
+            "model": "lite",
+            "batch_size": 1,
+        }
+    ]
     assert access[0]["duration_ms"] > 0 and access[0]["level"] == "info"
 
 
@@ -170,7 +191,9 @@ async def test_models_describe_each_loaded_model_in_open_inference_protocol_shap
     assert info["versions"] == [predictor.weights_sha256[:16]]
     assert [t["name"] for t in info["inputs"]] == ["left", "right"]
     assert [(t["name"], t["datatype"], t["shape"]) for t in info["outputs"]] == [
-        ("disparity", "FP32", [-1, -1]), ("uncertainty", "FP32", [-1, -1])]
+        ("disparity", "FP32", [-1, -1]),
+        ("uncertainty", "FP32", [-1, -1]),
+    ]
     assert info["parameters"] == predictor.num_parameters and info["iterations"] == [2, 4, 6]
     assert info["max_image_pixels"] == 4_194_304 and info["min_image_side"] == 32
     assert info["training"]["pairs"] == predictor.training["total_pairs"] > 0
@@ -191,5 +214,6 @@ async def test_a_metric_point_cloud_is_served_as_binary_ply():
     assert response.status_code == 200 and response.headers["content-type"] == "application/x-ply"
     vertex = PlyData.read(io.BytesIO(response.content))["vertex"]
     assert len(vertex) == int((direct.disparity > 0).sum())
-    np.testing.assert_allclose(np.sort(vertex["z"]), np.sort(500.0 * 0.12 / direct.disparity[direct.disparity > 0]),
-                               rtol=1e-3)
+    np.testing.assert_allclose(
+        np.sort(vertex["z"]), np.sort(500.0 * 0.12 / direct.disparity[direct.disparity > 0]), rtol=1e-3
+    )

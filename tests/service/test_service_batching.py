@@ -63,14 +63,15 @@ class Requests:
 
     def post(self, name: str, left: np.ndarray, right: np.ndarray, **kwargs: Any) -> None:
         async def send() -> None:
-            self.responses[name] = await self.h.client.post(
-                "/disparity", files=pair_files(left, right), **kwargs)
+            self.responses[name] = await self.h.client.post("/disparity", files=pair_files(left, right), **kwargs)
+
         self.tg.start_soon(send)
 
 
 @asynccontextmanager
-async def worker_held(h: Harness, name: str = "busy",
-                      pair: tuple[np.ndarray, np.ndarray] | None = None) -> AsyncIterator[Requests]:
+async def worker_held(
+    h: Harness, name: str = "busy", pair: tuple[np.ndarray, np.ndarray] | None = None
+) -> AsyncIterator[Requests]:
     """Request `name` (of `pair`, default `stereo_pair()`) computing on the worker, held there by
     the gate until the body ends; the body posts more requests in the background, and every
     request is answered before the block exits."""
@@ -96,27 +97,28 @@ async def test_requests_queued_behind_a_busy_worker_run_as_one_batch_equal_to_si
                 requests.post(size, *pair)
             await wait_queued(h, 3)
         metrics = (await h.client.get("/metrics")).text
-        singles = {size: gated.predict(torch.from_numpy(np.stack([left])).permute(0, 3, 1, 2).float(),
-                                       torch.from_numpy(np.stack([right])).permute(0, 3, 1, 2).float())
-                   for size, (left, right) in pairs.items()}
+        singles = {
+            size: gated.predict(
+                torch.from_numpy(np.stack([left])).permute(0, 3, 1, 2).float(),
+                torch.from_numpy(np.stack([right])).permute(0, 3, 1, 2).float(),
+            )
+            for size, (left, right) in pairs.items()
+        }
     assert gated.calls[:2] == [1, 3]
     for size in pairs:
         response = requests.responses[size]
         assert response.status_code == 200
         assert response.json()["batch_size"] == 3 and response.headers["x-batch-size"] == "3"
         assert disparity_of(response).shape == size
-        np.testing.assert_allclose(disparity_of(response), singles[size].disparity[0].numpy(),
-                                   rtol=1e-4, atol=1e-3)
+        np.testing.assert_allclose(disparity_of(response), singles[size].disparity[0].numpy(), rtol=1e-4, atol=1e-3)
     assert metric_total(metrics, "crestereo_batch_size_count", model="lite") == 2
     assert metric_total(metrics, "crestereo_batch_size_sum", model="lite") == 4
 
 
 async def test_batches_respect_max_batch_size_and_never_mix_shapes():
     small, large = stereo_pair(64, 96), stereo_pair(96, 64)
-    async with serve_asgi(lite_settings(max_batch_size=2)) as h, \
-            worker_held(h, pair=small) as requests:
-        for queued, (name, pair) in enumerate([("s1", small), ("l1", large), ("s2", small),
-                                                ("s3", small)], start=1):
+    async with serve_asgi(lite_settings(max_batch_size=2)) as h, worker_held(h, pair=small) as requests:
+        for queued, (name, pair) in enumerate([("s1", small), ("l1", large), ("s2", small), ("s3", small)], start=1):
             requests.post(name, *pair)
             await wait_queued(h, queued)
     sizes = {name: r.json()["batch_size"] for name, r in requests.responses.items()}
@@ -164,8 +166,9 @@ async def test_a_full_queue_answers_503_with_retry_after():
 async def test_a_request_whose_deadline_passes_in_the_queue_gets_503_and_is_never_computed():
     async with serve_asgi() as h:
         async with worker_held(h) as requests:
-            late = await h.client.post("/disparity", files=pair_files(*stereo_pair()),
-                                       headers={"X-Request-Timeout-Ms": "100"})
+            late = await h.client.post(
+                "/disparity", files=pair_files(*stereo_pair()), headers={"X-Request-Timeout-Ms": "100"}
+            )
             assert await queue_depth(h) == 0  # it left the queue when it gave up
         metrics = (await h.client.get("/metrics")).text
     assert late.status_code == 503
@@ -180,11 +183,20 @@ async def test_a_request_whose_client_disconnected_is_dropped_before_compute():
     async with serve_asgi() as h:
         request = h.client.build_request("POST", "/disparity", files=pair_files(*stereo_pair()))
         body = request.read()
-        scope = {"type": "http", "asgi": {"version": "3.0"}, "http_version": "1.1",
-                 "method": "POST", "scheme": "http", "path": "/disparity",
-                 "raw_path": b"/disparity", "query_string": b"", "root_path": "",
-                 "headers": [(k.lower(), v) for k, v in request.headers.raw],
-                 "client": ("127.0.0.1", 50000), "server": ("service", 80)}
+        scope = {
+            "type": "http",
+            "asgi": {"version": "3.0"},
+            "http_version": "1.1",
+            "method": "POST",
+            "scheme": "http",
+            "path": "/disparity",
+            "raw_path": b"/disparity",
+            "query_string": b"",
+            "root_path": "",
+            "headers": [(k.lower(), v) for k, v in request.headers.raw],
+            "client": ("127.0.0.1", 50000),
+            "server": ("service", 80),
+        }
         messages = [{"type": "http.request", "body": body, "more_body": False}]
 
         async def receive() -> dict[str, Any]:  # the body, then the client is gone
@@ -229,18 +241,15 @@ async def test_an_inference_exception_fails_only_its_batch_and_logs_an_error_id(
 async def test_while_models_load_health_and_readiness_are_503_and_liveness_is_200():
     gate = threading.Event()
     async with serve_asgi(load_gate=gate, await_ready=False) as h:
-        loading = {path: await h.client.get(path) for path in ("/health", "/health/ready",
-                                                               "/health/live")}
+        loading = {path: await h.client.get(path) for path in ("/health", "/health/ready", "/health/live")}
         refused = await h.client.post("/disparity", files=pair_files(*stereo_pair()))
         gate.set()
         await wait_ready(h.client)
         ready = await h.client.get("/health")
     assert loading["/health"].status_code == 503
     assert loading["/health"].json()["status"] == "loading"
-    assert loading["/health"].json()["models"]["lite"] == {"loaded": False, "parameters": None,
-                                                           "weights": None}
-    assert (loading["/health/ready"].status_code, loading["/health/ready"].json()) == (
-        503, {"status": "loading"})
+    assert loading["/health"].json()["models"]["lite"] == {"loaded": False, "parameters": None, "weights": None}
+    assert (loading["/health/ready"].status_code, loading["/health/ready"].json()) == (503, {"status": "loading"})
     assert loading["/health/live"].status_code == 200
     assert refused.status_code == 503 and refused.json()["error"]["code"] == "loading"
     assert "retry-after" in refused.headers
@@ -249,9 +258,13 @@ async def test_while_models_load_health_and_readiness_are_503_and_liveness_is_20
     assert health["models"]["lite"]["loaded"] is True
     assert health["models"]["lite"]["parameters"] == h.predictors["lite"].num_parameters
     assert health["queue_depth"] == {"lite": 0}
-    assert health["batching"] == {"max_batch_size": 8, "max_batch_pixels": 131_072,
-                                  "max_wait_ms": 10.0, "max_queue": 32,
-                                  "torch_threads": health["batching"]["torch_threads"]}
+    assert health["batching"] == {
+        "max_batch_size": 8,
+        "max_batch_pixels": 131_072,
+        "max_wait_ms": 10.0,
+        "max_queue": 32,
+        "torch_threads": health["batching"]["torch_threads"],
+    }
 
 
 async def test_models_that_fail_to_load_make_the_process_not_live():
@@ -267,8 +280,7 @@ async def test_models_that_fail_to_load_make_the_process_not_live():
 
 
 @asynccontextmanager
-async def draining_with_work_admitted(settings: Settings | None = None
-                                      ) -> AsyncIterator[tuple[Harness, Requests]]:
+async def draining_with_work_admitted(settings: Settings | None = None) -> AsyncIterator[tuple[Harness, Requests]]:
     """A server draining (as after SIGTERM) with request "running" computing, held by the gate,
     and "queued" behind it; the body runs during the drain, then the gate opens (`worker_held`)."""
     async with serve_asgi(settings) as h, worker_held(h, "running") as requests:

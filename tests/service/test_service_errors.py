@@ -27,15 +27,15 @@ PAIR = pair_files(LEFT, RIGHT)
 
 def png_bomb(width: int, height: int) -> bytes:
     """A valid 1-bit greyscale PNG of width x height, all zeros: tiny file, huge bitmap."""
+
     def chunk(kind: bytes, data: bytes) -> bytes:
-        return struct.pack(">I", len(data)) + kind + data + struct.pack(
-            ">I", zlib.crc32(kind + data))
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
     row = b"\x00" * (1 + (width + 7) // 8)
     compressor = zlib.compressobj(9)
     idat = b"".join(compressor.compress(row) for _ in range(height)) + compressor.flush()
     header = struct.pack(">IIBBBBB", width, height, 1, 0, 0, 0, 0)
-    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", idat)
-            + chunk(b"IEND", b""))
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", idat) + chunk(b"IEND", b"")
 
 
 BOMB = png_bomb(30_000, 30_000)  # 900 megapixels in about 100 kB
@@ -44,54 +44,102 @@ truncated_png = PAIR["left"][1][:200]
 
 # (case, request keyword arguments, status, error code, rejected_total reason)
 CASES: list[tuple[str, dict[str, Any], int, str, str]] = [
-    ("image over the pixel limit is refused from its header: a decompression bomb",
-     {"files": {"left": ("l.png", BOMB), "right": ("r.png", BOMB)}}, 413, "image_too_large",
-     "too_large"),
-    ("image smaller than the minimum side",
-     {"files": pair_files(small_left, small_right)}, 422, "image_too_small", "bad_input"),
-    ("left and right of different sizes",
-     {"files": {"left": PAIR["left"], "right": ("r.png", encode(RIGHT[:, :-1]))}}, 422,
-     "size_mismatch", "bad_input"),
-    ("upload that is not an image",
-     {"files": {"left": ("l.txt", b"hello world"), "right": PAIR["right"]}}, 415,
-     "unsupported_media_type", "bad_input"),
-    ("image whose data is broken",
-     {"files": {"left": ("l.png", truncated_png), "right": PAIR["right"]}}, 422,
-     "undecodable_image", "bad_input"),
+    (
+        "image over the pixel limit is refused from its header: a decompression bomb",
+        {"files": {"left": ("l.png", BOMB), "right": ("r.png", BOMB)}},
+        413,
+        "image_too_large",
+        "too_large",
+    ),
+    (
+        "image smaller than the minimum side",
+        {"files": pair_files(small_left, small_right)},
+        422,
+        "image_too_small",
+        "bad_input",
+    ),
+    (
+        "left and right of different sizes",
+        {"files": {"left": PAIR["left"], "right": ("r.png", encode(RIGHT[:, :-1]))}},
+        422,
+        "size_mismatch",
+        "bad_input",
+    ),
+    (
+        "upload that is not an image",
+        {"files": {"left": ("l.txt", b"hello world"), "right": PAIR["right"]}},
+        415,
+        "unsupported_media_type",
+        "bad_input",
+    ),
+    (
+        "image whose data is broken",
+        {"files": {"left": ("l.png", truncated_png), "right": PAIR["right"]}},
+        422,
+        "undecodable_image",
+        "bad_input",
+    ),
     ("missing right image", {"files": {"left": PAIR["left"]}}, 422, "missing_field", "bad_input"),
-    ("option sent as a form field",
-     {"files": PAIR, "data": {"model": "lite"}}, 422, "unknown_field", "bad_input"),
-    ("unknown query option",
-     {"files": PAIR, "params": {"colour": "red"}}, 422, "invalid_request", "bad_input"),
-    ("unknown format",
-     {"files": PAIR, "params": {"format": "gif"}}, 422, "invalid_request", "bad_input"),
-    ("focal length without baseline",
-     {"files": PAIR, "params": {"focal_px": 700}}, 422, "invalid_request", "bad_input"),
-    ("depth PNG without calibration",
-     {"files": PAIR, "params": {"format": "depth_png16"}}, 422, "invalid_request", "bad_input"),
-    ("model this server did not load",
-     {"files": PAIR, "params": {"model": "full"}}, 422, "model_not_loaded", "bad_input"),
-    ("deadline header that is not a positive integer",
-     {"files": PAIR, "headers": {"X-Request-Timeout-Ms": "soon"}}, 422, "invalid_request",
-     "bad_input"),
-    ("query option given twice",
-     {"files": PAIR, "params": [("model", "lite"), ("model", "full")]}, 422, "invalid_request",
-     "bad_input"),
-    ("calibration whose depth overflows float32",
-     {"files": PAIR, "params": {"focal_px": 1e308, "baseline_m": 1e308}}, 422, "invalid_request",
-     "bad_input"),
-    ("preview colour scale upside down",
-     {"files": PAIR, "params": {"format": "png", "color_min": 50, "color_max": 10}}, 422,
-     "invalid_request", "bad_input"),
-    ("body that is not multipart",
-     {"json": {"left": "x", "right": "y"}}, 415, "unsupported_media_type", "bad_input"),
+    ("option sent as a form field", {"files": PAIR, "data": {"model": "lite"}}, 422, "unknown_field", "bad_input"),
+    ("unknown query option", {"files": PAIR, "params": {"colour": "red"}}, 422, "invalid_request", "bad_input"),
+    ("unknown format", {"files": PAIR, "params": {"format": "gif"}}, 422, "invalid_request", "bad_input"),
+    (
+        "focal length without baseline",
+        {"files": PAIR, "params": {"focal_px": 700}},
+        422,
+        "invalid_request",
+        "bad_input",
+    ),
+    (
+        "depth PNG without calibration",
+        {"files": PAIR, "params": {"format": "depth_png16"}},
+        422,
+        "invalid_request",
+        "bad_input",
+    ),
+    (
+        "model this server did not load",
+        {"files": PAIR, "params": {"model": "full"}},
+        422,
+        "model_not_loaded",
+        "bad_input",
+    ),
+    (
+        "deadline header that is not a positive integer",
+        {"files": PAIR, "headers": {"X-Request-Timeout-Ms": "soon"}},
+        422,
+        "invalid_request",
+        "bad_input",
+    ),
+    (
+        "query option given twice",
+        {"files": PAIR, "params": [("model", "lite"), ("model", "full")]},
+        422,
+        "invalid_request",
+        "bad_input",
+    ),
+    (
+        "calibration whose depth overflows float32",
+        {"files": PAIR, "params": {"focal_px": 1e308, "baseline_m": 1e308}},
+        422,
+        "invalid_request",
+        "bad_input",
+    ),
+    (
+        "preview colour scale upside down",
+        {"files": PAIR, "params": {"format": "png", "color_min": 50, "color_max": 10}},
+        422,
+        "invalid_request",
+        "bad_input",
+    ),
+    ("body that is not multipart", {"json": {"left": "x", "right": "y"}}, 415, "unsupported_media_type", "bad_input"),
 ]
 
 
-@pytest.mark.parametrize(("request_kwargs", "status", "code", "reason"),
-                         [case[1:] for case in CASES], ids=[case[0] for case in CASES])
-async def test_bad_requests_get_a_json_error_and_are_never_computed(request_kwargs, status, code,
-                                                                    reason):
+@pytest.mark.parametrize(
+    ("request_kwargs", "status", "code", "reason"), [case[1:] for case in CASES], ids=[case[0] for case in CASES]
+)
+async def test_bad_requests_get_a_json_error_and_are_never_computed(request_kwargs, status, code, reason):
     async with serve_asgi() as h:
         response = await h.client.post("/disparity", **request_kwargs)
         metrics = (await h.client.get("/metrics")).text
@@ -113,10 +161,11 @@ async def test_body_over_the_limit_is_refused_from_content_length_and_while_stre
 
         async def chunks() -> AsyncIterator[bytes]:  # no Content-Length: chunked upload
             for start in range(0, len(body), 1000):
-                yield body[start:start + 1000]
+                yield body[start : start + 1000]
 
-        streamed = await h.client.post("/disparity", content=chunks(), headers={
-            "Content-Type": multipart.headers["Content-Type"]})
+        streamed = await h.client.post(
+            "/disparity", content=chunks(), headers={"Content-Type": multipart.headers["Content-Type"]}
+        )
     for response in (declared, streamed):
         assert response.status_code == 413
         assert response.json()["error"]["code"] == "body_too_large"
@@ -126,13 +175,14 @@ async def test_body_over_the_limit_is_refused_from_content_length_and_while_stre
 async def test_api_key_guards_disparity_only_and_compares_the_bearer_token():
     async with serve_asgi(lite_settings(api_key="s3cret")) as h:
         missing = await h.client.post("/disparity", files=PAIR)
-        wrong = await h.client.post("/disparity", files=PAIR,
-                                    headers={"Authorization": "Bearer s3cre"})
+        wrong = await h.client.post("/disparity", files=PAIR, headers={"Authorization": "Bearer s3cre"})
         # the right key gets past authentication to input validation (no right image: 422)
-        right = await h.client.post("/disparity", files={"left": PAIR["left"]},
-                                    headers={"Authorization": "Bearer s3cret"})
-        open_paths = [(await h.client.get(path)).status_code
-                      for path in ("/health", "/health/live", "/health/ready", "/metrics")]
+        right = await h.client.post(
+            "/disparity", files={"left": PAIR["left"]}, headers={"Authorization": "Bearer s3cret"}
+        )
+        open_paths = [
+            (await h.client.get(path)).status_code for path in ("/health", "/health/live", "/health/ready", "/metrics")
+        ]
     for response in (missing, wrong):
         assert response.status_code == 401
         assert response.json()["error"]["code"] == "unauthorized"
@@ -146,8 +196,7 @@ async def test_unknown_paths_and_methods_get_json_errors():
         missing = await h.client.get("/nothing")
         wrong_method = await h.client.get("/disparity")
     assert (missing.status_code, missing.json()["error"]["code"]) == (404, "not_found")
-    assert (wrong_method.status_code, wrong_method.json()["error"]["code"]) == (
-        405, "method_not_allowed")
+    assert (wrong_method.status_code, wrong_method.json()["error"]["code"]) == (405, "method_not_allowed")
 
 
 def test_bomb_file_is_small_but_would_decode_huge():

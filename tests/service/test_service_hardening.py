@@ -20,11 +20,23 @@ from service_helpers import REPO, encode, metric_total, run_uvicorn, stereo_pair
 def tiff_with_repeated_size_tags(first: int, second: int) -> bytes:
     """A little-endian TIFF whose first IFD holds each size tag twice: `first`, then `second`.
     libtiff takes the first, a naive header parser the last."""
-    entries = [(256, 3, 1, first), (256, 3, 1, second), (257, 3, 1, first), (257, 3, 1, second),
-               (258, 3, 1, 8), (259, 3, 1, 1), (262, 3, 1, 1), (273, 4, 1, 200), (278, 3, 1, second),
-               (279, 4, 1, second * second)]
-    ifd = struct.pack("<H", len(entries)) + b"".join(
-        struct.pack("<HHII", tag, kind, count, value) for tag, kind, count, value in entries) + b"\0" * 4
+    entries = [
+        (256, 3, 1, first),
+        (256, 3, 1, second),
+        (257, 3, 1, first),
+        (257, 3, 1, second),
+        (258, 3, 1, 8),
+        (259, 3, 1, 1),
+        (262, 3, 1, 1),
+        (273, 4, 1, 200),
+        (278, 3, 1, second),
+        (279, 4, 1, second * second),
+    ]
+    ifd = (
+        struct.pack("<H", len(entries))
+        + b"".join(struct.pack("<HHII", tag, kind, count, value) for tag, kind, count, value in entries)
+        + b"\0" * 4
+    )
     header = b"II*\x00" + struct.pack("<I", 8)
     body = header + ifd
     return body + b"\0" * (200 - len(body)) + b"\x80" * (second * second)
@@ -67,18 +79,28 @@ def test_the_decoder_itself_is_capped_at_the_services_pixel_limit():
         "    print('pixel limit' in str(error))\n"
     )
     env = {k: v for k, v in os.environ.items() if k != "OPENCV_IO_MAX_IMAGE_PIXELS"}
-    result = subprocess.run([sys.executable, "-c", script], cwd=REPO, capture_output=True, text=True,
-                            env={**env, "CRESTEREO_MAX_IMAGE_PIXELS": "1000"}, check=True)
+    result = subprocess.run(
+        [sys.executable, "-c", script],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        env={**env, "CRESTEREO_MAX_IMAGE_PIXELS": "1000"},
+        check=True,
+    )
     assert result.stdout.split() == ["True", "True"]
 
 
 def test_crafted_uploads_get_422_fast_and_never_stall_the_health_check(default_server):
     _, right = stereo_pair()
     attacks = [
-        {"left": ("l.tif", tiff_with_repeated_size_tags(20_000, 64), "image/tiff"),
-         "right": ("r.png", encode(right), "image/png")},
-        {"left": ("l.jpg", jpeg_with_fill_bytes(16_000_000), "image/jpeg"),
-         "right": ("r.png", encode(right), "image/png")},
+        {
+            "left": ("l.tif", tiff_with_repeated_size_tags(20_000, 64), "image/tiff"),
+            "right": ("r.png", encode(right), "image/png"),
+        },
+        {
+            "left": ("l.jpg", jpeg_with_fill_bytes(16_000_000), "image/jpeg"),
+            "right": ("r.png", encode(right), "image/png"),
+        },
     ] * 2
     with httpx.Client(base_url=default_server.base_url, timeout=60) as client, ThreadPoolExecutor(4) as pool:
         answers = pool.map(lambda files: client.post("/disparity", files=files), attacks)
@@ -100,19 +122,26 @@ def test_a_client_gone_mid_upload_counts_as_499_without_a_traceback(default_serv
         sock.sendall(
             b"POST /disparity HTTP/1.1\r\nHost: x\r\nContent-Length: 1000000\r\n"
             b"Content-Type: multipart/form-data; boundary=b\r\n\r\n"
-            b'--b\r\nContent-Disposition: form-data; name="left"; filename="l.png"\r\n\r\n' + b"\0" * 50_000)
+            b'--b\r\nContent-Disposition: form-data; name="left"; filename="l.png"\r\n\r\n' + b"\0" * 50_000
+        )
         time.sleep(0.3)
     deadline = time.monotonic() + 10
     while True:
         after = httpx.get(default_server.base_url + "/metrics").text
-        if metric_total(after, "crestereo_requests_total", status="499") > metric_total(
-                before, "crestereo_requests_total", status="499") or time.monotonic() > deadline:
+        if (
+            metric_total(after, "crestereo_requests_total", status="499")
+            > metric_total(before, "crestereo_requests_total", status="499")
+            or time.monotonic() > deadline
+        ):
             break
         time.sleep(0.1)
-    assert metric_total(after, "crestereo_requests_total", status="499") == metric_total(
-        before, "crestereo_requests_total", status="499") + 1
+    assert (
+        metric_total(after, "crestereo_requests_total", status="499")
+        == metric_total(before, "crestereo_requests_total", status="499") + 1
+    )
     assert metric_total(after, "crestereo_requests_total", status="500") == metric_total(
-        before, "crestereo_requests_total", status="500")
+        before, "crestereo_requests_total", status="500"
+    )
     assert "Traceback" not in default_server.log() and "ClientDisconnect" not in default_server.log()
 
 

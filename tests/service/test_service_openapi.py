@@ -22,8 +22,12 @@ def test_every_disparity_answer_is_documented_with_examples_of_its_error_codes()
     operation = openapi_schema()["paths"]["/disparity"]["post"]
     responses = operation["responses"]
     assert set(responses) == {"200", "401", "413", "415", "422", "500", "503"}
-    assert set(responses["200"]["content"]) == {"application/json", "application/x-npz",
-                                                "image/png", "application/x-ply"}
+    assert set(responses["200"]["content"]) == {
+        "application/json",
+        "application/x-npz",
+        "image/png",
+        "application/x-ply",
+    }
     for status, response in responses.items():
         assert response["description"]
         assert "X-Request-Id" in response["headers"]
@@ -34,13 +38,26 @@ def test_every_disparity_answer_is_documented_with_examples_of_its_error_codes()
                 assert example["value"]["error"]["code"] == code
     assert "Retry-After" in responses["503"]["headers"]
     assert {"queue_full", "deadline_exceeded", "loading", "draining"} <= set(
-        responses["503"]["content"]["application/json"]["examples"])
-    assert operation["requestBody"]["content"]["multipart/form-data"]["schema"]["required"] == [
-        "left", "right"]
+        responses["503"]["content"]["application/json"]["examples"]
+    )
+    assert operation["requestBody"]["content"]["multipart/form-data"]["schema"]["required"] == ["left", "right"]
     names = {parameter["name"] for parameter in operation["parameters"]}
-    assert names == {"model", "format", "two_pass", "iters", "scale", "raw_uncertainty", "color_min", "color_max", "cx_px", "cy_px", "max_uncertainty",
-                     "focal_px", "baseline_m",
-                     "X-Request-Timeout-Ms"}
+    assert names == {
+        "model",
+        "format",
+        "two_pass",
+        "iters",
+        "scale",
+        "raw_uncertainty",
+        "color_min",
+        "color_max",
+        "cx_px",
+        "cy_px",
+        "max_uncertainty",
+        "focal_px",
+        "baseline_m",
+        "X-Request-Timeout-Ms",
+    }
 
 
 def test_health_and_metrics_document_their_answers():

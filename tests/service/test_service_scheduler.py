@@ -75,10 +75,12 @@ def test_the_pixel_limit_caps_a_batch_and_a_larger_image_runs_alone():
 
 
 def test_models_knobs_and_shapes_never_share_a_batch():
-    others = [batch_key("full", Knobs(), 64, 96), batch_key("lite", Knobs(iters=4), 64, 96),
-              batch_key("lite", Knobs(), 96, 64)]
-    queued = queue((SMALL, 1.0), *((key, 1.001 + i / 1000) for i, key in enumerate(others)),
-                   (SMALL, 1.005))
+    others = [
+        batch_key("full", Knobs(), 64, 96),
+        batch_key("lite", Knobs(iters=4), 64, 96),
+        batch_key("lite", Knobs(), 96, 64),
+    ]
+    queued = queue((SMALL, 1.0), *((key, 1.001 + i / 1000) for i, key in enumerate(others)), (SMALL, 1.005))
     batch, _ = choose_batch(queued, incoming=0, now=1.006, limits=LIMITS)
     assert batch == [queued[0], queued[-1]]
 
@@ -136,8 +138,7 @@ async def batcher(**settings: float) -> AsyncIterator[tuple[Batcher, GatedPredic
 
 async def run(batcher: Batcher, results: list[JobResult]) -> None:
     async with batcher.admit("lite") as admission:
-        results.append(await admission.run(LEFT, RIGHT, knobs=Knobs(), deadline=None,
-                                           is_disconnected=connected))
+        results.append(await admission.run(LEFT, RIGHT, knobs=Knobs(), deadline=None, is_disconnected=connected))
 
 
 async def test_an_idle_server_runs_a_lone_request_at_once_whatever_the_max_wait():
@@ -156,8 +157,7 @@ async def test_a_partial_batch_waits_for_requests_still_being_decoded():
                 tg.start_soon(run, b, results)  # queued while `decoding` is still admitted
                 await anyio.sleep(0.2)
                 assert predictor.calls == []  # held back: another request is on its way
-                results.append(await decoding.run(LEFT, RIGHT, knobs=Knobs(), deadline=None,
-                                                  is_disconnected=connected))
+                results.append(await decoding.run(LEFT, RIGHT, knobs=Knobs(), deadline=None, is_disconnected=connected))
     assert predictor.calls == [2] and [r.batch_size for r in results] == [2, 2]
 
 

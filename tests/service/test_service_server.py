@@ -35,8 +35,10 @@ def disparity_of(response: httpx.Response) -> np.ndarray:
 
 def post_concurrently(server: Server, pairs: list[dict], concurrency: int) -> list[httpx.Response]:
     limits = httpx.Limits(max_connections=concurrency)
-    with httpx.Client(base_url=server.base_url, timeout=120, limits=limits) as client, \
-            ThreadPoolExecutor(concurrency) as pool:
+    with (
+        httpx.Client(base_url=server.base_url, timeout=120, limits=limits) as client,
+        ThreadPoolExecutor(concurrency) as pool,
+    ):
         return list(pool.map(lambda files: client.post("/disparity", files=files), pairs))
 
 
@@ -48,8 +50,7 @@ def post_downscaled_real_pair(server: Server) -> tuple[np.ndarray, np.ndarray, h
     """The real pair, downscaled by SCALE, and the server's answer to it."""
     left, right = (read_image(REAL_PAIR / name) for name in ("left.png", "right.png"))
     height, width = left.shape[0] // SCALE, left.shape[1] // SCALE
-    left, right = (cv2.resize(image, (width, height), interpolation=cv2.INTER_AREA)
-                   for image in (left, right))
+    left, right = (cv2.resize(image, (width, height), interpolation=cv2.INTER_AREA) for image in (left, right))
     response = httpx.post(server.base_url + "/disparity", files=pair_files(left, right), timeout=120)
     return left, right, response
 
@@ -71,16 +72,14 @@ def test_the_served_disparity_of_a_real_pair_beats_predicting_zero_disparity(def
     left, right, response = post_downscaled_real_pair(default_server)
     height, width = left.shape[:2]
     assert response.json()["weights"] != "random-init"
-    truth = cv2.resize(read_pfm(REAL_PAIR / "disp.pfm"), (width, height),
-                       interpolation=cv2.INTER_NEAREST) / SCALE
+    truth = cv2.resize(read_pfm(REAL_PAIR / "disp.pfm"), (width, height), interpolation=cv2.INTER_NEAREST) / SCALE
     valid = np.isfinite(truth)
     assert np.abs(disparity_of(response) - truth)[valid].mean() < np.abs(truth)[valid].mean()
 
 
 def test_eight_concurrent_requests_run_in_batches_and_match_the_single_result(default_server):
     left, right = stereo_pair()
-    single = httpx.post(default_server.base_url + "/disparity", files=pair_files(left, right),
-                        timeout=120)
+    single = httpx.post(default_server.base_url + "/disparity", files=pair_files(left, right), timeout=120)
     before = metrics(default_server)
     responses = post_concurrently(default_server, [pair_files(left, right)] * 8, concurrency=8)
     after = metrics(default_server)
@@ -89,12 +88,11 @@ def test_eight_concurrent_requests_run_in_batches_and_match_the_single_result(de
     batch_sizes = [r.json()["batch_size"] for r in responses]
     assert max(batch_sizes) > 1
     for response in responses:
-        np.testing.assert_allclose(disparity_of(response), disparity_of(single),
-                                   rtol=1e-4, atol=1e-3)
-    batches = (metric_total(after, "crestereo_batch_size_count")
-               - metric_total(before, "crestereo_batch_size_count"))
-    batched_requests = (metric_total(after, "crestereo_batch_size_sum")
-                        - metric_total(before, "crestereo_batch_size_sum"))
+        np.testing.assert_allclose(disparity_of(response), disparity_of(single), rtol=1e-4, atol=1e-3)
+    batches = metric_total(after, "crestereo_batch_size_count") - metric_total(before, "crestereo_batch_size_count")
+    batched_requests = metric_total(after, "crestereo_batch_size_sum") - metric_total(
+        before, "crestereo_batch_size_sum"
+    )
     assert batched_requests == 8 and batches < 8
 
 
@@ -109,15 +107,16 @@ def test_a_full_queue_answers_503_with_retry_after_over_http(tmp_path):
         if response.status_code == 503:
             assert response.json()["error"]["code"] == "queue_full"
             assert int(response.headers["retry-after"]) >= 1
-    assert metric_total(exposition, "crestereo_rejected_total", reason="queue_full") == \
-        statuses.count(503)
+    assert metric_total(exposition, "crestereo_rejected_total", reason="queue_full") == statuses.count(503)
 
 
 def test_retry_after_covers_the_work_queued_ahead_in_a_real_burst(tmp_path):
     pair = pair_files(*stereo_pair(288, 384))  # runs alone under the default batch pixel budget
-    with run_uvicorn(tmp_path, max_queue="6") as server, ThreadPoolExecutor(12) as pool, \
-            httpx.Client(base_url=server.base_url, timeout=120,
-                         limits=httpx.Limits(max_connections=12)) as client:
+    with (
+        run_uvicorn(tmp_path, max_queue="6") as server,
+        ThreadPoolExecutor(12) as pool,
+        httpx.Client(base_url=server.base_url, timeout=120, limits=httpx.Limits(max_connections=12)) as client,
+    ):
         assert client.post("/disparity", files=pair).status_code == 200  # compute time measured
 
         def post() -> tuple[httpx.Response, float]:
@@ -136,8 +135,11 @@ def test_retry_after_covers_the_work_queued_ahead_in_a_real_burst(tmp_path):
 
 def test_sigterm_drains_the_queue_without_losing_a_request(tmp_path):
     pair = pair_files(*stereo_pair(96, 128))
-    with run_uvicorn(tmp_path, max_batch_size="1") as server, ThreadPoolExecutor(8) as pool, \
-            httpx.Client(base_url=server.base_url, timeout=120) as client:
+    with (
+        run_uvicorn(tmp_path, max_batch_size="1") as server,
+        ThreadPoolExecutor(8) as pool,
+        httpx.Client(base_url=server.base_url, timeout=120) as client,
+    ):
         futures = [pool.submit(client.post, "/disparity", files=pair) for _ in range(8)]
         deadline = time.monotonic() + 60
         while True:  # until the server has admitted all eight (dispatched + still queued)
@@ -162,8 +164,11 @@ def test_sigterm_drains_the_queue_without_losing_a_request(tmp_path):
 
 def test_the_drain_timeout_bounds_shutdown_even_while_a_batch_computes(tmp_path):
     pair = pair_files(*stereo_pair(1024, 1536))  # several seconds of lite on a small CPU
-    with run_uvicorn(tmp_path, drain_timeout_s="1") as server, ThreadPoolExecutor(1) as pool, \
-            httpx.Client(base_url=server.base_url, timeout=120) as client:
+    with (
+        run_uvicorn(tmp_path, drain_timeout_s="1") as server,
+        ThreadPoolExecutor(1) as pool,
+        httpx.Client(base_url=server.base_url, timeout=120) as client,
+    ):
         future = pool.submit(client.post, "/disparity", files=pair)
         deadline = time.monotonic() + 60
         while metric_total(metrics(server), "crestereo_queue_wait_seconds_count") < 1:  # computing

@@ -28,10 +28,17 @@ def test_settings_default_to_serving_both_models_without_an_api_key():
 
 
 def test_settings_come_from_crestereo_environment_variables():
-    settings = Settings.from_env({
-        "CRESTEREO_MODELS": "lite", "CRESTEREO_MAX_BATCH_SIZE": "4",
-        "CRESTEREO_WEIGHTS": "lite=/w/lite.pt, full=/w/full.pt", "CRESTEREO_API_KEY": "k",
-        "CRESTEREO_MAX_WAIT_MS": "2.5", "OTHER_MAX_BATCH_SIZE": "99", "CRESTEREO_PRECISION": "bf16"})
+    settings = Settings.from_env(
+        {
+            "CRESTEREO_MODELS": "lite",
+            "CRESTEREO_MAX_BATCH_SIZE": "4",
+            "CRESTEREO_WEIGHTS": "lite=/w/lite.pt, full=/w/full.pt",
+            "CRESTEREO_API_KEY": "k",
+            "CRESTEREO_MAX_WAIT_MS": "2.5",
+            "OTHER_MAX_BATCH_SIZE": "99",
+            "CRESTEREO_PRECISION": "bf16",
+        }
+    )
     assert settings.models == ("lite",) and settings.max_batch_size == 4
     assert settings.weights == {"lite": Path("/w/lite.pt"), "full": Path("/w/full.pt")}
     assert settings.api_key == "k" and settings.max_wait_ms == 2.5 and settings.precision == "bf16"
@@ -40,16 +47,24 @@ def test_settings_come_from_crestereo_environment_variables():
 def test_each_model_has_its_pixel_limit_under_the_global_one():
     default = Settings.from_env({})
     assert (default.pixel_limit("lite"), default.pixel_limit("full")) == (4_194_304, 1_048_576)
-    custom = Settings.from_env({"CRESTEREO_MODEL_MAX_PIXELS": "lite=2000000, full=9000000",
-                                "CRESTEREO_MAX_IMAGE_PIXELS": "3000000"})
+    custom = Settings.from_env(
+        {"CRESTEREO_MODEL_MAX_PIXELS": "lite=2000000, full=9000000", "CRESTEREO_MAX_IMAGE_PIXELS": "3000000"}
+    )
     assert (custom.pixel_limit("lite"), custom.pixel_limit("full")) == (2_000_000, 3_000_000)
 
 
-@pytest.mark.parametrize("environ", [
-    {"CRESTEREO_MODELS": "lite,huge"}, {"CRESTEREO_MAX_BATCH_SIZE": "0"},
-    {"CRESTEREO_WEIGHTS": "lite"}, {"CRESTEREO_MODELS": ""},
-    {"CRESTEREO_MODEL_MAX_PIXELS": "full=many"}, {"CRESTEREO_MODEL_MAX_PIXELS": "huge=5"},
-    {"CRESTEREO_PRECISION": "fp16"}])
+@pytest.mark.parametrize(
+    "environ",
+    [
+        {"CRESTEREO_MODELS": "lite,huge"},
+        {"CRESTEREO_MAX_BATCH_SIZE": "0"},
+        {"CRESTEREO_WEIGHTS": "lite"},
+        {"CRESTEREO_MODELS": ""},
+        {"CRESTEREO_MODEL_MAX_PIXELS": "full=many"},
+        {"CRESTEREO_MODEL_MAX_PIXELS": "huge=5"},
+        {"CRESTEREO_PRECISION": "fp16"},
+    ],
+)
 def test_invalid_settings_stop_the_service_from_starting(environ):
     with pytest.raises(ValidationError):
         Settings.from_env(environ)
@@ -59,8 +74,9 @@ def test_readme_documents_every_setting_with_its_default():
     readme = (REPO / "service" / "README.md").read_text()
     rows = dict(re.findall(r"^\| `(CRESTEREO_[A-Z_]+)` \| ([^|]+) \|", readme, re.MULTILINE))
     defaults = Settings()
-    expected = {"CRESTEREO_" + name.upper(): documented_default(getattr(defaults, name))
-                for name in Settings.model_fields}
+    expected = {
+        "CRESTEREO_" + name.upper(): documented_default(getattr(defaults, name)) for name in Settings.model_fields
+    }
     assert {name: cell.strip() for name, cell in rows.items()} == expected
 
 
@@ -115,11 +131,14 @@ def test_header_gives_format_and_size_of_every_supported_format(ext):
     assert header.format == {".png": "PNG", ".jpg": "JPEG", ".bmp": "BMP", ".tiff": "TIFF"}[ext]
 
 
-@pytest.mark.parametrize(("image", "expected"), [
-    (np.full((40, 72), 200, np.uint8), 200),                       # grayscale, 8-bit
-    (np.full((40, 72, 3), 65535, np.uint16), 255),                 # colour, 16-bit
-    (np.dstack([np.full((40, 72, 3), 10, np.uint8), np.zeros((40, 72), np.uint8)]), 10),  # alpha
-])
+@pytest.mark.parametrize(
+    ("image", "expected"),
+    [
+        (np.full((40, 72), 200, np.uint8), 200),  # grayscale, 8-bit
+        (np.full((40, 72, 3), 65535, np.uint16), 255),  # colour, 16-bit
+        (np.dstack([np.full((40, 72, 3), 10, np.uint8), np.zeros((40, 72), np.uint8)]), 10),  # alpha
+    ],
+)
 def test_decoding_gives_8_bit_rgb(image, expected):
     data = cv2.imencode(".png", image)[1].tobytes()
     rgb = decode_rgb(data, read_header(data))

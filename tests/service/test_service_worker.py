@@ -45,9 +45,11 @@ def test_busy_is_true_exactly_while_a_call_runs():
 
 
 def test_a_process_can_exit_while_its_worker_waits_for_work():
-    script = ("from service.worker import DaemonWorker\n"
-              "import torch\n"
-              "w = DaemonWorker('inference')\n"
-              "w.submit(torch.nn.functional.conv2d, torch.randn(1, 8, 64, 64), torch.randn(8, 8, 3, 3)).result()\n")
+    script = (
+        "from service.worker import DaemonWorker\n"
+        "import torch\n"
+        "w = DaemonWorker('inference')\n"
+        "w.submit(torch.nn.functional.conv2d, torch.randn(1, 8, 64, 64), torch.randn(8, 8, 3, 3)).result()\n"
+    )
     result = subprocess.run([sys.executable, "-c", script], cwd=REPO, capture_output=True, text=True)
     assert result.returncode == 0, result.stderr

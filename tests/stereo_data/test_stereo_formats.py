@@ -44,9 +44,7 @@ def test_pfm_reader_follows_the_format_rows_bottom_to_top(
     tmp_path: Path, kind: bytes, channels: int, scale: bytes, dtype: str
 ) -> None:
     stored = ramp((3, 4, channels))  # as on disk: first stored row is the bottom row
-    (tmp_path / "a.pfm").write_bytes(
-        kind + b"\n4 3\n" + scale + b"\n" + stored.astype(dtype).tobytes()
-    )
+    (tmp_path / "a.pfm").write_bytes(kind + b"\n4 3\n" + scale + b"\n" + stored.astype(dtype).tobytes())
     expected = stored[::-1] if channels == 3 else stored[::-1, :, 0]
     np.testing.assert_array_equal(read_pfm(tmp_path / "a.pfm"), expected)
 
@@ -85,9 +83,7 @@ def test_kitti_disparity_is_value_over_256_with_zero_as_unknown(tmp_path: Path) 
     cv2.imwrite(str(tmp_path / "d.png"), np.array([[0, 256, 300], [65535, 1, 0]], dtype=np.uint16))
     disparity = read_kitti_disparity(tmp_path / "d.png")
     assert disparity.dtype == np.float32
-    np.testing.assert_array_equal(
-        disparity, [[np.inf, 1.0, 300 / 256], [65535 / 256, 1 / 256, np.inf]]
-    )
+    np.testing.assert_array_equal(disparity, [[np.inf, 1.0, 300 / 256], [65535 / 256, 1 / 256, np.inf]])
 
 
 def test_kitti_writer_round_trips_to_1_over_256_and_encodes_unknown_as_zero(tmp_path: Path) -> None:
@@ -95,9 +91,7 @@ def test_kitti_writer_round_trips_to_1_over_256_and_encodes_unknown_as_zero(tmp_
     write_kitti_disparity(tmp_path / "d.png", disparity)
     encoded = cv2.imread(str(tmp_path / "d.png"), cv2.IMREAD_UNCHANGED)
     assert encoded.dtype == np.uint16
-    np.testing.assert_array_equal(
-        encoded, [[round(12.3456 * 256), 0, 0], [0, 0, 1], [65535, round(255.99 * 256), 128]]
-    )
+    np.testing.assert_array_equal(encoded, [[round(12.3456 * 256), 0, 0], [0, 0, 1], [65535, round(255.99 * 256), 128]])
     back = read_kitti_disparity(tmp_path / "d.png")
     assert abs(back[0, 0] - 12.3456) <= 0.5 / 256
     assert np.isinf(back[0, 1:]).all() and np.isinf(back[1, :2]).all()
@@ -112,13 +106,12 @@ def decode_png16(data: bytes) -> np.ndarray:
 def test_the_one_16_bit_png_rule_rounds_half_to_even_keeps_positive_values_and_zeroes_unknown():
     # KITTI's convention for every map: round(value x scale), half to even, clipped to [1, 65535];
     # 0 only where the value is inf, nan or <= 0, so a tiny positive value never reads as unknown.
-    disparity = np.array([[1.5, 0.0, np.inf, 1000.0, 1e-4, -3.0, np.nan, 1.5 / 256, 2.5 / 256]],
-                         np.float32)
-    assert decode_png16(encode_png16(disparity, KITTI_SCALE)).tolist() == [
-        [384, 0, 0, 65535, 1, 0, 0, 2, 2]]
+    disparity = np.array([[1.5, 0.0, np.inf, 1000.0, 1e-4, -3.0, np.nan, 1.5 / 256, 2.5 / 256]], np.float32)
+    assert decode_png16(encode_png16(disparity, KITTI_SCALE)).tolist() == [[384, 0, 0, 65535, 1, 0, 0, 2, 2]]
     uncertainty = np.array([[0.0, 1.0, 0.5, 0.25, 1e-6, 2.0, np.nan]], np.float32)
     assert decode_png16(encode_png16(uncertainty, UNCERTAINTY_SCALE)).tolist() == [
-        [0, 65535, 32768, 16384, 1, 65535, 0]]
+        [0, 65535, 32768, 16384, 1, 65535, 0]
+    ]
     with pytest.raises(ValueError, match="HxW"):
         encode_png16(np.ones((2, 2, 3)), KITTI_SCALE)
 

@@ -244,8 +244,7 @@ def warp_mae(sample: StereoSample, disparity: np.ndarray) -> float:
     """Mean abs grey difference between left and right warped by ``disparity`` (bilinear), over
     valid-GT pixels whose match lands inside the right image."""
     gray_left, gray_right = (
-        cv2.cvtColor(image, cv2.COLOR_RGB2GRAY).astype(np.float32)
-        for image in (sample.left, sample.right)
+        cv2.cvtColor(image, cv2.COLOR_RGB2GRAY).astype(np.float32) for image in (sample.left, sample.right)
     )
     height, width = disparity.shape
     x_match = np.arange(width, dtype=np.float32)[None, :] - disparity

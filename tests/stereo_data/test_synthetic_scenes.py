@@ -192,9 +192,7 @@ def one_square_scene() -> Scene:
     return Scene(
         plane=pair([0, 0, 10], [0, 0, 30]),
         # Background: everywhere. Square: u = (x - 129.5) / 30, v = (y - 39.5) / 20.
-        to_shape=torch.tensor(
-            [[[[0.0, 0, 0], [0, 0, 0]], [[1 / 30, 0, -129.5 / 30], [0, 1 / 20, -39.5 / 20]]]]
-        ),
+        to_shape=torch.tensor([[[[0.0, 0, 0], [0, 0, 0]], [[1 / 30, 0, -129.5 / 30], [0, 1 / 20, -39.5 / 20]]]]),
         sides=torch.tensor([[4, 4]]),
         phase=torch.full((1, 2), math.pi / 4),
         radii=torch.full((1, 2, MAX_SIDES), math.sqrt(2)),  # corners at (+-1, +-1) in the shape frame

@@ -22,7 +22,9 @@ from service_helpers import Server
 from stereo_data.visualize import DISPARITY_COLORMAP, colorize, robust_range
 from web_helpers import WebPage
 
-expect = pytest.importorskip("playwright.sync_api", reason="the playwright package is missing (pip install -e '.[test]')").expect
+expect = pytest.importorskip(
+    "playwright.sync_api", reason="the playwright package is missing (pip install -e '.[test]')"
+).expect
 EXAMPLE = "shapes-192x128"  # the smallest bundled pair: lite computes it in a fraction of a second
 EXAMPLE_DIR = STATIC_DIR / "examples" / EXAMPLE
 WIDTH, HEIGHT = 192, 128
@@ -36,13 +38,19 @@ def example_bytes(name: str = EXAMPLE) -> tuple[bytes, bytes]:
 def served_maps(server: Server, **options: str) -> dict[str, np.ndarray]:
     """The example's maps straight from `POST /disparity?format=json` (the page's reference)."""
     left, right = example_bytes()
-    response = httpx.post(server.base_url + "/disparity", params={"format": "json", **options},
-                          files={"left": ("left.png", left), "right": ("right.png", right)},
-                          timeout=60)
+    response = httpx.post(
+        server.base_url + "/disparity",
+        params={"format": "json", **options},
+        files={"left": ("left.png", left), "right": ("right.png", right)},
+        timeout=60,
+    )
     assert response.status_code == 200, response.text
     body = response.json()
-    return {name: np.frombuffer(base64.b64decode(body[name]["data"]), "<f4").reshape(body[name]["shape"])
-            for name in ("disparity", "uncertainty", "depth") if body.get(name)}
+    return {
+        name: np.frombuffer(base64.b64decode(body[name]["data"]), "<f4").reshape(body[name]["shape"])
+        for name in ("disparity", "uncertainty", "depth")
+        if body.get(name)
+    }
 
 
 def run_example(web: WebPage, **options: str) -> None:
@@ -110,12 +118,17 @@ def test_generated_assets_are_current() -> None:
 def test_page_loads_without_external_requests(web: WebPage) -> None:
     page, base = web.page, web.server.base_url
     expect(page.locator("#model-info")).to_contain_text("parameters")
-    external = [url for url in web.requests
-                if not url.startswith((base + "/", "data:", "blob:"))]
+    external = [url for url in web.requests if not url.startswith((base + "/", "data:", "blob:"))]
     assert external == []
     requested = {url.removeprefix(base) for url in web.requests}
-    assert {"/", "/static/app.js", "/static/style.css", "/static/colormaps.js", "/models",
-            "/static/examples/examples.json"} <= requested
+    assert {
+        "/",
+        "/static/app.js",
+        "/static/style.css",
+        "/static/colormaps.js",
+        "/models",
+        "/static/examples/examples.json",
+    } <= requested
     assert page.input_value("#model") == "lite"
     assert page.get_attribute("#iters", "placeholder") == "2,4,6"  # the model's default iterations
 
@@ -162,11 +175,15 @@ def test_hover_shows_the_value_in_px_and_depth_in_m(web: WebPage) -> None:
         canvas.scroll_into_view_if_needed()
         box = canvas.bounding_box()
         assert box is not None  # hover at the pixel's centre on the scaled-up canvas
-        canvas.hover(position={"x": (target_x + 0.5) / WIDTH * box["width"],
-                               "y": (target_y + 0.5) / HEIGHT * box["height"]})
+        canvas.hover(
+            position={"x": (target_x + 0.5) / WIDTH * box["width"], "y": (target_y + 0.5) / HEIGHT * box["height"]}
+        )
         readout = web.page.inner_text("#readout")
-        found = re.search(r"x (\d+), y (\d+) · disparity (-?[\d.]+) px · uncertainty ([\d.]+) · "
-                          r"depth ([\d.e+-]+) m", readout)
+        found = re.search(
+            r"x (\d+), y (\d+) · disparity (-?[\d.]+) px · uncertainty ([\d.]+) · "
+            r"depth ([\d.e+-]+) m",
+            readout,
+        )
         assert found, readout
         x, y = int(found.group(1)), int(found.group(2))
         assert (x, y) == (target_x, target_y)

@@ -23,8 +23,14 @@ from service_helpers import Server, default_server  # noqa: E402,F401  (fixtures
 
 CHROMIUM = Path(os.environ.get("CRESTEREO_TEST_CHROMIUM", "/usr/bin/chromium"))
 CHROMIUM_FLAGS = [
-    "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-    "--disable-background-networking", "--disable-component-update", "--disable-sync",
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
 ]
 
 
@@ -32,13 +38,15 @@ CHROMIUM_FLAGS = [
 def browser() -> Iterator[Any]:
     """One headless Chromium for the session; skipped (with the reason) where none is installed."""
     if not CHROMIUM.exists():
-        pytest.skip(f"no Chromium at {CHROMIUM}: install Debian's browser "
-                    "(apt-get install chromium chromium-driver; .ci/run does)")
+        pytest.skip(
+            f"no Chromium at {CHROMIUM}: install Debian's browser "
+            "(apt-get install chromium chromium-driver; .ci/run does)"
+        )
     sync_api = pytest.importorskip(
-        "playwright.sync_api", reason="the playwright package is missing (pip install -e '.[test]')")
+        "playwright.sync_api", reason="the playwright package is missing (pip install -e '.[test]')"
+    )
     with sync_api.sync_playwright() as playwright:
-        chromium = playwright.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_FLAGS,
-                                              headless=True)
+        chromium = playwright.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_FLAGS, headless=True)
         yield chromium
         chromium.close()
 
