@@ -14,13 +14,20 @@ $(VENV)/.installed: pyproject.toml
 	$(PY) -m pip install --quiet -e '.[test]'
 	touch $@
 
-.PHONY: setup serve test
+.PHONY: setup serve lint test
 setup: $(VENV)/.installed
 
 serve: setup
 	$(PY) -m service --host $(HOST) --port $(PORT)
 
-test: setup
+# Style and types (configured in pyproject.toml): ruff's lint and format check on the whole tree,
+# mypy on the packages. `make test` runs it first, so a lint or type error fails the tests (and CI).
+lint: setup
+	$(PY) -m ruff check .
+	$(PY) -m ruff format --check .
+	$(PY) -m mypy
+
+test: lint
 	$(PY) -m pytest -q
 
 # The prepared GPU check (bench/gpu_check.py; README, "Development"): for a GPU machine with torch
