@@ -349,9 +349,12 @@ class StereoPredictor:
         if size != (height, width):
             disparity = resize_disparity(disparity, height, width)
             uncertainty = F.interpolate(uncertainty, size=(height, width), mode="bilinear", align_corners=False)
-        if self.calibration is not None and not raw_uncertainty:
-            uncertainty = self.calibration.apply(uncertainty)
-        return disparity[:, 0], uncertainty[:, 0]
+        return disparity[:, 0], (uncertainty if raw_uncertainty else self.served_uncertainty(uncertainty))[:, 0]
+
+    def served_uncertainty(self, raw: Tensor) -> Tensor:
+        """The uncertainty as served from the paper's U (any shape): P(|error| > threshold_px)
+        through the weights' calibration where they carry one, else U itself."""
+        return raw if self.calibration is None else self.calibration.apply(raw)
 
     def run(
         self,

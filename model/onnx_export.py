@@ -28,9 +28,7 @@ class ExportedGraph(nn.Module):
 
     def forward(self, left: Tensor, right: Tensor) -> tuple[Tensor, Tensor]:
         disparity, uncertainty = self.predictor.run(left, right, self.counts, None)
-        if self.predictor.calibration is not None:
-            uncertainty = self.predictor.calibration.apply(uncertainty)
-        return disparity, uncertainty
+        return disparity, self.predictor.served_uncertainty(uncertainty)
 
 
 def export_onnx(
