@@ -7,8 +7,9 @@ with `torch.load(weights_only=True)`:
     "model_name": "lite" | "full",
     "calibration": the fitted uncertainty calibration (model.calibration), when present,
     "training": the cumulative training record, "train_config", "step", "dtype": metadata.
-A training checkpoint is a weights file with more keys ("optimizer", "scheduler", "rng"), so it
-loads as weights directly.
+A training checkpoint is a weights file with more keys ("optimizer", "scheduler", "rng", and
+"train_model" when "model" is a moving average of the trained weights: those raw weights, which
+a resumed run continues from), so it loads as weights directly.
 """
 
 from __future__ import annotations
@@ -66,9 +67,10 @@ def network_from_weights(payload: dict[str, Any], name: str) -> CREStereoPP:
     return network
 
 
-def load_state(network: CREStereoPP, payload: dict[str, Any]) -> None:
-    """Load `payload`'s state_dict into `network`, float16 tensors cast back to float32."""
-    state = payload["model"]
+def load_state(network: CREStereoPP, payload: dict[str, Any], key: str = "model") -> None:
+    """Load `payload[key]` (a state_dict: "model", or a checkpoint's "train_model") into `network`,
+    float16 tensors cast back to float32."""
+    state = payload[key]
     network.load_state_dict({key: t.float() if t.is_floating_point() else t for key, t in state.items()})
 
 

@@ -93,6 +93,11 @@ class TrainConfig:
         0.0, "weight of the training-only feature matching loss (model.loss.matching_loss); 0: off"
     )
     grad_clip: float = _knob(1.0, "clip the gradient norm to this (0: no clipping)")
+    ema_decay: float = _knob(
+        0.0,
+        "checkpoints serve an exponential moving average of the weights with this decay per step "
+        "(e.g. 0.999, about the last 1/(1-decay) steps); the raw weights are kept for resuming. 0: off",
+    )
     max_steps: int = _knob(150_000, "train until this optimiser step (counted across resumes)")
     schedule_steps: int | None = _knob(
         None, "length of the lr schedule in steps [max_steps]; longer lets a run stop early and resume"
@@ -121,6 +126,8 @@ class TrainConfig:
             raise ValueError("at least one training source is needed")
         if self.batch_size < 1 or self.max_steps < 1 or self.log_every < 1 or self.checkpoint_every < 1:
             raise ValueError("batch_size, max_steps, log_every and checkpoint_every must be positive")
+        if not 0.0 <= self.ema_decay < 1.0:
+            raise ValueError(f"ema_decay must be in [0, 1), got {self.ema_decay}")
         if self.schedule_steps is not None and self.schedule_steps < 1:
             raise ValueError("schedule_steps must be positive")
         low, high = self.real_scale_range

@@ -7,6 +7,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import torch
 from torch.nn.parallel import DistributedDataParallel
@@ -26,13 +27,17 @@ from .distributed import DistributedContext
 from .history import RunRecord, TrainingHistory
 from .records import CsvLog, plot_curves, read_csv
 from .schedule import build_scheduler
+from .weight_average import WeightAverage
 
 CHECKPOINT_NAME = "checkpoint.pt"
 LOG_COLUMNS = ("step", "pairs_seen", "minutes", "loss", "train_epe", "lr", "pairs_per_second")
 """Columns of log.csv: loss and train_epe (px, final prediction) are means over the steps since
 the previous row and over all processes; minutes is the cumulative wall time of every run in
 the weights' history; pairs_per_second counts all processes."""
-VALIDATION_COLUMNS = ("step", "pairs_seen", "minutes", "epe", "bad1", "bad2", "bad3", "d1_all")
+VALIDATION_COLUMNS = ("step", "pairs_seen", "minutes", "epe", "bad1", "bad2", "bad3", "d1_all", "raw_epe", "raw_bad2")
+"""Columns of validation.csv: the metrics are those of the served weights (the checkpoint's
+"model"); raw_epe and raw_bad2 are the trained weights' own when the served ones are their moving
+average (ema_decay > 0), else empty."""
 
 
 @dataclass(frozen=True)
@@ -105,14 +110,20 @@ class Trainer:
         )
         self.history = TrainingHistory.from_dict(source.get("training") if source else None)
         self.start_step = 0
+        resumes_average = resume is not None and source is not None and "train_model" in source
         if source is not None:
-            load_state(self.network, source)
+            # a resumed run continues the trained weights, which are "train_model" when "model" is their average
+            load_state(self.network, source, "train_model" if resumes_average else "model")
             if resume is not None:  # source is the checkpoint resumed
                 self.optimizer.load_state_dict(source["optimizer"])
                 self.scheduler.load_state_dict(source["scheduler"])
                 follow_config(self.optimizer, self.scheduler, config)
                 self.start_step = int(source["step"])
                 restore_rng_state(source["rng"])
+        self.average = WeightAverage(self.network, config.ema_decay) if config.ema_decay > 0 else None
+        if self.average is not None and resumes_average:
+            assert source is not None
+            load_state(self.average.network, source)
         if self.start_step >= config.max_steps:
             raise ValueError(f"nothing to do: the run is at step {self.start_step} and max_steps is {config.max_steps}")
 
@@ -218,6 +229,8 @@ class Trainer:
             torch.nn.utils.clip_grad_norm_(self.network.parameters(), config.grad_clip)
         self.optimizer.step()
         self.scheduler.step()
+        if self.average is not None:
+            self.average.update(self.network)
         return torch.stack([loss.detach(), end_point_error(predictions[-1][-1].detach(), batch)])
 
     def save(self, step: int, run_minutes: float) -> None:
@@ -228,19 +241,27 @@ class Trainer:
             (step - self.start_step) * self.pairs_per_step,
             run_minutes,
         )
+        served = self.network if self.average is None else self.average.network
         if self.validation_log is not None:
-            record.validation = validate(self.network, self.config, self.device)
+            record.validation = validate(served, self.config, self.device)
+            raw: dict[str, float] = {}
+            if self.average is not None:
+                raw_metrics = validate(self.network, self.config, self.device)
+                raw = dict(raw_epe=raw_metrics["epe"], raw_bad2=raw_metrics["bad2"])
             self.validation_log.append(
                 dict(
                     step=step,
                     pairs_seen=step * self.pairs_per_step,
                     minutes=self.prior_minutes + run_minutes,
                     **record.validation,
+                    **raw,
                 )
             )
+        trained: dict[str, Any] = {} if self.average is None else {"train_model": self.network.state_dict()}
         write_weights(
             {
-                "model": self.network.state_dict(),
+                "model": served.state_dict(),
+                **trained,
                 "config": self.model_config.to_dict(),
                 "model_name": self.config.model,
                 "train_config": self.config.to_dict(),

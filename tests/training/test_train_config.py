@@ -52,7 +52,15 @@ def test_a_source_weight_must_be_positive_and_numeric():
 
 
 @pytest.mark.parametrize(
-    "bad", [dict(crop_height=100), dict(sources=()), dict(batch_size=0), dict(real_scale_range=(1.2, 0.8))]
+    "bad",
+    [
+        dict(crop_height=100),
+        dict(sources=()),
+        dict(batch_size=0),
+        dict(real_scale_range=(1.2, 0.8)),
+        dict(ema_decay=1.0),
+        dict(ema_decay=-0.1),
+    ],
 )
 def test_invalid_configs_are_rejected(bad):
     with pytest.raises(ValueError):

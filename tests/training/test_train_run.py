@@ -168,3 +168,58 @@ def test_fp16_export_halves_the_file_and_predicts_like_fp32(tmp_path, real_pairs
     a = load_model("lite", weights=full).predict(pair.left, pair.right).disparity
     b = load_model("lite", weights=half).predict(pair.left, pair.right).disparity
     assert np.abs(a - b).max() < 0.05 * max(1.0, np.abs(a).max())
+
+
+def test_with_ema_the_checkpoint_serves_the_average_of_the_trained_weights(tmp_path, real_pairs):
+    # the average starts as the weights trained from (seed 0's init), then moves by 1 - decay each step
+    start = train(tiny(tmp_path / "start", sources=(real_pairs,), lr=0.0, max_steps=1), progress=False)
+    one = train(tiny(tmp_path / "one", sources=(real_pairs,), max_steps=1), progress=False)
+    two = train(tiny(tmp_path / "two", sources=(real_pairs,), max_steps=2, ema_decay=0.75), progress=False)
+
+    checkpoint = read_weights(two.checkpoint)
+    w0, w1 = start.network.state_dict(), one.network.state_dict()
+    w2 = checkpoint["train_model"]
+    for name, served in checkpoint["model"].items():
+        expected = 0.75 * (0.75 * w0[name] + 0.25 * w1[name]) + 0.25 * w2[name]
+        assert torch.allclose(served, expected, atol=1e-6), name
+    assert any(not torch.equal(checkpoint["model"][n], w2[n]) for n in w2)
+    # load_model serves the average
+    loaded = load_model("lite", weights=two.checkpoint).network.state_dict()
+    assert all(torch.equal(loaded[name], tensor) for name, tensor in checkpoint["model"].items())
+
+
+def test_a_resumed_ema_run_repeats_the_uninterrupted_run_exactly(tmp_path, real_pairs):
+    whole = tiny(tmp_path / "whole", sources=(real_pairs,), max_steps=4, schedule_steps=4, ema_decay=0.5)
+    train(whole, progress=False)
+    first = replace(whole, out_dir=str(tmp_path / "split"), max_steps=2)
+    train(first, progress=False)
+    train(replace(first, max_steps=4), resume=tmp_path / "split" / "checkpoint.pt", progress=False)
+
+    a = read_weights(tmp_path / "whole" / "checkpoint.pt")
+    b = read_weights(tmp_path / "split" / "checkpoint.pt")
+    for key in ("model", "train_model"):
+        assert all(torch.equal(a[key][name], b[key][name]) for name in a[key]), key
+    assert losses(tmp_path / "split") == losses(tmp_path / "whole")
+
+
+def test_turning_ema_on_at_a_resume_starts_the_average_from_the_resumed_weights(tmp_path, real_pairs):
+    train(tiny(tmp_path, sources=(real_pairs,), max_steps=1), progress=False)
+    before = read_weights(tmp_path / "checkpoint.pt")["model"]
+    resumed = tiny(tmp_path, sources=(real_pairs,), max_steps=2, lr=0.0, ema_decay=0.9)
+    train(resumed, resume=tmp_path / "checkpoint.pt", progress=False)
+
+    after = read_weights(tmp_path / "checkpoint.pt")  # lr 0: neither the weights nor their average move
+    assert all(
+        torch.equal(after["model"][n], before[n]) and torch.equal(after["train_model"][n], before[n]) for n in before
+    )
+
+
+def test_with_ema_validation_logs_the_served_average_and_the_raw_weights(tmp_path, real_pairs):
+    config = tiny(
+        tmp_path, sources=(real_pairs,), max_steps=2, checkpoint_every=1, val_data="/in-memory", ema_decay=0.9
+    )
+    train(config, progress=False)
+    rows = read_csv(tmp_path / "validation.csv")
+    assert [int(r["step"]) for r in rows] == [1, 2]
+    assert all(float(r["raw_epe"]) >= 0 and 0 <= float(r["raw_bad2"]) <= 100 for r in rows)
+    assert any(r["raw_epe"] != r["epe"] for r in rows)  # two different networks were validated
