@@ -71,7 +71,7 @@ def load_state(network: CREStereoPP, payload: dict[str, Any], key: str = "model"
     """Load `payload[key]` (a state_dict: "model", or a checkpoint's "train_model") into `network`,
     float16 tensors cast back to float32."""
     state = payload[key]
-    network.load_state_dict({key: t.float() if t.is_floating_point() else t for key, t in state.items()})
+    network.load_state_dict({name: t.float() if t.is_floating_point() else t for name, t in state.items()})
 
 
 def file_sha256(path: Path) -> str:
