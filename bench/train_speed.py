@@ -56,6 +56,12 @@ ROWS: dict[str, Row] = {
     "campaign-bf16": Row(
         "same, bf16 autocast (only where the CPU has native bf16)", {**CAMPAIGN, "precision": "bf16"}, "ACTIVE"
     ),
+    "campaign-iters246": Row(
+        "the campaign's step, iters 2/4/6 (inference's counts)", {**CAMPAIGN, "train_iters": (2, 4, 6)}, "ACTIVE"
+    ),
+    "campaign-crop192": Row(
+        "the campaign's step, 192x384", {**CAMPAIGN, "crop_height": 192, "crop_width": 384}, "ACTIVE"
+    ),
 }
 
 
