@@ -96,7 +96,7 @@ class SceneConfig:
             raise ValueError("max_slope must be in [0, 1): the right view needs 1 - a > 0")
         if not 1 <= self.min_surfaces <= self.surfaces:
             raise ValueError("need 1 <= min_surfaces <= surfaces")
-        if self.log2_scale[0] > self.log2_scale[1] or self.size[0] > self.size[1]:
+        if any(low > high for low, high in (self.log2_scale, self.size, self.texel_size)):
             raise ValueError("ranges must be (low, high)")
         if self.texture_count < 1:
             raise ValueError("need at least one texture")

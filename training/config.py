@@ -6,6 +6,7 @@ from dataclasses import asdict, dataclass, field, fields, replace
 from typing import Any, Literal
 
 from model.config import ModelName
+from stereo_data.synthetic import SceneConfig
 
 SYNTHETIC = "synthetic"
 """The `path` of a DataSource that stands for the procedural scene generator."""
@@ -68,6 +69,11 @@ class TrainConfig:
     )
     photo_textures: int = _knob(
         0, "procedural scenes: texture slots per scene filled with photo crops (needs scikit-image)"
+    )
+    texel_size: tuple[float, float] = _knob(
+        SceneConfig.texel_size,
+        "procedural scenes: range of the texture texel size in px before the scene's scale (log-uniform); "
+        "smaller gives finer detail, and the smallest times the smallest scale must cover 1 px",
     )
     real_scale_range: tuple[float, float] = _knob(
         (0.8, 1.25), "random rescale range of real pairs before cropping (raised where a pair is smaller than the crop)"
@@ -133,11 +139,25 @@ class TrainConfig:
         low, high = self.real_scale_range
         if not 0 < low <= high:
             raise ValueError(f"real_scale_range must be 0 < low <= high, got {self.real_scale_range}")
+        self.scene_config  # noqa: B018 (raises ValueError where the scene settings are invalid)
+
+    @property
+    def scene_config(self) -> SceneConfig:
+        """The procedural generator's settings for this run's crops."""
+        return SceneConfig(
+            height=self.crop_height,
+            width=self.crop_width,
+            max_disparity=self.max_disparity,
+            photo_textures=self.photo_textures,
+            texel_size=self.texel_size,
+        )
 
     @property
     def scene_max_disparity(self) -> float:
         """Largest disparity of the procedural scenes (px): max_disparity or its default."""
-        return self.max_disparity or 192.0 * self.crop_width / 512.0
+        resolved = self.scene_config.max_disparity
+        assert resolved is not None  # SceneConfig resolves its default
+        return resolved
 
     @property
     def schedule_length(self) -> int:
@@ -158,7 +178,7 @@ class TrainConfig:
         converted = dict(values)
         if "sources" in converted:
             converted["sources"] = tuple(DataSource(**s) for s in converted["sources"])
-        for name in ("real_scale_range", "betas", "train_iters"):
+        for name in ("texel_size", "real_scale_range", "betas", "train_iters"):
             if converted.get(name) is not None:
                 converted[name] = tuple(converted[name])
         return cls(**converted)

@@ -18,7 +18,7 @@ import torch
 from torch.utils.data import DataLoader, Dataset
 
 from stereo_data.readers import StereoSample, open_dataset
-from stereo_data.synthetic import SceneConfig, SceneGenerator
+from stereo_data.synthetic import SceneGenerator
 
 from .config import SYNTHETIC, TrainConfig
 
@@ -196,12 +196,7 @@ class TrainingData:
         self.rank = rank
         self.device = device
         self.real_datasets = [open_dataset(s.path) for s in config.sources if s.path != SYNTHETIC]
-        scenes = SceneConfig(
-            height=config.crop_height,
-            width=config.crop_width,
-            max_disparity=config.max_disparity,
-            photo_textures=config.photo_textures,
-        )
+        scenes = config.scene_config
         uses_scenes = any(s.path == SYNTHETIC for s in config.sources)
         self.generator = SceneGenerator(scenes, device=device) if uses_scenes else None
         self.scenes_on_host = self.generator is not None and device.type == "cpu"

@@ -60,6 +60,8 @@ def test_a_source_weight_must_be_positive_and_numeric():
         dict(real_scale_range=(1.2, 0.8)),
         dict(ema_decay=1.0),
         dict(ema_decay=-0.1),
+        dict(texel_size=(0.8, 3.0)),  # texels under 1 px at the smallest scale: aliasing
+        dict(texel_size=(3.0, 1.2)),
     ],
 )
 def test_invalid_configs_are_rejected(bad):
@@ -67,8 +69,20 @@ def test_invalid_configs_are_rejected(bad):
         TrainConfig(**bad)
 
 
+def test_scene_settings_of_the_config_reach_the_procedural_generator():
+    config = TrainConfig(crop_height=64, crop_width=128, texel_size=(1.15, 2.5), photo_textures=2)
+    scenes = config.scene_config
+    assert (scenes.height, scenes.width, scenes.texel_size, scenes.photo_textures) == (64, 128, (1.15, 2.5), 2)
+    assert config.scene_max_disparity == scenes.max_disparity == 48.0  # 192 * 128 / 512
+
+
 def test_config_round_trips_through_a_dict():
-    config = preset("finetune", sources=(DataSource(SYNTHETIC, 0.5), DataSource("/d", 0.5)), max_minutes=3.0)
+    config = preset(
+        "finetune",
+        sources=(DataSource(SYNTHETIC, 0.5), DataSource("/d", 0.5)),
+        max_minutes=3.0,
+        texel_size=(1.15, 2.5),
+    )
     assert TrainConfig.from_dict(config.to_dict()) == config
 
 
