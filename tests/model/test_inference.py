@@ -117,8 +117,12 @@ def test_weights_file_round_trip_keeps_predictions_config_and_reports_its_sha256
     assert loaded.weights_sha256 == file_sha256(path) and len(loaded.weights_sha256) == 64
     assert loaded.config == config and loaded.num_parameters == lite.num_parameters
     left, right = random_pair(40, 60, seed=7)
+    # fp16 keeps about 3 significant digits of each weight, so predictions agree to about 0.1 %.
     np.testing.assert_allclose(
-        loaded.predict(left, right).disparity, lite.predict(left, right, iters=(1, 2, 3)).disparity, atol=0.05
+        loaded.predict(left, right).disparity,
+        lite.predict(left, right, iters=(1, 2, 3)).disparity,
+        rtol=2e-3,
+        atol=0.05,
     )
 
 
