@@ -196,9 +196,8 @@ class TrainingData:
         self.rank = rank
         self.device = device
         self.real_datasets = [open_dataset(s.path) for s in config.sources if s.path != SYNTHETIC]
-        scenes = config.scene_config
         uses_scenes = any(s.path == SYNTHETIC for s in config.sources)
-        self.generator = SceneGenerator(scenes, device=device) if uses_scenes else None
+        self.generator = SceneGenerator(config.scene_config, device=device) if uses_scenes else None
         self.scenes_on_host = self.generator is not None and device.type == "cpu"
 
     def batches(self, start_step: int) -> Iterator[TrainingBatch]:
