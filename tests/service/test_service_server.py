@@ -102,7 +102,10 @@ def test_a_full_queue_answers_503_with_retry_after_over_http(tmp_path):
         responses = post_concurrently(server, [pair] * 8, concurrency=8)
         exposition = metrics(server)
     statuses = sorted(r.status_code for r in responses)
-    assert set(statuses) == {200, 503} and statuses.count(200) >= 2
+    # The first request admitted is always served. Whether a second one is depends on whether it
+    # arrives after the first started computing (a computing request no longer holds a queue place,
+    # which test_service_batching checks deterministically), so this burst only counts on one.
+    assert set(statuses) == {200, 503}
     for response in responses:
         if response.status_code == 503:
             assert response.json()["error"]["code"] == "queue_full"
