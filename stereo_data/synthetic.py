@@ -54,6 +54,11 @@ class PhotometricConfig:
 class SceneConfig:
     """What the generator draws. Lengths are in output pixels unless said otherwise.
 
+    Anti-aliasing: with ``supersample`` k > 1 each pixel's colour is the mean of a k x k grid of
+    point samples spread evenly over its area (as a camera integrates light over a pixel): edges get
+    partial-coverage pixels and texels finer than a pixel are averaged, not aliased. The ground truth
+    (disparity, occlusion) stays the point value at the pixel centre.
+
     Scale/crop augmentation: each scene is magnified by a random ``s = 2**U(log2_scale)``: every
     length (shape sizes, bar widths, texel sizes) is its unscaled length times s. A random crop of a
     procedural scene is distributed like the scene itself, so the crop is implicit: shapes are
@@ -83,6 +88,7 @@ class SceneConfig:
     contrast: tuple[float, float] = (6.0, 100.0)  # grey-level std of a surface's texture, log-uniform
     shading: float = 60.0  # at most this many grey levels of linear ramp across a surface
     log2_scale: tuple[float, float] = (-0.2, 0.4)
+    supersample: int = 1  # anti-aliasing: images are the mean of supersample x supersample samples per pixel
     photometric: PhotometricConfig | None = field(default_factory=PhotometricConfig)
 
     def __post_init__(self) -> None:
@@ -100,8 +106,10 @@ class SceneConfig:
             raise ValueError("ranges must be (low, high)")
         if self.texture_count < 1:
             raise ValueError("need at least one texture")
-        if 2 ** self.log2_scale[0] * self.texel_size[0] < 1:
-            raise ValueError("the smallest texel must cover at least 1 output px (aliasing)")
+        if self.supersample < 1:
+            raise ValueError(f"supersample must be a positive integer, got {self.supersample}")
+        if 2 ** self.log2_scale[0] * self.texel_size[0] * self.supersample < 1:
+            raise ValueError("the smallest texel must cover at least one sample: 1 / supersample px (aliasing)")
 
     @property
     def texture_count(self) -> int:
@@ -226,10 +234,9 @@ class SceneGenerator:
     def render(self, scene: Scene) -> SyntheticBatch:
         """Render both views of ``scene`` exactly, without photometric changes."""
         x, y = self._x, self._y
-        left_disparity, left_surface, _ = _nearest_surface(scene, x, y, "left")
-        left = _shade(scene, left_surface, x.expand_as(left_disparity), y)
-        _, right_surface, right_x_left = _nearest_surface(scene, x, y, "right")
-        right = _shade(scene, right_surface, right_x_left, y)
+        left_disparity, _, _ = _nearest_surface(scene, x, y, "left")
+        left = self._view(scene, "left")
+        right = self._view(scene, "right")
         x_match = x - left_disparity
         match_disparity, _, _ = _nearest_surface(scene, x_match, y, "right")
         occluded = (match_disparity > left_disparity + _OCCLUSION_TOLERANCE) | (x_match < 0)
@@ -240,6 +247,17 @@ class SceneGenerator:
             valid=torch.ones_like(occluded),
             occluded=occluded,
         )
+
+    def _view(self, scene: Scene, view: str) -> torch.Tensor:
+        """(B, 3, H, W) colour of one view ("left" or "right"): the mean of its k x k samples per
+        pixel (k = supersample), at offsets (i + 1/2) / k - 1/2 px from the pixel centre."""
+        k = self.config.supersample
+        offsets = (torch.arange(k, device=self.device, dtype=torch.float32) + 0.5) / k - 0.5
+        x = (self._x[..., None] + offsets).flatten(-2)  # (1, 1, 1, W * k), sample columns
+        y = (self._y[..., None, :] + offsets[:, None]).flatten(-3, -2)  # (1, 1, H * k, 1), sample rows
+        _, surface, x_left = _nearest_surface(scene, x, y, view)
+        colour = _shade(scene, surface, x_left.expand_as(surface), y)
+        return F.avg_pool2d(colour, k) if k > 1 else colour
 
     def _sample_scene(self, batch_size: int, draw: _Draw) -> Scene:
         cfg = self.config

@@ -75,6 +75,12 @@ class TrainConfig:
         "procedural scenes: range of the texture texel size in px before the scene's scale (log-uniform); "
         "smaller gives finer detail, and the smallest times the smallest scale must cover 1 px",
     )
+    supersample: int = _knob(
+        1,
+        "procedural scenes: anti-aliasing, each pixel the mean of N x N samples over its area (costs N^2 in "
+        "rendering); allows texels down to 1/N px",
+        metavar="N",
+    )
     real_scale_range: tuple[float, float] = _knob(
         (0.8, 1.25), "random rescale range of real pairs before cropping (raised where a pair is smaller than the crop)"
     )
@@ -150,6 +156,7 @@ class TrainConfig:
             max_disparity=self.max_disparity,
             photo_textures=self.photo_textures,
             texel_size=self.texel_size,
+            supersample=self.supersample,
         )
 
     @property

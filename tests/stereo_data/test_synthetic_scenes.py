@@ -58,11 +58,42 @@ def test_default_max_disparity_is_192_at_512_px_and_scales_with_width() -> None:
         {"min_surfaces": 30},
         {"log2_scale": (-1.0, 0.0)},  # texels would be smaller than a pixel: aliasing
         {"max_disparity": 0.0},
+        {"supersample": 0},
+        {"texel_size": (0.6, 2.0)},  # under a pixel: needs supersample 2
     ],
 )
 def test_config_rejects_settings_the_generator_cannot_honour(bad: dict) -> None:
     with pytest.raises(ValueError):
         SceneConfig(**bad)
+
+
+def test_supersampling_allows_texels_down_to_one_sample() -> None:
+    assert SceneConfig(texel_size=(0.6, 2.0), supersample=2).supersample == 2
+    with pytest.raises(ValueError):
+        SceneConfig(texel_size=(0.4, 2.0), supersample=2)
+
+
+def test_anti_aliased_scenes_keep_the_point_ground_truth_and_blend_only_edge_pixels() -> None:
+    point = SceneGenerator(replace(CLEAN, height=96, width=192))
+    smooth = SceneGenerator(replace(CLEAN, height=96, width=192, supersample=2))
+    scene = point.sample_scene(batch_size=2, seed=4)
+    scene.contrast.zero_()  # every surface one flat colour: a pixel shows one surface or blends several
+    scene.ramp.zero_()
+    sharp, blended = point.render(scene), smooth.render(scene)
+    assert torch.equal(sharp.disparity, blended.disparity) and torch.equal(sharp.occluded, blended.occluded)
+
+    colours = scene.base.clamp(0, 255)  # (B, S, 3)
+    for batch, image in ((sharp, sharp.left), (blended, blended.left)):
+        distance = (image[:, None] - colours[..., None, None]).abs().amax(dim=2)  # (B, S, H, W)
+        pure = distance.amin(dim=1) < 1e-3
+        if batch is sharp:
+            assert pure.all()  # point samples: every pixel is exactly one surface's colour
+            continue
+        disparity = batch.disparity[:, 0]
+        span = F.max_pool2d(disparity, 3, 1, 1) + F.max_pool2d(-disparity, 3, 1, 1)  # max - min nearby
+        mixed = ~pure
+        assert mixed.float().mean() > 0.01  # edges are anti-aliased...
+        assert (span[mixed] > 1e-3).float().mean() > 0.95  # ...and only edges blend
 
 
 @pytest.mark.parametrize("max_disparity", [None, 12.0])
