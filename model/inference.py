@@ -27,6 +27,27 @@ Precision = Literal["fp32", "bf16"]
 """fp32: the network in float32; bf16: under bf16 autocast (CUDA), the maps still float32."""
 
 
+MIN_SCALED_SIDE = 32
+"""With ``scale``, the pair the network sees keeps at least this many pixels per side: below it
+the network sees too little to match, and its disparities, multiplied by 1 / scale, come out
+wider than the image."""
+
+
+def scaled_size(height: int, width: int, scale: float) -> tuple[int, int]:
+    """(height, width) of a ``height`` x ``width`` pair resized by ``scale`` in (0, 1], as
+    ``predict(..., scale=...)`` runs it; ValueError where a side would fall below MIN_SCALED_SIDE
+    (an image already smaller than that must come at scale 1)."""
+    if not 0.0 < scale <= 1.0:
+        raise ValueError(f"scale must be in (0, 1], got {scale}")
+    size = (round(height * scale), round(width * scale))
+    if scale < 1.0 and min(size) < MIN_SCALED_SIDE:
+        raise ValueError(
+            f"scale {scale:g} would run the {width}x{height} pair at {size[1]}x{size[0]}; "
+            f"each side must stay at least {MIN_SCALED_SIDE} px (use a larger scale)"
+        )
+    return size
+
+
 class Prediction(NamedTuple):
     """Disparity (positive, pixels of the left image) and uncertainty (in [0, 1]) maps of a pair
     given as arrays (``predict``, ``predict_batch``): float32 numpy HxW, on the host."""
@@ -326,14 +347,12 @@ class StereoPredictor:
         """``predict`` on (B, 3, H, W) float images on the device: disparity and uncertainty,
         float32 (B, H, W) on the device. graphed: run the forward through ``self.graphs``
         (where there are graphs)."""
-        if not 0.0 < scale <= 1.0:
-            raise ValueError(f"scale must be in (0, 1], got {scale}")
         if left_batch.shape != right_batch.shape:
             raise ValueError(f"left and right differ in size: {tuple(left_batch.shape)} vs {tuple(right_batch.shape)}")
         forward = self.graphs if graphed and self.graphs is not None else self.forward
         counts = self.iterations(iters)
         height, width = left_batch.shape[-2:]
-        size = (max(1, round(height * scale)), max(1, round(width * scale)))
+        size = scaled_size(height, width, scale)
         if size != (height, width):
             left_batch, right_batch = (shrink(image, size) for image in (left_batch, right_batch))
         init: Tensor | None = None

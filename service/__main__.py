@@ -30,14 +30,16 @@ class ServerLimits(TypedDict):
 
 
 SERVER_LIMITS: ServerLimits = {
-    # Open connections plus running requests before uvicorn answers 503 itself: room for two full
-    # model queues (2 x CRESTEREO_MAX_QUEUE) and the probes, far below what exhausts memory.
-    "limit_concurrency": 128,
+    # Open connections (idle and slow ones included) before uvicorn answers 503 (text) itself:
+    # far above what the app serves at once (CRESTEREO_MAX_REQUESTS, JSON 503 `overloaded`
+    # beyond it), so that idle connections cannot lock the probes out; far below the file
+    # descriptors a process has. Beyond it, connection floods are a reverse proxy's job.
+    "limit_concurrency": 1000,
     # Seconds an idle keep-alive connection is held open.
     "timeout_keep_alive": 5,
     # Bytes of an unparsed request head before uvicorn answers 400 (text) itself: up to this, the
     # head reaches the app, which answers 431 (JSON) over 16 KiB. Worst case in memory:
-    # limit_concurrency x 1 MiB = 128 MiB.
+    # limit_concurrency x 1 MiB = 1 GiB, only with 1000 connections each sending a 1 MiB head.
     "h11_max_incomplete_event_size": 1024 * 1024,
 }
 SHUTDOWN_MARGIN_S = 5

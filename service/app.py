@@ -10,7 +10,7 @@ from fastapi import FastAPI
 from model import load_model
 from service.errors import install_error_handlers
 from service.logs import configure_logging
-from service.middleware import RequestContextMiddleware, RequestSizeLimitMiddleware
+from service.middleware import ConcurrencyLimitMiddleware, RequestContextMiddleware, RequestSizeLimitMiddleware
 from service.routes import disparity, health, metrics, models, page
 from service.runtime import ModelLoader, ServiceRuntime
 from service.settings import Settings
@@ -47,6 +47,7 @@ def create_app(settings: Settings | None = None, loader: ModelLoader = load_mode
     app.state.runtime = runtime
     install_error_handlers(app, runtime.metrics)
     app.add_middleware(RequestSizeLimitMiddleware, max_bytes=settings.max_body_bytes, metrics=runtime.metrics)
+    app.add_middleware(ConcurrencyLimitMiddleware, max_requests=settings.max_requests, metrics=runtime.metrics)
     app.add_middleware(RequestContextMiddleware, metrics=runtime.metrics)
     app.include_router(disparity.router)
     app.include_router(health.router)

@@ -22,8 +22,12 @@ from service.batching import (
 )
 from service.metrics import Metrics, RejectReason
 from service.schemas import ErrorDetail, ErrorResponse
+from service.uploads import UploadError
 
 logger = logging.getLogger(__name__)
+
+MAX_LISTED_PROBLEMS = 5
+"""A 422 names at most this many problems of a request (then how many more there are)."""
 
 
 class ApiError(Exception):
@@ -101,6 +105,10 @@ def install_error_handlers(app: FastAPI, metrics: Metrics) -> None:
             metrics.reject(exc.reject_reason)
         return error_response(exc.status, exc.code, exc.message, exc.headers)
 
+    @app.exception_handler(UploadError)
+    async def upload_error(request: Request, exc: UploadError) -> JSONResponse:
+        return await api_error(request, bad_input(exc.status, exc.code, exc.message))
+
     @app.exception_handler(BatchingError)
     async def batching_error(request: Request, exc: BatchingError) -> JSONResponse:
         # Raised by `POST /disparity`, which set `request.state.model`, from the app's batcher.
@@ -110,9 +118,12 @@ def install_error_handlers(app: FastAPI, metrics: Metrics) -> None:
     @app.exception_handler(RequestValidationError)
     async def validation_error(_: Request, exc: RequestValidationError) -> JSONResponse:
         metrics.reject("bad_input")
+        errors = exc.errors()
         problems = "; ".join(
-            f"{'.'.join(str(part) for part in error['loc'])}: {error['msg']}" for error in exc.errors()
+            f"{'.'.join(str(part) for part in error['loc'])}: {error['msg']}" for error in errors[:MAX_LISTED_PROBLEMS]
         )
+        if len(errors) > MAX_LISTED_PROBLEMS:
+            problems += f"; and {len(errors) - MAX_LISTED_PROBLEMS} more"
         return error_response(422, "invalid_request", problems)
 
     @app.exception_handler(StarletteHTTPException)

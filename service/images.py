@@ -82,6 +82,10 @@ _JPEG_NO_LENGTH = {0x01, *range(0xD0, 0xD9)}
 
 _JPEG_MAX_SEGMENTS = 1024  # before the frame header; real files have a few dozen at most
 _JPEG_MAX_FILL = 1024  # fill bytes (0xFF) before the frame header; encoders write none or a few
+JPEG_MAX_SCANS = 64
+"""Most scans a JPEG may hold. A progressive decoder sweeps the whole image once per scan, so a
+small file of thousands of tiny scans costs minutes of CPU; encoders write 1 (baseline) to about
+a dozen (progressive)."""
 
 
 def _jpeg_header(data: bytes) -> ImageHeader:
@@ -106,6 +110,12 @@ def _jpeg_header(data: bytes) -> ImageHeader:
             raise ImageError("JPEG without a frame header", unsupported=False)
         (length,) = struct.unpack(">H", data[offset + 2 : offset + 4])
         if marker in _JPEG_SOF:
+            precision = data[offset + 4]
+            if precision != 8:
+                raise ImageError(f"{precision}-bit JPEG; send 8-bit JPEG, or PNG for more bits", unsupported=True)
+            scans = data.count(b"\xff\xda")  # SOS: 0xFF 0xDA never occurs inside entropy-coded data
+            if scans > JPEG_MAX_SCANS:
+                raise ImageError(f"JPEG with {scans} scans; the limit is {JPEG_MAX_SCANS}", unsupported=False)
             height, width = struct.unpack(">HH", data[offset + 5 : offset + 9])
             return ImageHeader("JPEG", width, height)
         offset += 2 + length
@@ -121,24 +131,44 @@ def _bmp_header(data: bytes) -> ImageHeader:
     return ImageHeader("BMP", abs(width), abs(height))  # negative height = rows stored top-down
 
 
-_TIFF_WIDTH, _TIFF_HEIGHT = 256, 257
+_TIFF_WIDTH, _TIFF_HEIGHT, _TIFF_BITS = 256, 257, 258
+_TIFF_TILE_WIDTH, _TIFF_TILE_LENGTH, _TIFF_SAMPLE_FORMAT = 322, 323, 339
+_TIFF_READ = {_TIFF_WIDTH, _TIFF_HEIGHT, _TIFF_BITS, _TIFF_TILE_WIDTH, _TIFF_TILE_LENGTH, _TIFF_SAMPLE_FORMAT}
 _TIFF_SHORT, _TIFF_LONG = 3, 4
+_TIFF_MAX_VALUES = 16  # values read per tag (BitsPerSample has one per sample)
+TIFF_MIN_TILE_LIMIT = 1024
+"""A TIFF tile side may exceed the image's own side (rounded up to 16) only up to this many
+pixels: the decoder allocates whole tiles, so a small image of one huge tile is a memory bomb."""
 
 
 def _tiff_header(data: bytes) -> ImageHeader:
+    """Size, and the layout facts that decide what decoding costs: unsigned 8- or 16-bit samples
+    only (415 otherwise), and tiles no larger than the image needs (TIFF_MIN_TILE_LIMIT)."""
     order = "<" if data[:2] == b"II" else ">"
     (ifd,) = struct.unpack(order + "I", data[4:8])
     (count,) = struct.unpack(order + "H", data[ifd : ifd + 2])
-    sizes: dict[int, int] = {}
+    tags: dict[int, list[int]] = {}
     for entry in range(ifd + 2, ifd + 2 + 12 * count, 12):
-        tag, kind = struct.unpack(order + "HH", data[entry : entry + 4])
-        if tag in (_TIFF_WIDTH, _TIFF_HEIGHT):
-            if tag in sizes:  # decoders disagree on which one counts: refuse, never guess
-                raise ImageError("TIFF with a repeated width or height tag", unsupported=False)
-            if kind not in (_TIFF_SHORT, _TIFF_LONG):
-                raise ImageError("TIFF size tag of an unexpected type", unsupported=False)
-            value_format = order + ("H" if kind == _TIFF_SHORT else "I")
-            (sizes[tag],) = struct.unpack_from(value_format, data, entry + 8)
-    if _TIFF_WIDTH not in sizes or _TIFF_HEIGHT not in sizes:
+        tag, kind, values = struct.unpack(order + "HHI", data[entry : entry + 8])
+        if tag not in _TIFF_READ:
+            continue
+        if tag in tags:  # decoders disagree on which one counts: refuse, never guess
+            raise ImageError(f"TIFF with a repeated tag {tag}", unsupported=False)
+        if kind not in (_TIFF_SHORT, _TIFF_LONG) or not 1 <= values <= _TIFF_MAX_VALUES:
+            raise ImageError(f"TIFF tag {tag} of an unexpected type or count", unsupported=False)
+        value_format = order + ("H" if kind == _TIFF_SHORT else "I") * values
+        inline = struct.calcsize(value_format) <= 4
+        (where,) = (entry + 8,) if inline else struct.unpack_from(order + "I", data, entry + 8)
+        tags[tag] = list(struct.unpack_from(value_format, data, where))
+    if _TIFF_WIDTH not in tags or _TIFF_HEIGHT not in tags:
         raise ImageError("TIFF without width and height tags", unsupported=False)
-    return ImageHeader("TIFF", sizes[_TIFF_WIDTH], sizes[_TIFF_HEIGHT])
+    width, height = tags[_TIFF_WIDTH][0], tags[_TIFF_HEIGHT][0]
+    if any(bits not in (1, 8, 16) for bits in tags.get(_TIFF_BITS, [1])):
+        raise ImageError(f"TIFF with {tags[_TIFF_BITS][0]}-bit samples; send 8- or 16-bit", unsupported=True)
+    if any(kind != 1 for kind in tags.get(_TIFF_SAMPLE_FORMAT, [1])):
+        raise ImageError("TIFF with floating-point or signed samples; send unsigned 8- or 16-bit", unsupported=True)
+    for tag, side in ((_TIFF_TILE_WIDTH, width), (_TIFF_TILE_LENGTH, height)):
+        tile = tags.get(tag, [0])[0]
+        if tile > max(side + 15, TIFF_MIN_TILE_LIMIT):
+            raise ImageError(f"TIFF tiles of {tile} px for an image of {side} px", unsupported=False)
+    return ImageHeader("TIFF", width, height)

@@ -6,7 +6,7 @@ from typing import Literal, get_args
 
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, ProcessCollector
 
-RejectReason = Literal["queue_full", "deadline", "disconnect", "too_large", "bad_input", "not_ready"]
+RejectReason = Literal["queue_full", "overloaded", "deadline", "disconnect", "too_large", "bad_input", "not_ready"]
 
 _LATENCY_BUCKETS = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 5, 10, 30, 60)
 

@@ -85,12 +85,15 @@ def _client_request_id(scope: Scope) -> str | None:
 
 MAX_HEADER_BYTES = 16 * 1024
 """Largest request header block (names and values) the app accepts: 431 beyond."""
+MAX_QUERY_BYTES = 4 * 1024
+"""Longest query string the app accepts: 414 beyond (every option of `/disparity` together fits
+in a few hundred bytes), so no later check of the query costs more than this much input."""
 
 
 class RequestSizeLimitMiddleware:
-    """Refuses header blocks over MAX_HEADER_BYTES with 431, and bodies over `max_bytes` with
-    413: at once from `Content-Length`, else as soon as the streamed body passes the limit
-    (chunked uploads)."""
+    """Refuses query strings over MAX_QUERY_BYTES with 414, header blocks over MAX_HEADER_BYTES
+    with 431, and bodies over `max_bytes` with 413: at once from `Content-Length`, else as soon as
+    the streamed body passes the limit (chunked uploads)."""
 
     def __init__(self, app: ASGIApp, max_bytes: int, metrics: Metrics) -> None:
         self.app = app
@@ -100,6 +103,13 @@ class RequestSizeLimitMiddleware:
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
+            return
+        query_bytes = len(scope.get("query_string", b""))
+        if query_bytes > MAX_QUERY_BYTES:
+            self.metrics.reject("too_large")
+            await error_response(
+                414, "query_too_long", f"query string of {query_bytes} bytes; the limit is {MAX_QUERY_BYTES}"
+            )(scope, receive, send)
             return
         header_bytes = sum(len(name) + len(value) for name, value in scope["headers"])
         if header_bytes > MAX_HEADER_BYTES:
@@ -128,3 +138,34 @@ class RequestSizeLimitMiddleware:
 
     def _message(self) -> str:
         return f"request body larger than {self.max_bytes} bytes"
+
+
+class ConcurrencyLimitMiddleware:
+    """Answers 503 `overloaded` (JSON, with `Retry-After`) to a request arriving while
+    `max_requests` others are in progress, so that a flood of uploads cannot hold every place:
+    the probes under `/health` are never counted nor refused, and keep answering."""
+
+    def __init__(self, app: ASGIApp, max_requests: int, metrics: Metrics) -> None:
+        self.app = app
+        self.max_requests = max_requests
+        self.metrics = metrics
+        self.in_progress = 0
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http" or scope["path"].startswith("/health"):
+            await self.app(scope, receive, send)
+            return
+        if self.in_progress >= self.max_requests:
+            self.metrics.reject("overloaded")
+            await error_response(
+                503,
+                "overloaded",
+                f"{self.in_progress} requests are in progress, the most this server takes at once",
+                headers={"Retry-After": "1"},
+            )(scope, receive, send)
+            return
+        self.in_progress += 1
+        try:
+            await self.app(scope, receive, send)
+        finally:
+            self.in_progress -= 1

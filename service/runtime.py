@@ -14,6 +14,7 @@ from typing import Any
 
 from service.batching import Batcher, Draining, Predictor
 from service.cpu import configure_torch_threads, usable_cpus
+from service.decoding import DecoderLimits, DecoderPool
 from service.metrics import Metrics
 from service.schemas import BatchingConfig, HealthResponse, ModelStatus, ServiceState
 from service.settings import Settings
@@ -41,12 +42,17 @@ class ServiceRuntime:
         self.torch_threads = settings.threads or usable_cpus()
         self.predictors: dict[str, Predictor] = {}
         self.batcher: Batcher | None = None
+        self.decoders = DecoderPool(
+            DecoderLimits(settings.decode_workers, settings.decode_memory_mb << 20, settings.decode_cpu_s)
+        )
+        self.drain_over = asyncio.Event()  # set when the drain timeout has passed
         self._loader = loader
         self._executor: DaemonWorker | None = None
         self._tasks: set[asyncio.Task[None]] = set()
         self._previous_sigterm: Callable[[int, FrameType | None], object] | None = None
 
     async def start(self) -> None:
+        await self.decoders.start()
         configure_torch_threads(self.torch_threads)
         # The single worker thread owns the CPU: it loads the models and computes every batch.
         self._executor = DaemonWorker("inference", initializer=configure_torch_threads, initargs=(self.torch_threads,))
@@ -60,6 +66,7 @@ class ServiceRuntime:
         await asyncio.gather(*self._tasks, return_exceptions=True)
         if self.batcher is not None:
             await self.batcher.close()
+        await self.decoders.close()
         if self._executor is not None:  # a batch abandoned at the drain timeout is not waited for
             await asyncio.to_thread(self._executor.shutdown, wait=not self._executor.busy, cancel_futures=True)
 
@@ -137,6 +144,7 @@ class ServiceRuntime:
 
     async def _expire_drain(self, batcher: Batcher) -> None:
         await asyncio.sleep(self.settings.drain_timeout_s)
+        self.drain_over.set()
         batcher.abandon(Draining("drain timeout reached before this request was computed"))
 
     def _spawn(self, coroutine: Coroutine[Any, Any, None]) -> None:

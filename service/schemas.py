@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+import re
 from enum import StrEnum
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, model_validator
+from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, field_validator, model_validator
 
 from model.config import ModelName
 
@@ -24,6 +25,7 @@ class OutputFormat(StrEnum):
 
 
 FLOAT32_MAX = float(np.finfo(np.float32).max)
+_DECIMAL = re.compile(r"[+-]?([0-9]+\.?[0-9]*|\.[0-9]+)([eE][+-]?[0-9]+)?")
 
 
 class DisparityOptions(BaseModel):
@@ -58,7 +60,7 @@ class DisparityOptions(BaseModel):
         description="ARM iterations: `N` at 1/4 resolution, or `N16,N8,N4` for the three stages "
         "(1-99 each); fewer is faster and coarser [the model's: lite 2,4,6, full 2,4,8].",
     )
-    scale: float = Field(
+    scale: FiniteFloat = Field(
         1.0,
         gt=0,
         le=1,
@@ -89,6 +91,16 @@ class DisparityOptions(BaseModel):
         "map Z = focal_px x baseline_m / disparity (invalid where disparity <= 0).",
     )
     baseline_m: FiniteFloat | None = Field(None, gt=0, description="Stereo baseline in metres; see `focal_px`.")
+
+    @field_validator(
+        "scale", "color_min", "color_max", "cx_px", "cy_px", "max_uncertainty", "focal_px", "baseline_m", mode="before"
+    )
+    @classmethod
+    def _plain_decimal(cls, value: object) -> object:
+        """Numbers in the query are plain decimals: `1_0` or `0x1p-3` are refused, not read as 10 or 0.125."""
+        if isinstance(value, str) and not _DECIMAL.fullmatch(value):
+            raise ValueError(f"expected a decimal number such as 0.5 or 1e-3, got {value[:32]!r}")
+        return value
 
     @property
     def iterations(self) -> int | tuple[int, int, int] | None:

@@ -68,6 +68,13 @@ class Settings(BaseModel):
         description="Requests admitted per model and not yet computing (decoding or "
         "queued); beyond it `/disparity` answers 503 with `Retry-After`.",
     )
+    max_requests: int = Field(
+        48,
+        ge=1,
+        description="Most requests in progress at once (uploads being received included; the `/health` probes "
+        "are never counted); beyond it 503 `overloaded` with `Retry-After`. With `max_body_bytes` it bounds the "
+        "memory that request bodies can hold.",
+    )
     max_body_bytes: int = Field(32 * 1024 * 1024, ge=1, description="Largest request body in bytes (413 beyond).")
     max_image_pixels: int = Field(
         DEFAULT_MAX_IMAGE_PIXELS,
@@ -81,6 +88,26 @@ class Settings(BaseModel):
         "3.5 GB on `lite`: the default keeps one `full` request near a minute (1 MP).",
     )
     min_image_side: int = Field(32, ge=1, description="Smallest image width or height (422 below).")
+    body_timeout_s: float = Field(
+        60.0, gt=0, description="Longest a request body may take to arrive (408 beyond), from the end of its headers."
+    )
+    decode_workers: int = Field(
+        2,
+        ge=1,
+        description="Decoder processes: uploads are parsed and decoded there, a few at a time, never in the server.",
+    )
+    decode_memory_mb: int = Field(
+        768,
+        ge=64,
+        description="Memory (address space, MiB) a decoder process may use for one upload beyond its own "
+        "start-up size; an upload needing more is answered 413 `decode_too_large`.",
+    )
+    decode_cpu_s: float = Field(
+        5.0,
+        gt=0,
+        description="CPU seconds a decoder process may spend on one step of reading an upload (parsing the "
+        "form, or decoding both images); beyond it 422 `decode_too_costly`.",
+    )
     api_key: str | None = Field(
         None,
         description="When set, `POST /disparity` requires `Authorization: Bearer <key>`; health and metrics stay open.",

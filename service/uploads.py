@@ -1,70 +1,143 @@
-"""The uploads of `POST /disparity`: the multipart files `left` and `right`, checked from their
-file headers (`service.images.read_header`) before any pixel is decoded, then decoded to RGB."""
+"""The uploads of `POST /disparity`, from the raw body to RGB images: the multipart files `left`
+and `right` (`read_pair`), checked from their file headers (`service.images.read_header`) before
+any pixel is decoded, then decoded (`decode_pair`).
+
+These functions take untrusted bytes and can be made to work hard: the service runs them in its
+decoder processes (`service.decoding`), never on the event loop. They raise `UploadError`.
+"""
 
 from __future__ import annotations
 
-import numpy as np
-from starlette.datastructures import UploadFile
-from starlette.exceptions import HTTPException as StarletteHTTPException
-from starlette.requests import ClientDisconnect, Request
+import re
+from dataclasses import dataclass
 
-from service.errors import ApiError, bad_input, client_gone
+import numpy as np
+from python_multipart.exceptions import MultipartParseError
+from python_multipart.multipart import MultipartParser, parse_options_header
+
 from service.images import ImageError, ImageHeader, decode_rgb, read_header
-from service.settings import Settings
 
 IMAGE_FIELDS = ("left", "right")
+MAX_PARTS = 16
+"""Most parts a form may have before it is refused (it needs two)."""
+MAX_BOUNDARY_PADDING = 64
+"""Most spaces and tabs a form may have after a boundary line (RFC 2046 allows some; clients send none)."""
 
 
-async def read_uploads(request: Request) -> tuple[bytes, bytes]:
-    """The bytes of the multipart files `left` and `right`; nothing else may be in the form."""
-    if not request.headers.get("content-type", "").startswith("multipart/form-data"):
-        raise bad_input(415, "unsupported_media_type", "send multipart/form-data with files `left` and `right`")
+class UploadError(Exception):
+    """A refused upload: the HTTP status, an error code and a message for the client."""
+
+    def __init__(self, status: int, code: str, message: str) -> None:
+        super().__init__(status, code, message)
+        self.status, self.code, self.message = status, code, message
+
+    def __str__(self) -> str:
+        return self.message
+
+
+@dataclass(frozen=True)
+class ImageLimits:
+    """What the images of one request may be: at most `max_pixels` each, at least `min_side`
+    pixels wide and high (`model` only names the limit in messages)."""
+
+    model: str
+    max_pixels: int
+    min_side: int
+
+
+def boundary_of(content_type: str) -> bytes:
+    """The multipart boundary of a `multipart/form-data` Content-Type (UploadError 415 / 422)."""
+    kind, options = parse_options_header(content_type)
+    if kind != b"multipart/form-data":
+        raise UploadError(415, "unsupported_media_type", "send multipart/form-data with files `left` and `right`")
+    boundary = options.get(b"boundary", b"")
+    if not 1 <= len(boundary) <= 70:  # RFC 2046
+        raise UploadError(422, "invalid_multipart", "multipart Content-Type without a valid boundary")
+    return boundary
+
+
+def read_pair(body: bytes, content_type: str, limits: ImageLimits) -> tuple[bytes, bytes, ImageHeader]:
+    """The files `left` and `right` of a multipart body (nothing else may be in the form) and the
+    left image's header, once both headers pass `limits` and agree in size."""
+    left, right = _form_files(body, boundary_of(content_type))
+    return left, right, check_headers(limits, left, right)
+
+
+def _form_files(body: bytes, boundary: bytes) -> tuple[bytes, bytes]:
+    padded = re.search(b"--" + re.escape(boundary) + b"[ \t]{%d}" % (MAX_BOUNDARY_PADDING + 1), body)
+    if padded is not None:  # the parser walks such padding byte by byte: seconds per 20 MiB
+        raise UploadError(
+            422, "invalid_multipart", f"more than {MAX_BOUNDARY_PADDING} bytes of padding after a multipart boundary"
+        )
+    parts: list[tuple[dict[bytes, bytes], list[bytes]]] = []
+    header_name = b""
+
+    def on_part_begin() -> None:
+        if len(parts) == MAX_PARTS:
+            raise UploadError(422, "invalid_multipart", f"more than {MAX_PARTS} parts in the form")
+        parts.append(({}, []))
+
+    def on_header_field(data: bytes, start: int, end: int) -> None:
+        nonlocal header_name
+        header_name = data[start:end].lower()
+
+    def on_header_value(data: bytes, start: int, end: int) -> None:
+        parts[-1][0][header_name] = parts[-1][0].get(header_name, b"") + data[start:end]
+
+    def on_part_data(data: bytes, start: int, end: int) -> None:
+        parts[-1][1].append(data[start:end])
+
+    callbacks = {
+        "on_part_begin": on_part_begin,
+        "on_header_field": on_header_field,
+        "on_header_value": on_header_value,
+        "on_part_data": on_part_data,
+    }
+    parser = MultipartParser(boundary, callbacks)  # type: ignore[arg-type]
     try:
-        form = await request.form(max_files=len(IMAGE_FIELDS) + 2, max_fields=16)
-    except StarletteHTTPException as exc:  # malformed multipart body
-        raise bad_input(422, "invalid_multipart", str(exc.detail)) from None
-    except ClientDisconnect:  # gone mid-upload: nobody reads the answer; logged and counted as 499
-        raise client_gone("client disconnected during the upload") from None
-    try:
-        unknown = sorted(set(form.keys()) - set(IMAGE_FIELDS))
-        if unknown:
-            raise bad_input(
-                422, "unknown_field", f"unknown multipart field `{unknown[0]}`; options go in the query string"
+        parser.write(body)
+        parser.finalize()
+    except MultipartParseError as exc:
+        raise UploadError(422, "invalid_multipart", f"malformed multipart body ({exc})") from None
+    files: dict[str, list[bytes | None]] = {}
+    for headers, chunks in parts:
+        _, options = parse_options_header(headers.get(b"content-disposition", b""))
+        name = options.get(b"name", b"").decode("utf-8", "replace")
+        if name not in IMAGE_FIELDS:
+            raise UploadError(
+                422, "unknown_field", f"unknown multipart field `{name[:64]}`; options go in the query string"
             )
-        files = []
-        for name in IMAGE_FIELDS:
-            values = form.getlist(name)
-            if not values:
-                raise bad_input(422, "missing_field", f"multipart field `{name}` is missing")
-            if len(values) > 1 or not isinstance(values[0], UploadFile):
-                raise bad_input(422, "invalid_field", f"`{name}` must be exactly one file")
-            files.append(await values[0].read())
-        return files[0], files[1]
-    finally:
-        await form.close()
+        files.setdefault(name, []).append(b"".join(chunks) if b"filename" in options else None)
+    values = []
+    for name in IMAGE_FIELDS:
+        given = files.get(name, [])
+        if not given:
+            raise UploadError(422, "missing_field", f"multipart field `{name}` is missing")
+        if len(given) > 1 or given[0] is None:
+            raise UploadError(422, "invalid_field", f"`{name}` must be exactly one file")
+        values.append(given[0])
+    return values[0], values[1]
 
 
-def check_headers(settings: Settings, model: str, left: bytes, right: bytes) -> ImageHeader:
-    """The left image's header, once both headers pass the size limits of `model` and agree."""
+def check_headers(limits: ImageLimits, left: bytes, right: bytes) -> ImageHeader:
+    """The left image's header, once both headers pass `limits` and agree."""
     headers = {name: _read_header(name, data) for name, data in zip(IMAGE_FIELDS, (left, right), strict=True)}
-    limit = settings.pixel_limit(model)
     for name, header in headers.items():
-        if header.pixels > limit:
-            raise bad_input(
+        if header.pixels > limits.max_pixels:
+            raise UploadError(
                 413,
                 "image_too_large",
-                f"{name} image has {header.pixels} pixels; the limit for model `{model}` is {limit}",
+                f"{name} image has {header.pixels} pixels; the limit for model `{limits.model}` is {limits.max_pixels}",
             )
-        if min(header.width, header.height) < settings.min_image_side:
-            raise bad_input(
+        if min(header.width, header.height) < limits.min_side:
+            raise UploadError(
                 422,
                 "image_too_small",
-                f"{name} is {header.width}x{header.height}; "
-                f"width and height must be at least {settings.min_image_side}",
+                f"{name} is {header.width}x{header.height}; width and height must be at least {limits.min_side}",
             )
     left_header, right_header = headers["left"], headers["right"]
     if (left_header.width, left_header.height) != (right_header.width, right_header.height):
-        raise bad_input(
+        raise UploadError(
             422,
             "size_mismatch",
             f"left is {left_header.width}x{left_header.height} but right is {right_header.width}x{right_header.height}",
@@ -90,7 +163,7 @@ def _read_header(name: str, data: bytes) -> ImageHeader:
         raise _image_error(name, exc) from None
 
 
-def _image_error(name: str, exc: ImageError) -> ApiError:
+def _image_error(name: str, exc: ImageError) -> UploadError:
     if exc.unsupported:
-        return bad_input(415, "unsupported_media_type", f"{name}: {exc}")
-    return bad_input(422, "undecodable_image", f"{name}: {exc}")
+        return UploadError(415, "unsupported_media_type", f"{name}: {exc}")
+    return UploadError(422, "undecodable_image", f"{name}: {exc}")

@@ -212,6 +212,8 @@ def _decode(data: bytes, source: PathLike, flags: int) -> np.ndarray:
     try:
         image = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), flags) if data else None
     except cv2.error as error:  # e.g. beyond OPENCV_IO_MAX_IMAGE_PIXELS (OpenCV 5 raises)
+        if "Insufficient memory" in str(error):
+            raise MemoryError(f"decoding {os.fspath(source)!r}: {error}") from None
         reason = "larger than the decoder's pixel limit" if "MAX_IMAGE_PIXELS" in str(error) else "corrupt"
         raise FormatError(f"{os.fspath(source)!r} is not a readable image ({reason})") from None
     if image is None:

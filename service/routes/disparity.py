@@ -7,27 +7,33 @@ batcher raises is answered by the error handlers (`service.errors.batching_answe
 
 from __future__ import annotations
 
+import asyncio
 import time
+from collections import Counter
+from functools import partial
 from typing import Annotated
 
 from fastapi import APIRouter, Depends, Header, Query, Request, Response
 from starlette.concurrency import run_in_threadpool
+from starlette.requests import ClientDisconnect
 
-from service.batching import Batcher, JobResult
+from model.inference import scaled_size
+from service.batching import Batcher, ClientDisconnected, DeadlineExceeded, Draining, JobResult
 from service.dependencies import RuntimeDep, require_api_key
 from service.disparity_docs import RESPONSES, UPLOAD_BODY
 from service.encoding import render
-from service.errors import ApiError, bad_input, draining
+from service.errors import ApiError, bad_input, client_gone, draining
 from service.images import ImageHeader
 from service.logs import request_id_var
 from service.runtime import ServiceRuntime, weights_identity
 from service.scheduling import Knobs
 from service.schemas import DisparityOptions, DisparityResponse
-from service.uploads import check_headers, decode_pair, read_uploads
+from service.uploads import ImageLimits, boundary_of
 
 router = APIRouter(tags=["disparity"])
 
 MAX_TIMEOUT_MS = 3_600_000
+_ABANDON_POLL_S = 0.2  # how often a request whose images are being read checks whether it is abandoned
 
 
 @router.post(
@@ -62,16 +68,25 @@ async def estimate_disparity(
     deadline = None if timeout_ms is None else time.monotonic() + timeout_ms / 1000
     request.state.model = options.model  # also read by the batching error handler
     _refuse_repeated_options(request)
+    _refuse_repeated_headers(request)
     batcher = _batcher_for(runtime, options.model)
-    left_bytes, right_bytes = await read_uploads(request)
-    # header checks are pure Python over untrusted bytes: never on the event loop
-    header = await run_in_threadpool(check_headers, runtime.settings, options.model, left_bytes, right_bytes)
+    settings = runtime.settings
+    content_type = request.headers.get("content-type", "")
+    boundary_of(content_type)  # 415 before the body is read
+    body = await _read_body(request, settings.body_timeout_s)
+    stop = partial(_abandoned, request, deadline, runtime)
+    limits = ImageLimits(options.model, settings.pixel_limit(options.model), settings.min_image_side)
+    # Parsing and decoding untrusted bytes happen in the decoder processes, never here.
+    left_bytes, right_bytes, header = await runtime.decoders.read_pair(body, content_type, limits, stop)
+    del body
+    knobs = Knobs(options.two_pass, options.iterations, options.scale, options.raw_uncertainty)
+    _check_scale(header, options.scale)
     async with batcher.admit(options.model, pixels=header.pixels, deadline=deadline) as admission:
-        left, right = await run_in_threadpool(decode_pair, left_bytes, right_bytes)
+        left, right = await runtime.decoders.decode_pair(left_bytes, right_bytes, header, stop)
         result = await admission.run(
             left,
             right,
-            knobs=Knobs(options.two_pass, options.iterations, options.scale, options.raw_uncertainty),
+            knobs=knobs,
             deadline=deadline,
             is_disconnected=request.is_disconnected,
             request_id=request_id_var.get(),
@@ -83,10 +98,58 @@ async def estimate_disparity(
     return Response(content, media_type=media_type, headers=_result_headers(predictor.name, weights, header, result))
 
 
+async def _read_body(request: Request, timeout_s: float) -> bytes:
+    """The whole request body (the middleware bounds its size), within `timeout_s` seconds: an
+    upload that stalls cannot hold its buffer for longer (408)."""
+    chunks: list[bytes] = []
+    try:
+        async with asyncio.timeout(timeout_s):
+            async for chunk in request.stream():
+                chunks.append(chunk)
+    except TimeoutError:
+        raise ApiError(
+            408,
+            "body_timeout",
+            f"the request body did not arrive within {timeout_s:g} s",
+            reject_reason="bad_input",
+            headers={"Connection": "close"},
+        ) from None
+    except ClientDisconnect:  # gone mid-upload: nobody reads the answer; logged and counted as 499
+        raise client_gone("client disconnected during the upload") from None
+    return b"".join(chunks)
+
+
+async def _abandoned(request: Request, deadline: float | None, runtime: ServiceRuntime) -> Exception:
+    """Resolves, with the error to answer, once the request's images need no longer be read: its
+    client has gone, its deadline has passed or the drain is over."""
+    while True:
+        if runtime.drain_over.is_set():
+            return Draining("drain timeout reached while this request's images were read")
+        if deadline is not None and time.monotonic() >= deadline:
+            return DeadlineExceeded("the deadline passed while this request's images were read")
+        if await request.is_disconnected():
+            return ClientDisconnected("client disconnected while its images were read")
+        await asyncio.sleep(_ABANDON_POLL_S)
+
+
+def _check_scale(header: ImageHeader, scale: float) -> None:
+    try:
+        scaled_size(header.height, header.width, scale)
+    except ValueError as exc:
+        raise bad_input(422, "scale_too_small", str(exc)) from None
+
+
+def _refuse_repeated_headers(request: Request) -> None:
+    """A repeated `X-Request-Timeout-Ms` is ambiguous: 422 rather than silently taking one."""
+    if len(request.headers.getlist("x-request-timeout-ms")) > 1:
+        raise bad_input(422, "invalid_request", "header.X-Request-Timeout-Ms: given more than once")
+
+
 def _refuse_repeated_options(request: Request) -> None:
-    """`?model=lite&model=full` is ambiguous: 422 rather than silently taking one of them."""
-    names = [name for name, _ in request.query_params.multi_items()]
-    repeated = sorted({name for name in names if names.count(name) > 1})
+    """`?model=lite&model=full` is ambiguous: 422 rather than silently taking one of them (one
+    pass over the query, linear in its length; the middleware bounds that length)."""
+    counts = Counter(name for name, _ in request.query_params.multi_items())
+    repeated = sorted(name for name, count in counts.items() if count > 1)
     if repeated:
         raise bad_input(422, "invalid_request", f"query.{repeated[0]}: given more than once")
 

@@ -10,6 +10,7 @@ from service.dependencies import RuntimeDep
 router = APIRouter(tags=["metrics"])
 
 
+@router.head("/metrics", include_in_schema=False)
 @router.get(
     "/metrics",
     summary="Prometheus metrics",

@@ -27,12 +27,14 @@ OUTPUTS = [
 ]
 
 
+@router.head("/models", include_in_schema=False)
 @router.get("/models", summary="The models this server has loaded", response_model=ModelList)
 async def list_models(runtime: RuntimeDep) -> ModelList:
     """Every loaded model (none while loading)."""
     return ModelList(models=[model_info(runtime, name) for name in runtime.predictors])
 
 
+@router.head("/models/{name}", include_in_schema=False)
 @router.get(
     "/models/{name}",
     summary="One loaded model",

@@ -64,6 +64,7 @@ def _file(name: str) -> FileResponse:
     return FileResponse(path, media_type=MEDIA_TYPES[path.suffix], headers=HEADERS)
 
 
+@router.head("/", include_in_schema=False)
 @router.get("/")
 async def page() -> FileResponse:
     """The web page (`service/static/index.html`)."""
@@ -74,6 +75,7 @@ async def page() -> FileResponse:
     return _file("index.html")
 
 
+@router.head("/static/{name:path}", include_in_schema=False)
 @router.get("/static/{name:path}")
 async def static_file(name: str) -> FileResponse:
     """One of the page's files: script, style sheet, colour maps, example pairs."""

@@ -8,9 +8,13 @@ import struct
 import subprocess
 import sys
 import time
+import zlib
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 
+import cv2
 import httpx
+import numpy as np
 import pytest
 
 from service.images import ImageError, read_header
@@ -48,8 +52,78 @@ def jpeg_with_fill_bytes(fill: int) -> bytes:
     return b"\xff\xd8" + b"\xff" * fill + sof + b"\xff\xd9"
 
 
+def tiff(entries: list[tuple[int, int, int, int]], payload: bytes = b"") -> bytes:
+    """A little-endian TIFF of one IFD with these (tag, type, count, value) entries, then `payload`."""
+    ifd = (
+        struct.pack("<H", len(entries))
+        + b"".join(struct.pack("<HHII", tag, kind, count, value) for tag, kind, count, value in entries)
+        + b"\0" * 4
+    )
+    return b"II*\x00" + struct.pack("<I", 8) + ifd + payload
+
+
+def tiff_tile_bomb(side: int = 64, tile: int = 16_000) -> bytes:
+    """A `side` x `side` Deflate TIFF whose only tile is `tile` x `tile` pixels: a decoder that
+    trusts the tile tags allocates the whole tile (16000^2 x 3 bytes: 0.77 GB) for a tiny image."""
+    payload = zlib.compress(b"\0" * 1_000_000, 9)
+    offset = 8 + 2 + 12 * 10 + 4
+    return tiff(
+        [
+            (256, 3, 1, side),
+            (257, 3, 1, side),
+            (258, 3, 1, 8),
+            (259, 3, 1, 8),  # Deflate
+            (262, 3, 1, 1),
+            (277, 3, 1, 1),
+            (322, 4, 1, tile),
+            (323, 4, 1, tile),
+            (324, 4, 1, offset),
+            (325, 4, 1, len(payload)),
+        ],
+        payload,
+    )
+
+
+def jpeg_with_scans(scans: int) -> bytes:
+    """A progressive 64x64 JPEG whose last scan is repeated until the file has `scans` scans: each
+    scan makes the decoder sweep the whole image once."""
+    image = np.random.default_rng(0).integers(0, 256, (64, 64, 3), dtype=np.uint8)
+    data = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_PROGRESSIVE, 1])[1].tobytes()
+    last_scan = data[data.rindex(b"\xff\xda") : -2]
+    return data[:-2] + last_scan * (scans - data.count(b"\xff\xda")) + b"\xff\xd9"
+
+
+def test_a_tiff_whose_tiles_dwarf_the_image_is_refused_from_its_header():
+    assert read_header(tiff_tile_bomb(tile=64)).width == 64  # tiles the size of the image are fine
+    with pytest.raises(ImageError, match="tiles of 16000 px"):
+        read_header(tiff_tile_bomb())
+
+
+def test_a_jpeg_of_many_scans_is_refused_from_its_header_in_linear_time():
+    assert read_header(jpeg_with_scans(12)).width == 64  # progressive encoders write about a dozen
+    started = time.perf_counter()
+    with pytest.raises(ImageError, match="scans"):
+        read_header(jpeg_with_scans(20_000))
+    assert time.perf_counter() - started < 0.5
+
+
+@pytest.mark.parametrize(
+    "data",
+    [
+        cv2.imencode(".tiff", np.zeros((40, 40), np.float32))[1].tobytes(),
+        tiff([(256, 3, 1, 40), (257, 3, 1, 40), (258, 3, 1, 16), (339, 3, 1, 2)]),  # signed 16-bit
+        b"\xff\xd8\xff\xc0" + struct.pack(">HBHHB", 11, 12, 40, 40, 1) + b"\x01\x11\x00\xff\xd9",  # 12-bit
+    ],
+    ids=["float32-tiff", "int16-tiff", "12-bit-jpeg"],
+)
+def test_sample_formats_the_service_does_not_read_are_unsupported_not_broken(data):
+    with pytest.raises(ImageError) as refused:
+        read_header(data)
+    assert refused.value.unsupported  # answered 415, as the README promises
+
+
 def test_a_tiff_with_repeated_size_tags_is_refused_from_its_header():
-    with pytest.raises(ImageError, match="repeated width or height"):
+    with pytest.raises(ImageError, match="repeated tag"):
         read_header(tiff_with_repeated_size_tags(20_000, 64))
 
 
@@ -101,6 +175,8 @@ def test_crafted_uploads_get_422_fast_and_never_stall_the_health_check(default_s
             "left": ("l.jpg", jpeg_with_fill_bytes(16_000_000), "image/jpeg"),
             "right": ("r.png", encode(right), "image/png"),
         },
+        {"left": ("l.tif", tiff_tile_bomb(), "image/tiff"), "right": ("r.png", encode(right), "image/png")},
+        {"left": ("l.jpg", jpeg_with_scans(20_000), "image/jpeg"), "right": ("r.png", encode(right), "image/png")},
     ] * 2
     with httpx.Client(base_url=default_server.base_url, timeout=60) as client, ThreadPoolExecutor(4) as pool:
         answers = pool.map(lambda files: client.post("/disparity", files=files), attacks)
@@ -111,7 +187,7 @@ def test_crafted_uploads_get_422_fast_and_never_stall_the_health_check(default_s
             live_seconds.append(time.perf_counter() - started)
             time.sleep(0.05)
         answers = list(answers)
-    assert [(a.status_code, a.json()["error"]["code"]) for a in answers] == [(422, "undecodable_image")] * 4
+    assert [(a.status_code, a.json()["error"]["code"]) for a in answers] == [(422, "undecodable_image")] * 8
     assert max(live_seconds) < 1.0, live_seconds
 
 
@@ -153,19 +229,151 @@ def test_oversized_request_headers_get_a_json_431_and_the_server_stays_up(defaul
     assert httpx.get(default_server.base_url + "/health/live").status_code == 200
 
 
-def test_idle_connections_beyond_the_concurrency_cap_get_503_not_a_hang(tmp_path):
-    from service.__main__ import SERVER_LIMITS
+def read_answer(sock: socket.socket) -> str:
+    """One HTTP answer read off a raw socket: its head and its Content-Length body."""
+    sock.settimeout(10)
+    data = b""
+    while b"\r\n\r\n" not in data:
+        data += sock.recv(65536)
+    head, _, body = data.partition(b"\r\n\r\n")
+    length = next(
+        int(line.split(b":")[1]) for line in head.split(b"\r\n") if line.lower().startswith(b"content-length")
+    )
+    while len(body) < length:
+        body += sock.recv(65536)
+    return (head + b"\r\n\r\n" + body).decode("latin-1")
 
-    with run_uvicorn(tmp_path) as server:
+
+def live_seconds_while(work: Callable[[], list[httpx.Response]], base_url: str) -> tuple[list[httpx.Response], float]:
+    """Run `work` in a thread while probing `/health/live`: its answers and the slowest probe (s)."""
+    with httpx.Client(base_url=base_url, timeout=10) as client, ThreadPoolExecutor(1) as pool:
+        answers = pool.submit(work)
+        slowest = 0.0
+        while not answers.done():
+            started = time.perf_counter()
+            assert client.get("/health/live").status_code == 200
+            slowest = max(slowest, time.perf_counter() - started)
+            time.sleep(0.05)
+        return answers.result(), slowest
+
+
+def test_a_query_flood_gets_a_json_414_at_once(default_server):
+    flood = b"scale=1&" * 48_000  # 384 KB of one option repeated: once 19 s on the event loop
+    host, port = default_server.base_url.removeprefix("http://").split(":")
+    started = time.perf_counter()
+    with socket.create_connection((host, int(port))) as sock:
+        sock.sendall(b"POST /disparity?" + flood + b" HTTP/1.1\r\nHost: x\r\nContent-Length: 0\r\n\r\n")
+        answer = read_answer(sock)
+    assert answer.startswith("HTTP/1.1 414") and '"query_too_long"' in answer
+    assert time.perf_counter() - started < 1.0
+
+
+def test_options_given_twice_are_refused_by_name(default_server):
+    left, right = stereo_pair()
+    files = {"left": ("l.png", encode(left), "image/png"), "right": ("r.png", encode(right), "image/png")}
+    url = default_server.base_url + "/disparity"
+    twice = httpx.post(url + "?model=lite&model=lite", files=files)
+    assert twice.status_code == 422 and "query.model: given more than once" in twice.json()["error"]["message"]
+    headers = [("X-Request-Timeout-Ms", "5000"), ("X-Request-Timeout-Ms", "10")]
+    twice = httpx.post(url, files=files, headers=headers)
+    assert twice.status_code == 422 and "X-Request-Timeout-Ms" in twice.json()["error"]["message"]
+    many = httpx.post(url + "?" + "&".join(f"unknown{i}=1" for i in range(300)), files=files)
+    assert many.status_code == 422 and many.json()["error"]["message"].endswith("and 295 more")
+
+
+@pytest.mark.parametrize("scale", ["0.05", "1e-300"])
+def test_a_scale_that_leaves_the_network_too_few_pixels_is_refused(default_server, scale):
+    left, right = stereo_pair(height=64, width=256)
+    files = {"left": ("l.png", encode(left), "image/png"), "right": ("r.png", encode(right), "image/png")}
+    response = httpx.post(default_server.base_url + f"/disparity?scale={scale}", files=files)
+    assert response.status_code == 422 and response.json()["error"]["code"] == "scale_too_small"
+
+
+@pytest.mark.parametrize("scale", ["nan", "1_0", "inf", "0x1p-3"])
+def test_numbers_in_the_query_are_plain_decimals(default_server, scale):
+    left, right = stereo_pair()
+    files = {"left": ("l.png", encode(left), "image/png"), "right": ("r.png", encode(right), "image/png")}
+    response = httpx.post(default_server.base_url + f"/disparity?scale={scale}", files=files)
+    assert response.status_code == 422 and "expected a decimal number" in response.json()["error"]["message"]
+
+
+@pytest.mark.parametrize("path", ["/", "/metrics", "/models", "/models/lite", "/static/app.js"])
+def test_head_is_answered_wherever_get_is(default_server, path):
+    assert httpx.head(default_server.base_url + path).status_code == 200
+
+
+def test_an_upload_that_stalls_gets_408_and_frees_its_place(tmp_path):
+    with run_uvicorn(tmp_path, body_timeout_s="1") as server:
         host, port = server.base_url.removeprefix("http://").split(":")
-        idle = [socket.create_connection((host, int(port))) for _ in range(SERVER_LIMITS["limit_concurrency"])]
+        with socket.create_connection((host, int(port))) as sock:
+            sock.sendall(
+                b"POST /disparity HTTP/1.1\r\nHost: x\r\nContent-Length: 1000000\r\n"
+                b"Content-Type: multipart/form-data; boundary=b\r\n\r\n" + b"\0" * 50_000
+            )
+            started = time.monotonic()
+            answer = read_answer(sock)
+            waited = time.monotonic() - started
+        metrics = httpx.get(server.base_url + "/metrics").text
+    assert answer.startswith("HTTP/1.1 408") and '"body_timeout"' in answer
+    assert 0.8 < waited < 5
+    assert metric_total(metrics, "crestereo_requests_total", status="408") == 1
+
+
+def test_floods_of_connections_and_uploads_never_lock_out_the_probes(tmp_path):
+    with run_uvicorn(tmp_path, max_requests="2") as server:
+        host, port = server.base_url.removeprefix("http://").split(":")
+        idle = [socket.create_connection((host, int(port))) for _ in range(200)]  # once over uvicorn's cap
+        stalled = []
         try:
-            time.sleep(0.2)
-            capped = httpx.get(server.base_url + "/health/live", timeout=5)
+            for _ in range(2):  # two uploads in progress, the most this server takes at once
+                sock = socket.create_connection((host, int(port)))
+                sock.sendall(
+                    b"POST /disparity HTTP/1.1\r\nHost: x\r\nContent-Length: 1000000\r\n"
+                    b"Content-Type: multipart/form-data; boundary=b\r\n\r\n" + b"\0" * 1000
+                )
+                stalled.append(sock)
+            time.sleep(0.3)
+            live = httpx.get(server.base_url + "/health/live", timeout=5)
+            ready = httpx.get(server.base_url + "/health/ready", timeout=5)
+            refused = httpx.post(server.base_url + "/disparity", content=b"x", timeout=5)
         finally:
-            for sock in idle:
+            for sock in idle + stalled:
                 sock.close()
-        time.sleep(0.2)
-        after = httpx.get(server.base_url + "/health/live", timeout=5)
-    assert capped.status_code == 503
-    assert after.status_code == 200
+        time.sleep(0.3)
+        left, right = stereo_pair()
+        files = {"left": ("l.png", encode(left), "image/png"), "right": ("r.png", encode(right), "image/png")}
+        served = httpx.post(server.base_url + "/disparity", files=files, timeout=60)
+    assert live.status_code == 200 and ready.status_code == 200
+    assert refused.status_code == 503 and refused.json()["error"]["code"] == "overloaded"
+    assert int(refused.headers["Retry-After"]) >= 1
+    assert served.status_code == 200  # and the places come back once the uploads go
+
+
+def test_multipart_padding_is_refused_quickly_and_parsed_away_from_the_event_loop(default_server):
+    left, right = stereo_pair()
+    body = (
+        b'--b\r\nContent-Disposition: form-data; name="left"; filename="l.png"\r\n\r\n'
+        + encode(left)
+        + b"\r\n--b"
+        + b" " * (20 << 20)  # 20 MiB after a boundary: python-multipart walks it byte by byte (4.6 s here)
+        + b'\r\nContent-Disposition: form-data; name="right"; filename="r.png"\r\n\r\n'
+        + encode(right)
+        + b"\r\n--b--\r\n"
+    )
+    headers = {"Content-Type": "multipart/form-data; boundary=b"}
+
+    def flood() -> list[httpx.Response]:
+        with ThreadPoolExecutor(4) as pool:
+            posts = [
+                pool.submit(
+                    httpx.post, default_server.base_url + "/disparity", content=body, headers=headers, timeout=60
+                )
+                for _ in range(4)
+            ]
+            return [post.result() for post in posts]
+
+    started = time.perf_counter()
+    answers, slowest = live_seconds_while(flood, default_server.base_url)
+    assert [(a.status_code, a.json()["error"]["code"]) for a in answers] == [(422, "invalid_multipart")] * 4
+    assert slowest < 1.0
+    assert time.perf_counter() - started < 10
