@@ -4,7 +4,7 @@ A batch holds requests of one model, one set of inference options and one input 
 (`service.scheduling.batch_key`). Whenever the worker is free, `service.scheduling.choose_batch`
 picks the next batch from the queued requests and those still being received or decoded. Before
 a batch runs, requests whose client has gone, whose deadline has passed or cannot be met
-(estimated from the measured compute time per pixel, `service.scheduling.ComputeTimes`) are
+(estimated from the measured compute time per unit of work, `service.scheduling.ComputeTimes`) are
 dropped. An exception in the network fails only the batch it happened in.
 """
 
@@ -36,6 +36,7 @@ from service.scheduling import (
     Knobs,
     batch_key,
     choose_batch,
+    relative_cost,
 )
 from service.settings import Settings
 
@@ -55,6 +56,8 @@ class Predictor(Protocol):
 
     @property
     def config(self) -> ModelConfig: ...
+
+    def iterations(self, iters: Iterations) -> tuple[int, int, int]: ...
 
     def predict_batch(
         self,
@@ -218,12 +221,19 @@ class Batcher:
     def _work_ahead_s(self, model: str, times: ComputeTime) -> float:
         queued = self._queues[model]
         decoding = self._pending[model] - len(queued)
-        pixels = sum(job.key.pixels for job in queued) + decoding * times.pixels_per_request
+        work = sum(self.work(job.key) for job in queued) + decoding * times.work_per_request
         running = 0.0
         if self._running and self._running[0].key.model == model:
-            batch_pixels = len(self._running) * self._running[0].key.pixels
-            running = max(0.0, times.seconds(batch_pixels) - (time.monotonic() - self._running_since))
-        return running + times.seconds(pixels)
+            batch_work = len(self._running) * self.work(self._running[0].key)
+            running = max(0.0, times.seconds(batch_work) - (time.monotonic() - self._running_since))
+        return running + times.seconds(work)
+
+    def work(self, key: BatchKey) -> float:
+        """Units of compute of one request of `key` (`service.scheduling.relative_cost`)."""
+        predictor = self._predictors[key.model]
+        counts = predictor.iterations(key.knobs.iters)
+        cost = relative_cost(counts, predictor.config.iters, key.knobs.scale, key.knobs.two_pass)
+        return key.pixels * cost
 
     def retry_after(self, model: str) -> int:
         """Seconds after which a retry likely finds the model's queue worked off: the work ahead
@@ -233,10 +243,10 @@ class Batcher:
 
     @asynccontextmanager
     async def admit(
-        self, model: str, pixels: int | None = None, deadline: float | None = None
+        self, model: str, key: BatchKey | None = None, deadline: float | None = None
     ) -> AsyncIterator[Admission]:
         """Reserve a queue place for `model` before the request is decoded (raises `QueueFull`,
-        `Draining`, or `DeadlineExceeded` when the work ahead plus this request's `pixels`
+        `Draining`, or `DeadlineExceeded` when the work ahead plus this request's, of `key`,
         cannot finish by `deadline`); the place is given back when the batch starts or the
         request ends."""
         if self._draining:
@@ -244,8 +254,8 @@ class Batcher:
         if self._pending[model] >= self._settings.max_queue:
             raise QueueFull(self.retry_after(model))
         times = self._times.get(model)
-        if deadline is not None and pixels is not None and times is not None:
-            finish = time.monotonic() + self._work_ahead_s(model, times) + times.seconds(pixels)
+        if deadline is not None and key is not None and times is not None:
+            finish = time.monotonic() + self._work_ahead_s(model, times) + times.seconds(self.work(key))
             if finish > deadline:
                 raise DeadlineExceeded(
                     f"deadline cannot be met: about {finish - time.monotonic():.1f} s of compute would be needed"
@@ -300,7 +310,7 @@ class Batcher:
                 self._drop(job, ClientDisconnected("client disconnected before compute"))
                 changed = True
         times = self._times.get(batch[0].key.model)
-        estimate = 0.0 if times is None else times.seconds(len(batch) * batch[0].key.pixels)
+        estimate = 0.0 if times is None else times.seconds(len(batch) * self.work(batch[0].key))
         finish = time.monotonic() + estimate
         for job in batch:
             if job.deadline is not None and finish > job.deadline and not job.future.done():
@@ -352,7 +362,7 @@ class Batcher:
         compute = time.monotonic() - started
         self._metrics.compute.labels(model=key.model).observe(compute)
         self._metrics.batch_size.labels(model=key.model).observe(len(batch))
-        self._times.record(key.model, key.pixels, len(batch), compute)
+        self._times.record(key.model, self.work(key), len(batch), compute)
         for job, (disparity, uncertainty) in zip(batch, outputs, strict=True):
             if not job.future.done():
                 job.future.set_result(JobResult(disparity, uncertainty, len(batch), started - job.enqueued_at, compute))

@@ -105,20 +105,50 @@ def choose_batch(
     return [], oldest[0].enqueued_at + limits.max_wait_s - now
 
 
+# The cost model, fitted to lite on a 2-core CPU at 256x384 (measured / modelled time relative to
+# the default 2,4,6: iterations 1,1,1 0.43 / 0.44; 8,8,16 1.88 / 2.13; 2,4,20 2.07 / 2.17;
+# scale 0.5 0.22 / 0.25; two-pass 0.91 / 1.0). Coarse iterations cost more than their pixels
+# suggest: per-operation overheads dominate at small sizes.
+FIXED_COST = 3.5
+"""What a forward costs besides its ARM iterations (feature extraction, upsampling), in ARM
+iterations at 1/4 resolution."""
+STAGE_WEIGHTS = (0.25, 0.5, 1.0)
+"""The cost of one ARM iteration at 1/16, 1/8 and 1/4 resolution, relative to one at 1/4."""
+TWO_PASS_COST = 1.0
+"""Two-pass inference adds a pass at half resolution, and its warm start saves about as much."""
+
+
+def relative_cost(
+    counts: tuple[int, int, int], default_counts: tuple[int, int, int], scale: float, two_pass: bool
+) -> float:
+    """Compute of a request relative to a plain one of the same size (the model's own iteration
+    counts `default_counts`, scale 1, one pass): its iterations `counts` (at 1/16, 1/8, 1/4),
+    `scale` (the network sees scale^2 of the pixels) and `two_pass`."""
+
+    def forward(iterations: tuple[int, int, int]) -> float:
+        return FIXED_COST + sum(weight * n for weight, n in zip(STAGE_WEIGHTS, iterations, strict=True))
+
+    cost = forward(counts) / forward(default_counts) * scale**2
+    return cost * TWO_PASS_COST if two_pass else cost
+
+
 @dataclass(frozen=True)
 class ComputeTime:
-    """Running means over the batches of one model."""
+    """Running means over the batches of one model. A unit of work is one padded pixel of a plain
+    request; a request with other options counts its `relative_cost` per pixel."""
 
-    seconds_per_pixel: float  # compute seconds per padded pixel of a batch
-    pixels_per_request: float  # padded pixels of one request
+    seconds_per_work: float  # compute seconds per unit of work of a batch
+    work_per_request: float  # units of work of one request
 
-    def seconds(self, pixels: float) -> float:
-        """Estimated compute seconds of `pixels` padded pixels."""
-        return pixels * self.seconds_per_pixel
+    def seconds(self, work: float) -> float:
+        """Estimated compute seconds of `work` units."""
+        return work * self.seconds_per_work
 
 
 class ComputeTimes:
-    """Measured compute time per model: exponential running means, `weight` on the newest batch."""
+    """Measured compute time per model: exponential running means, `weight` on the newest batch.
+    Measured per unit of work, so that requests with costly options (many iterations, two-pass)
+    or cheap ones (a small scale) neither skew the estimate of plain requests nor are misjudged."""
 
     def __init__(self, weight: float = 0.2) -> None:
         self._weight = weight
@@ -128,14 +158,14 @@ class ComputeTimes:
         """The running means of `model`; None before its first batch."""
         return self._means.get(model)
 
-    def record(self, model: str, pixels: int, batch_size: int, seconds: float) -> None:
-        """A batch of `batch_size` requests of `pixels` padded pixels each took `seconds`."""
-        newest = ComputeTime(seconds / (batch_size * pixels), float(pixels))
+    def record(self, model: str, work: float, batch_size: int, seconds: float) -> None:
+        """A batch of `batch_size` requests of `work` units each took `seconds`."""
+        newest = ComputeTime(seconds / (batch_size * work), float(work))
         previous = self._means.get(model)
         if previous is not None:
             newest = ComputeTime(
-                self._mix(previous.seconds_per_pixel, newest.seconds_per_pixel),
-                self._mix(previous.pixels_per_request, newest.pixels_per_request),
+                self._mix(previous.seconds_per_work, newest.seconds_per_work),
+                self._mix(previous.work_per_request, newest.work_per_request),
             )
         self._means[model] = newest
 

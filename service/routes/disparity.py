@@ -26,7 +26,7 @@ from service.errors import ApiError, bad_input, client_gone, draining
 from service.images import ImageHeader
 from service.logs import request_id_var
 from service.runtime import ServiceRuntime, weights_identity
-from service.scheduling import Knobs
+from service.scheduling import Knobs, batch_key
 from service.schemas import DisparityOptions, DisparityResponse
 from service.uploads import ImageLimits, boundary_of
 
@@ -81,7 +81,8 @@ async def estimate_disparity(
     del body
     knobs = Knobs(options.two_pass, options.iterations, options.scale, options.raw_uncertainty)
     _check_scale(header, options.scale)
-    async with batcher.admit(options.model, pixels=header.pixels, deadline=deadline) as admission:
+    key = batch_key(options.model, knobs, header.height, header.width)
+    async with batcher.admit(options.model, key, deadline=deadline) as admission:
         left, right = await runtime.decoders.decode_pair(left_bytes, right_bytes, header, stop)
         result = await admission.run(
             left,

@@ -13,7 +13,7 @@ import pytest
 
 from service.batching import Batcher, JobResult
 from service.metrics import Metrics
-from service.scheduling import BatchKey, BatchLimits, ComputeTimes, Knobs, batch_key, choose_batch
+from service.scheduling import BatchKey, BatchLimits, ComputeTimes, Knobs, batch_key, choose_batch, relative_cost
 from service_helpers import GatedPredictor, lite_settings, quiet_load_model, stereo_pair
 
 pytestmark = pytest.mark.anyio  # the async tests; the sync ones ignore it
@@ -99,22 +99,43 @@ def test_plain_requests_batch_by_padded_shape_two_pass_and_scaled_ones_by_exact_
 def test_compute_times_are_unknown_before_the_first_batch_then_exact_for_it():
     times = ComputeTimes()
     assert times.get("lite") is None
-    times.record("lite", pixels=1000, batch_size=4, seconds=2.0)
+    times.record("lite", work=1000, batch_size=4, seconds=2.0)
     lite = times.get("lite")
     assert lite is not None
-    assert (lite.seconds_per_pixel, lite.pixels_per_request) == (0.0005, 1000.0)
+    assert (lite.seconds_per_work, lite.work_per_request) == (0.0005, 1000.0)
     assert lite.seconds(3000) == pytest.approx(1.5)
     assert times.get("full") is None  # one model's batches say nothing about another's
 
 
 def test_compute_times_are_running_means_weighting_the_newest_batch():
     times = ComputeTimes(weight=0.25)
-    times.record("lite", pixels=1000, batch_size=1, seconds=1.0)
-    times.record("lite", pixels=3000, batch_size=1, seconds=15.0)  # 0.005 s per pixel
+    times.record("lite", work=1000, batch_size=1, seconds=1.0)
+    times.record("lite", work=3000, batch_size=1, seconds=15.0)  # 0.005 s per unit
     lite = times.get("lite")
     assert lite is not None
-    assert lite.seconds_per_pixel == pytest.approx(0.75 * 0.001 + 0.25 * 0.005)
-    assert lite.pixels_per_request == pytest.approx(0.75 * 1000 + 0.25 * 3000)
+    assert lite.seconds_per_work == pytest.approx(0.75 * 0.001 + 0.25 * 0.005)
+    assert lite.work_per_request == pytest.approx(0.75 * 1000 + 0.25 * 3000)
+
+
+def test_the_cost_of_a_request_follows_its_iterations_and_scale():
+    lite = (2, 4, 6)
+    assert relative_cost(lite, lite, scale=1.0, two_pass=False) == 1.0
+    assert relative_cost((99, 99, 99), lite, scale=1.0, two_pass=False) > 10  # the flood that once froze estimates
+    assert relative_cost((1, 1, 1), lite, scale=1.0, two_pass=False) < 0.5
+    assert relative_cost(lite, lite, scale=0.5, two_pass=False) == pytest.approx(0.25)
+
+
+def test_costly_requests_neither_skew_the_estimate_of_plain_ones_nor_are_underestimated():
+    times = ComputeTimes()
+    plain = relative_cost((2, 4, 6), (2, 4, 6), 1.0, False) * 1000
+    heavy = relative_cost((99, 99, 99), (2, 4, 6), 1.0, False) * 1000
+    times.record("lite", work=plain, batch_size=1, seconds=0.2)
+    for _ in range(5):  # five heavy batches, each taking its true time at the same rate
+        times.record("lite", work=heavy, batch_size=1, seconds=0.2 * heavy / plain)
+    lite = times.get("lite")
+    assert lite is not None
+    assert lite.seconds(plain) == pytest.approx(0.2)
+    assert lite.seconds(heavy) == pytest.approx(0.2 * heavy / plain)
 
 
 # --- through Batcher.admit ----------------------------------------------------------------------
