@@ -58,12 +58,22 @@ RESPONSES: dict[int | str, dict[str, Any]] = {
         {"unauthorized": "missing or wrong bearer token"},
         {"WWW-Authenticate": _header("`Bearer`.")},
     ),
+    408: _error_doc(
+        "The request body did not arrive in time; the connection is closed.",
+        {"body_timeout": "the request body did not arrive within 60 s"},
+    ),
     413: _error_doc(
         "The body or an image is larger than the server's limits.",
         {
             "body_too_large": "request body larger than 33554432 bytes",
             "image_too_large": "left image has 8294400 pixels; the limit for model `lite` is 4194304",
+            "decode_too_large": "reading these images needs more than the 768 MiB the server allows per upload; "
+            "send smaller or plainer images",
         },
+    ),
+    414: _error_doc(
+        "The query string is longer than any valid set of options.",
+        {"query_too_long": "query string of 384000 bytes; the limit is 4096"},
     ),
     415: _error_doc(
         "Not multipart/form-data, or an upload that is not a supported image.",
@@ -78,6 +88,9 @@ RESPONSES: dict[int | str, dict[str, Any]] = {
             "size_mismatch": "left is 640x480 but right is 640x479",
             "image_too_small": "left is 16x480; width and height must be at least 32",
             "undecodable_image": "right: cannot decode the PNG data",
+            "scale_too_small": "scale 0.05 would run the 256x64 pair at 13x3; each side must stay at least 32 px",
+            "decode_too_costly": "reading these images took more than 5 s of CPU; re-encode them plainly "
+            "(baseline JPEG, PNG) and try again",
             "model_not_loaded": "model `full` is not loaded by this server (loaded: lite)",
         },
     ),
@@ -86,9 +99,10 @@ RESPONSES: dict[int | str, dict[str, Any]] = {
         {"inference_failed": "inference failed; logged as error id 3f9a1c2b7d4e"},
     ),
     503: _error_doc(
-        "Not ready, shutting down, queue full or deadline unmeetable; retry later.",
+        "Not ready, shutting down, overloaded, queue full or deadline unmeetable; retry later.",
         {
             "queue_full": "queue full; retry in 2 s",
+            "overloaded": "48 requests are in progress, the most this server takes at once",
             "deadline_exceeded": "deadline passed while waiting for the result",
             "loading": "models are still loading",
             "draining": "server is shutting down",
@@ -111,7 +125,8 @@ UPLOAD_BODY = {
                         "type": "string",
                         "format": "binary",
                         "description": f"{name.capitalize()} image of the rectified pair: PNG, JPEG, BMP or "
-                        "TIFF, 8- or 16-bit, grayscale or colour; both images of equal size.",
+                        "TIFF, 8- or 16-bit, grayscale or colour; both images of equal size, at least "
+                        "32 px a side and at most 4,194,304 pixels (the server's defaults).",
                     }
                     for name in IMAGE_FIELDS
                 },
