@@ -11,7 +11,7 @@ from model import load_model
 from service.errors import install_error_handlers
 from service.logs import configure_logging
 from service.middleware import ConcurrencyLimitMiddleware, RequestContextMiddleware, RequestSizeLimitMiddleware
-from service.routes import disparity, health, metrics, models, page
+from service.routes import disparity, docs, health, metrics, models, page
 from service.runtime import ModelLoader, ServiceRuntime
 from service.settings import Settings
 
@@ -43,6 +43,8 @@ def create_app(settings: Settings | None = None, loader: ModelLoader = load_mode
         "computed by CREStereo++ (`full`) or Lite-CREStereo++ (`lite`). Errors are JSON "
         '`{"error": {"code", "message"}}`; every response echoes `X-Request-Id`.',
         lifespan=lifespan,
+        docs_url=None,  # served by service.routes.docs, pinned and under a Content-Security-Policy
+        redoc_url=None,
     )
     app.state.runtime = runtime
     install_error_handlers(app, runtime.metrics)
@@ -53,5 +55,6 @@ def create_app(settings: Settings | None = None, loader: ModelLoader = load_mode
     app.include_router(health.router)
     app.include_router(metrics.router)
     app.include_router(models.router)
+    app.include_router(docs.router)
     app.include_router(page.router)  # the web page at `/` and its files under /static/
     return app

@@ -16,7 +16,7 @@ from service.batching import ClientDisconnected
 from service.decoding import DecoderLimits, DecoderPool
 from service.images import read_header
 from service.uploads import ImageLimits, UploadError
-from service_helpers import encode, stereo_pair
+from service_helpers import encode, lite_settings, serve_asgi, stereo_pair
 
 pytestmark = pytest.mark.anyio
 
@@ -142,3 +142,18 @@ async def test_an_abandoned_job_stops_at_once_and_costs_only_its_process():
         assert images[0].shape == (2000, 2000, 3)
     finally:
         await pool.close()
+
+
+async def test_a_request_still_reading_its_images_when_the_drain_ends_gets_503_draining():
+    costly = large_progressive_jpeg()
+    files = {"left": ("l.jpg", costly, "image/jpeg"), "right": ("r.jpg", costly, "image/jpeg")}
+    async with serve_asgi(lite_settings(drain_timeout_s=0.1)) as h:
+        runtime = h.app.state.runtime
+        posting = asyncio.ensure_future(h.client.post("/disparity", files=files))
+        await asyncio.sleep(0.3)  # the request is admitted and its images are being decoded (over a second)
+        assert not posting.done()
+        started_at = time.monotonic()
+        runtime.begin_drain()
+        answer = await posting
+    assert answer.status_code == 503 and answer.json()["error"]["code"] == "draining"
+    assert time.monotonic() - started_at < 1.0  # the decode was stopped, not waited for

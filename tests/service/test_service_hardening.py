@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import base64
+import hashlib
 import os
+import re
 import socket
 import struct
 import subprocess
@@ -377,3 +380,17 @@ def test_multipart_padding_is_refused_quickly_and_parsed_away_from_the_event_loo
     assert [(a.status_code, a.json()["error"]["code"]) for a in answers] == [(422, "invalid_multipart")] * 4
     assert slowest < 1.0
     assert time.perf_counter() - started < 10
+
+
+def test_the_docs_page_runs_only_the_pinned_script_it_names_with_integrity(default_server):
+    page = httpx.get(default_server.base_url + "/docs")
+    policy = page.headers["Content-Security-Policy"]
+    scripts = re.findall(r"<script([^>]*)>(.*?)</script>", page.text, flags=re.S)
+    external = [attributes for attributes, _ in scripts if "src=" in attributes]
+    inline = [body for attributes, body in scripts if "src=" not in attributes]
+    assert len(external) == 1 and 'integrity="sha384-' in external[0] and "@5.35.0/" in external[0]
+    for body in inline:  # each inline script is allowed by its own hash, and nothing else inline is
+        digest = base64.b64encode(hashlib.sha256(body.encode()).digest()).decode()
+        assert f"'sha256-{digest}'" in policy
+    assert "default-src 'none'" in policy and "'unsafe-inline'" not in policy.split("script-src")[1].split(";")[0]
+    assert httpx.get(default_server.base_url + "/redoc").status_code == 404
