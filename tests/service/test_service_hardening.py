@@ -182,6 +182,7 @@ def test_crafted_uploads_get_422_fast_and_never_stall_the_health_check(default_s
         {"left": ("l.jpg", jpeg_with_scans(20_000), "image/jpeg"), "right": ("r.png", encode(right), "image/png")},
     ] * 2
     with httpx.Client(base_url=default_server.base_url, timeout=60) as client, ThreadPoolExecutor(4) as pool:
+        memory_before = metric_total(client.get("/metrics").text, "process_resident_memory_bytes")
         answers = pool.map(lambda files: client.post("/disparity", files=files), attacks)
         live_seconds = []
         for _ in range(20):
@@ -190,7 +191,9 @@ def test_crafted_uploads_get_422_fast_and_never_stall_the_health_check(default_s
             live_seconds.append(time.perf_counter() - started)
             time.sleep(0.05)
         answers = list(answers)
+        memory_after = metric_total(client.get("/metrics").text, "process_resident_memory_bytes")
     assert [(a.status_code, a.json()["error"]["code"]) for a in answers] == [(422, "undecodable_image")] * 8
+    assert memory_after - memory_before < 200e6  # a tile bomb once added 0.9 GB per image
     assert max(live_seconds) < 1.0, live_seconds
 
 
