@@ -18,7 +18,7 @@ from .config import ModelConfig
 from .cuda_graphs import Forward, GraphedForward
 from .network import CREStereoPP, padded_size
 from .upsample import resize_disparity
-from .weights import WEIGHTS_DIR, file_sha256, network_from_weights, read_weights
+from .weights import USABLE_BAD2, WEIGHTS_DIR, file_sha256, is_trained, network_from_weights, read_weights
 
 Iterations = int | tuple[int, int, int] | None
 """None: the config's iterations; int: iterations of the finest (1/4) stage; or (n16, n8, n4)."""
@@ -92,6 +92,13 @@ def load_model(
         return StereoPredictor(network, name, None, device, precision=precision, cuda_graphs=cuda_graphs)
 
     payload = read_weights(path)
+    if not is_trained(payload.get("training")):
+        warnings.warn(
+            f"the {name!r} weights at {path} are untrained (no validation on real pairs reaching "
+            f"{USABLE_BAD2:g} % bad-2): their maps are not usable; `lite` is the trained model",
+            RuntimeWarning,
+            stacklevel=2,
+        )
     calibration = payload.get("calibration")
     return StereoPredictor(
         network_from_weights(payload, name),
@@ -198,6 +205,11 @@ class StereoPredictor:
     @property
     def config(self) -> ModelConfig:
         return self.network.config
+
+    @property
+    def trained(self) -> bool:
+        """Whether the weights are trained (`model.weights.is_trained`); random ones never are."""
+        return is_trained(self.training)
 
     @property
     def num_parameters(self) -> int:

@@ -28,6 +28,20 @@ WEIGHTS_DIR = Path(__file__).parent / "weights"
 """Bundled weights: ``WEIGHTS_DIR / f"{name}.pt"``."""
 
 
+USABLE_BAD2 = 50.0
+"""Weights count as trained once a validation on real pairs recorded in them has a mean bad-2 (%)
+at most this: beyond it the maps are mostly wrong."""
+
+
+def is_trained(training: dict[str, Any] | None) -> bool:
+    """Whether weights with this training record (the ``"training"`` entry of a weights file) are
+    trained: their last recorded validation on real pairs has bad-2 at most USABLE_BAD2 %. Weights
+    never validated, or without a record, count as untrained."""
+    runs = (training or {}).get("runs") or []
+    validations = [run["validation"] for run in runs if run.get("validation")]
+    return bool(validations) and float(validations[-1]["bad2"]) <= USABLE_BAD2
+
+
 def read_weights(path: str | Path) -> dict[str, Any]:
     """The weights file (or checkpoint) at `path` as a dict, tensors on the CPU.
 

@@ -22,6 +22,7 @@ _RESULT_HEADERS = {
     **_REQUEST_ID,
     "X-Model": _header("Model that computed the result."),
     "X-Weights": _header("First 16 hex digits of the weights' sha256, or `random-init`."),
+    "X-Model-Status": _header("`trained`, or `untrained`: the model's maps are not usable (see `GET /models`)."),
     "X-Image-Size": _header("`WIDTHxHEIGHT` of the input images."),
     "X-Batch-Size": _header("Requests computed together with this one.", "integer"),
     "X-Queue-Ms": _header("Time queued before the batch started.", "number"),

@@ -284,6 +284,10 @@ class ModelInfo(BaseModel):
     platform: Literal["pytorch"] = "pytorch"
     inputs: list[TensorMetadata]
     outputs: list[TensorMetadata]
+    status: Literal["trained", "untrained"] = Field(
+        description="`untrained`: the weights have no validation on real pairs within 50 % bad-2; their "
+        "maps are not usable (answers carry `X-Model-Status: untrained`). `training.dev_metrics` has the numbers."
+    )
     parameters: int
     iterations: list[int] = Field(description="Default ARM iterations at 1/16, 1/8, 1/4.")
     uncertainty: str = Field(description="What the `uncertainty` map means for these weights.")

@@ -18,7 +18,7 @@ from starlette.concurrency import run_in_threadpool
 from starlette.requests import ClientDisconnect
 
 from model.inference import scaled_size
-from service.batching import Batcher, ClientDisconnected, DeadlineExceeded, Draining, JobResult
+from service.batching import Batcher, ClientDisconnected, DeadlineExceeded, Draining, JobResult, Predictor
 from service.dependencies import RuntimeDep, require_api_key
 from service.disparity_docs import RESPONSES, UPLOAD_BODY
 from service.encoding import render
@@ -96,7 +96,7 @@ async def estimate_disparity(
     predictor = runtime.predictors[options.model]
     weights = weights_identity(predictor)
     content, media_type = await run_in_threadpool(render, options, result, left, weights, header)
-    return Response(content, media_type=media_type, headers=_result_headers(predictor.name, weights, header, result))
+    return Response(content, media_type=media_type, headers=_result_headers(predictor, weights, header, result))
 
 
 async def _read_body(request: Request, timeout_s: float) -> bytes:
@@ -179,10 +179,11 @@ def _batcher_for(runtime: ServiceRuntime, model: str) -> Batcher:
     return runtime.batcher
 
 
-def _result_headers(model: str, weights: str, size: ImageHeader, result: JobResult) -> dict[str, str]:
+def _result_headers(predictor: Predictor, weights: str, size: ImageHeader, result: JobResult) -> dict[str, str]:
     """The result facts every answer carries as headers."""
     return {
-        "X-Model": model,
+        "X-Model": predictor.name,
+        "X-Model-Status": "trained" if predictor.trained else "untrained",
         "X-Weights": weights,
         "X-Image-Size": f"{size.width}x{size.height}",
         "X-Batch-Size": str(result.batch_size),

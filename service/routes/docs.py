@@ -29,19 +29,24 @@ STYLE_URL, STYLE_INTEGRITY = (
 def docs_page(openapi_url: str, title: str) -> tuple[str, str]:
     """The page's HTML and its Content-Security-Policy: the pinned script and style with their
     integrity, the page's one inline script allowed by its hash, data only from this server."""
-    html = get_swagger_ui_html(
+    page = get_swagger_ui_html(
         openapi_url=openapi_url,
         title=title,
         swagger_js_url=SCRIPT_URL,
         swagger_css_url=STYLE_URL,
         swagger_favicon_url="data:,",
-    ).body.decode()
-    html = html.replace(
-        f'<script src="{SCRIPT_URL}">',
-        f'<script src="{SCRIPT_URL}" integrity="{SCRIPT_INTEGRITY}" crossorigin="anonymous">',
-    ).replace(
-        f'href="{STYLE_URL}">',
-        f'href="{STYLE_URL}" integrity="{STYLE_INTEGRITY}" crossorigin="anonymous">',
+    )
+    html = (
+        bytes(page.body)
+        .decode()
+        .replace(
+            f'<script src="{SCRIPT_URL}">',
+            f'<script src="{SCRIPT_URL}" integrity="{SCRIPT_INTEGRITY}" crossorigin="anonymous">',
+        )
+        .replace(
+            f'href="{STYLE_URL}">',
+            f'href="{STYLE_URL}" integrity="{STYLE_INTEGRITY}" crossorigin="anonymous">',
+        )
     )
     inline = re.findall(r"<script>(.*?)</script>", html, flags=re.S)
     hashes = " ".join(f"'sha256-{base64.b64encode(hashlib.sha256(s.encode()).digest()).decode()}'" for s in inline)

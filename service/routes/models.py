@@ -59,6 +59,7 @@ def model_info(runtime: ServiceRuntime, name: str) -> ModelInfo:
         versions=[weights_identity(predictor)],
         inputs=INPUTS,
         outputs=OUTPUTS,
+        status="trained" if predictor.trained else "untrained",
         parameters=predictor.num_parameters,
         iterations=list(predictor.config.iters),
         uncertainty=uncertainty_meaning(predictor),

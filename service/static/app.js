@@ -424,6 +424,10 @@ function describeModel() {
   $("iters").placeholder = model.iterations.join(",");
   const training = model.training && model.training.dev_metrics && model.training.dev_metrics.epe !== undefined
     ? ` · dev EPE ${g3(model.training.dev_metrics.epe)} px` : "";
+  const warning = $("model-warning");
+  warning.hidden = model.status !== "untrained";
+  warning.textContent = warning.hidden ? "" : `${model.name} is untrained: its weights have not learned to ` +
+    "match yet, and its maps are not usable. Choose a trained model (lite) for real results.";
   $("model-info").textContent = `${model.parameters.toLocaleString("en")} parameters · iterations ` +
     `${model.iterations.join("/")} · up to ${model.max_image_pixels.toLocaleString("en")} pixels${training} · ` +
     `uncertainty: ${model.uncertainty}`;
@@ -448,7 +452,8 @@ async function loadModels() {
     state.models[model.name] = model;
     const option = document.createElement("option");
     option.value = model.name;
-    option.textContent = `${model.name} (weights ${model.versions[0]})`;
+    const status = model.status === "untrained" ? ", untrained" : "";
+    option.textContent = `${model.name} (weights ${model.versions[0]}${status})`;
     select.append(option);
   }
   describeModel();

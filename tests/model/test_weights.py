@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import warnings
+
 import pytest
 import torch
 
-from model import CREStereoPP, ModelConfig
+from model import CREStereoPP, ModelConfig, load_model
 from model.config import MODEL_NAMES, PRESETS
 from model.weights import model_config_of, network_from_weights, read_weights, write_weights
 
@@ -37,3 +39,20 @@ def test_a_payload_without_a_state_dict_is_refused_and_the_old_file_kept(tmp_pat
 
 def test_a_file_without_a_config_uses_the_preset_of_its_name():
     assert model_config_of({"model": {}}, "full") == ModelConfig.preset("full")
+
+
+def test_weights_count_as_trained_only_with_a_good_validation_on_real_pairs():
+    from model.weights import is_trained
+
+    assert not is_trained(None)
+    assert not is_trained({"runs": [{"validation": None}]})  # trained on scenes, never validated
+    assert not is_trained({"runs": [{"validation": {"bad2": 93.6}}]})
+    assert is_trained({"runs": [{"validation": {"bad2": 14.7}}, {"validation": None}]})
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        assert load_model("lite").trained and not load_model("full").trained
+
+
+def test_loading_untrained_weights_warns_that_their_maps_are_not_usable():
+    with pytest.warns(RuntimeWarning, match="untrained"):
+        load_model("full")

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from service.logs import JsonFormatter
+from service.settings import Settings
 from service_helpers import HEIGHT, WIDTH, encode, pair_files, serve_asgi, stereo_pair
 from stereo_data.visualize import BAR_HEIGHT
 
@@ -199,6 +200,18 @@ async def test_models_describe_each_loaded_model_in_open_inference_protocol_shap
     assert info["training"]["pairs"] == predictor.training["total_pairs"] > 0
     assert set(info["training"]["dev_metrics"]) == {"epe", "bad1", "bad2", "bad3", "d1_all"}
     assert (missing.status_code, missing.json()["error"]["code"]) == (404, "model_not_found")
+    assert info["status"] == "trained"
+
+
+async def test_the_untrained_full_model_says_so_in_its_listing_and_on_every_answer():
+    left, right = stereo_pair()
+    async with serve_asgi(Settings(models=("lite", "full"))) as h:
+        listing = {model["name"]: model for model in (await h.client.get("/models")).json()["models"]}
+        full = await h.client.post("/disparity", params={"model": "full"}, files=pair_files(left, right))
+        lite = await h.client.post("/disparity", params={"model": "lite"}, files=pair_files(left, right))
+    assert listing["full"]["status"] == "untrained" and listing["lite"]["status"] == "trained"
+    assert full.status_code == 200 and full.headers["X-Model-Status"] == "untrained"
+    assert lite.headers["X-Model-Status"] == "trained"
 
 
 async def test_a_metric_point_cloud_is_served_as_binary_ply():

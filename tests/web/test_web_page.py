@@ -10,6 +10,7 @@ import importlib.util
 import json
 import re
 from pathlib import Path
+from typing import Any
 
 import cv2
 import httpx
@@ -18,7 +19,7 @@ import pytest
 
 from service.routes.page import STATIC_DIR
 from service.schemas import OutputFormat
-from service_helpers import Server
+from service_helpers import Server, run_uvicorn
 from stereo_data.visualize import DISPARITY_COLORMAP, colorize, robust_range
 from web_helpers import WebPage
 
@@ -269,3 +270,23 @@ def test_missing_image_is_said_before_sending(web: WebPage) -> None:
     page.wait_for_selector("#error", state="visible")
     assert "choose a left and a right image" in page.inner_text("#error")
     assert not any(url.endswith("/disparity") or "/disparity?" in url for url in web.requests)
+
+
+def test_choosing_the_untrained_model_shows_a_warning(browser: Any, tmp_path: Path) -> None:
+    with run_uvicorn(tmp_path, models="lite,full") as server:
+        context = browser.new_context(viewport={"width": 1280, "height": 900})
+        try:
+            page = context.new_page()
+            page.set_default_timeout(30_000)
+            page.goto(server.base_url + "/")
+            page.wait_for_selector("#model option[value=full]", state="attached")
+            warning = page.locator("#model-warning")
+            expect(warning).to_be_hidden()  # lite, the default, is trained
+            page.select_option("#model", "full")
+            expect(warning).to_be_visible()
+            expect(warning).to_contain_text("full is untrained")
+            expect(page.locator("#model option[value=full]")).to_contain_text("untrained")
+            page.select_option("#model", "lite")
+            expect(warning).to_be_hidden()
+        finally:
+            context.close()
