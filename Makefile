@@ -6,23 +6,35 @@ PORT ?= 8000
 # Loopback only by default; `make serve HOST=0.0.0.0` serves the network (then set CRESTEREO_API_KEY).
 HOST ?= 127.0.0.1
 
-$(VENV)/.installed: pyproject.toml
+TORCH := torch==2.13.0
+CPU_INDEX := https://download.pytorch.org/whl/cpu
+
+# Serving needs the package and its runtime dependencies only; testing adds the `test` extra.
+# torch first, as the CPU build: from PyTorch's CPU wheel index (`+cpu`), else, where that index
+# cannot be reached, the plain pin (a package index may then resolve it to the CUDA build, several
+# GB; on the project's build machines the plain pin is a CPU wheel on local disk).
+$(VENV)/.serve-installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	# The CPU build of torch (an unpinned torch would pull a multi-GB CUDA build).
-	$(PY) -m pip install --quiet torch==2.13.0
+	$(PY) -m pip install --quiet --extra-index-url $(CPU_INDEX) '$(TORCH)+cpu' 2>/dev/null \
+		|| $(PY) -m pip install --quiet '$(TORCH)'
+	$(PY) -m pip install --quiet -e .
+	touch $@
+
+$(VENV)/.test-installed: $(VENV)/.serve-installed
 	$(PY) -m pip install --quiet -e '.[test]'
 	touch $@
 
-.PHONY: setup serve lint test
-setup: $(VENV)/.installed
+.PHONY: setup setup-test serve lint test
+setup: $(VENV)/.serve-installed
+setup-test: $(VENV)/.test-installed
 
 serve: setup
 	$(PY) -m service --host $(HOST) --port $(PORT)
 
 # Style and types (configured in pyproject.toml): ruff's lint and format check on the whole tree,
 # mypy on the packages. `make test` runs it first, so a lint or type error fails the tests (and CI).
-lint: setup
+lint: setup-test
 	$(PY) -m ruff check .
 	$(PY) -m ruff format --check .
 	$(PY) -m mypy
