@@ -25,7 +25,7 @@ $(VENV)/.test-installed: $(VENV)/.serve-installed
 	$(PY) -m pip install --quiet -e '.[test]'
 	touch $@
 
-.PHONY: setup setup-test serve lint test
+.PHONY: setup setup-test serve lint test test-fast
 setup: $(VENV)/.serve-installed
 setup-test: $(VENV)/.test-installed
 
@@ -41,6 +41,11 @@ lint: setup-test
 
 test: lint
 	$(PY) -m pytest -q
+
+# The inner loop: everything but the tests that start servers, browsers, containers or other
+# processes (marked `slow`, tests/conftest.py). `make test` runs them all, as CI does.
+test-fast: setup-test
+	$(PY) -m pytest -q -m "not slow"
 
 # The prepared GPU check (bench/gpu_check.py; README, "Development"): for a GPU machine with torch
 # preinstalled and no package index, so it runs that machine's python3 from the tree, not the venv.

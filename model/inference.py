@@ -27,7 +27,7 @@ Precision = Literal["fp32", "bf16"]
 """fp32: the network in float32; bf16: under bf16 autocast (CUDA), the maps still float32."""
 
 
-MIN_SCALED_SIDE = 32
+MIN_SCALED_SIDE = 16
 """With ``scale``, the pair the network sees keeps at least this many pixels per side: below it
 the network sees too little to match, and its disparities, multiplied by 1 / scale, come out
 wider than the image."""
@@ -95,7 +95,7 @@ def load_model(
     if not is_trained(payload.get("training")):
         warnings.warn(
             f"the {name!r} weights at {path} are untrained (no validation on real pairs reaching "
-            f"{USABLE_BAD2:g} % bad-2): their maps are not usable; `lite` is the trained model",
+            f"{USABLE_BAD2:g} % bad-2): their maps are not usable",
             RuntimeWarning,
             stacklevel=2,
         )

@@ -89,7 +89,7 @@ RESPONSES: dict[int | str, dict[str, Any]] = {
             "size_mismatch": "left is 640x480 but right is 640x479",
             "image_too_small": "left is 16x480; width and height must be at least 32",
             "undecodable_image": "right: cannot decode the PNG data",
-            "scale_too_small": "scale 0.05 would run the 256x64 pair at 13x3; each side must stay at least 32 px",
+            "scale_too_small": "scale 0.05 would run the 256x64 pair at 13x3; each side must stay at least 16 px",
             "decode_too_costly": "reading these images took more than 5 s of CPU; re-encode them plainly "
             "(baseline JPEG, PNG) and try again",
             "model_not_loaded": "model `full` is not loaded by this server (loaded: lite)",

@@ -8,3 +8,23 @@ cores). Passive waiting keeps every process at its normal speed; children inheri
 import os
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import pytest  # noqa: E402  (after the environment above, as the docstring says)
+
+SLOW_FIXTURES = {"default_server", "browser", "web"}  # a real uvicorn process, Chromium
+SLOW_FOLDERS = ("container",)  # a Docker engine and image
+SLOW_MODULES = {"test_train_distributed.py", "test_gpu_check.py", "test_service_schemathesis.py"}
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Mark `slow` every test that starts a server, a browser, a container or another process
+    (through the fixtures above, in the modules above, or marked so itself): `make test-fast`
+    leaves them out for the inner loop; `make test` (and CI) runs everything."""
+    for item in items:
+        path = item.path
+        if (
+            SLOW_FIXTURES & set(getattr(item, "fixturenames", ()))
+            or path.name in SLOW_MODULES
+            or path.parent.name in SLOW_FOLDERS
+        ):
+            item.add_marker(pytest.mark.slow)

@@ -78,6 +78,7 @@ def test_eval_reports_the_sha256_of_the_weights_it_loaded(pairs_dir, tmp_path):
     assert len(report["pairs"]) == 1 and set(report["mean"]) == {"lite"}
 
 
+@pytest.mark.slow
 def test_eval_of_a_folder_without_pairs_fails_with_a_clear_message(tmp_path):
     result = subprocess.run(
         [sys.executable, "-m", "cli.main", "eval", str(tmp_path)], cwd=REPO, capture_output=True, text=True, timeout=120

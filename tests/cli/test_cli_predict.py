@@ -100,6 +100,7 @@ def test_two_folders_pair_images_by_name_and_write_a_folder(tmp_path, pairs_dir)
     assert sorted(p.name for p in (tmp_path / "c").iterdir()) == ["shift4.png", "shift9.png"]
 
 
+@pytest.mark.slow
 def test_globs_pair_in_sorted_order_and_mirror_the_folders_of_the_left_images(pairs_dir, tmp_path):
     out = tmp_path / "out"
     result = subprocess.run(

@@ -57,6 +57,7 @@ async def test_the_async_client_gives_the_same_answer(default_server):
         np.testing.assert_array_equal(result.disparity, service.disparity(left, right).disparity)
 
 
+@pytest.mark.slow
 def test_a_full_queue_is_retried_after_retry_after_until_served(tmp_path):
     left, right = stereo_pair(96, 128)
     with run_uvicorn(tmp_path, max_queue="1", max_batch_size="1") as server:

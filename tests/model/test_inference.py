@@ -183,3 +183,15 @@ def test_bf16_autocast_keeps_the_disparity_within_0_08_px_of_fp32_on_average():
     bf16 = load_model("lite", precision="bf16").predict(scene.left, scene.right).disparity
     assert bf16.dtype == torch.float32
     assert (bf16 - fp32).abs().mean() < 0.08  # 0.055 measured; 0.135 with a bf16 disparity and grids
+
+
+def test_a_scale_that_leaves_the_network_too_few_pixels_is_refused_not_extrapolated():
+    from model.inference import MIN_SCALED_SIDE, scaled_size
+
+    assert scaled_size(375, 1242, 0.5) == (188, 621)
+    assert scaled_size(20, 20, 1.0) == (20, 20)  # a small image at its own size is fine
+    for scale in (0.05, 1e-300):
+        with pytest.raises(ValueError, match=f"at least {MIN_SCALED_SIDE} px"):
+            scaled_size(64, 256, scale)
+    with pytest.raises(ValueError, match="scale must be in"):
+        scaled_size(64, 256, 0.0)

@@ -141,6 +141,7 @@ def test_the_jpeg_marker_walk_is_bounded_whatever_the_file_holds():
     assert time.perf_counter() - started < 0.5
 
 
+@pytest.mark.slow
 def test_the_decoder_itself_is_capped_at_the_services_pixel_limit():
     """OpenCV refuses to decode beyond CRESTEREO_MAX_IMAGE_PIXELS once `service` is imported,
     whatever the file header claims (a fresh process: OpenCV reads the cap at its first decode)."""
@@ -308,6 +309,7 @@ def test_head_is_answered_wherever_get_is(default_server, path):
     assert httpx.head(default_server.base_url + path).status_code == 200
 
 
+@pytest.mark.slow
 def test_an_upload_that_stalls_gets_408_and_frees_its_place(tmp_path):
     with run_uvicorn(tmp_path, body_timeout_s="1") as server:
         host, port = server.base_url.removeprefix("http://").split(":")
@@ -325,6 +327,7 @@ def test_an_upload_that_stalls_gets_408_and_frees_its_place(tmp_path):
     assert metric_total(metrics, "crestereo_requests_total", status="408") == 1
 
 
+@pytest.mark.slow
 def test_floods_of_connections_and_uploads_never_lock_out_the_probes(tmp_path):
     with run_uvicorn(tmp_path, max_requests="2") as server:
         host, port = server.base_url.removeprefix("http://").split(":")

@@ -96,6 +96,7 @@ def test_eight_concurrent_requests_run_in_batches_and_match_the_single_result(de
     assert batched_requests == 8 and batches < 8
 
 
+@pytest.mark.slow
 def test_a_full_queue_answers_503_with_retry_after_over_http(tmp_path):
     pair = pair_files(*stereo_pair(96, 128))
     with run_uvicorn(tmp_path, max_queue="1", max_batch_size="1") as server:
@@ -113,6 +114,7 @@ def test_a_full_queue_answers_503_with_retry_after_over_http(tmp_path):
     assert metric_total(exposition, "crestereo_rejected_total", reason="queue_full") == statuses.count(503)
 
 
+@pytest.mark.slow
 def test_retry_after_covers_the_work_queued_ahead_in_a_real_burst(tmp_path):
     pair = pair_files(*stereo_pair(288, 384))  # runs alone under the default batch pixel budget
     with (
@@ -136,6 +138,7 @@ def test_retry_after_covers_the_work_queued_ahead_in_a_real_burst(tmp_path):
     assert 0.8 * waited <= retry_after <= 3 * waited + 2, (retry_after, waited)
 
 
+@pytest.mark.slow
 def test_sigterm_drains_the_queue_without_losing_a_request(tmp_path):
     pair = pair_files(*stereo_pair(96, 128))
     with (
@@ -165,6 +168,7 @@ def test_sigterm_drains_the_queue_without_losing_a_request(tmp_path):
     assert any(line["message"] == "draining" for line in logged)
 
 
+@pytest.mark.slow
 def test_the_drain_timeout_bounds_shutdown_even_while_a_batch_computes(tmp_path):
     pair = pair_files(*stereo_pair(1024, 1536))  # several seconds of lite on a small CPU
     with (

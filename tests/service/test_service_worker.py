@@ -44,6 +44,7 @@ def test_busy_is_true_exactly_while_a_call_runs():
     assert not worker.busy
 
 
+@pytest.mark.slow
 def test_a_process_can_exit_while_its_worker_waits_for_work():
     script = (
         "from service.worker import DaemonWorker\n"

@@ -272,6 +272,7 @@ def test_missing_image_is_said_before_sending(web: WebPage) -> None:
     assert not any(url.endswith("/disparity") or "/disparity?" in url for url in web.requests)
 
 
+@pytest.mark.slow
 def test_choosing_the_untrained_model_shows_a_warning(browser: Any, tmp_path: Path) -> None:
     with run_uvicorn(tmp_path, models="lite,full") as server:
         context = browser.new_context(viewport={"width": 1280, "height": 900})
