@@ -8,11 +8,19 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-import cv2
 from tqdm import tqdm
 
-from stereo_data.formats import read_image, write_disparity, write_uncertainty
-from stereo_data.pointcloud import Calibration, encode_ply, point_cloud
+from stereo_data.formats import encode_png, read_image, write_depth, write_disparity, write_uncertainty
+from stereo_data.pointcloud import (
+    IMAGE_FRAME,
+    METRIC_FRAME,
+    MIN_DISPARITY,
+    Calibration,
+    DepthRange,
+    encode_ply,
+    metric_depth,
+    point_cloud,
+)
 from stereo_data.visualize import disparity_picture, scale_range
 
 from .options import add_model_options, iterations, load_predictor
@@ -72,11 +80,29 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         metavar="PLY",
         help="binary PLY point cloud coloured by the left image (folder mode: a folder)",
     )
-    parser.add_argument("--focal-px", type=float, help="--ply: focal length in px (with --baseline-m: metric points)")
-    parser.add_argument("--baseline-m", type=float, help="--ply: stereo baseline in metres")
+    parser.add_argument(
+        "--depth",
+        type=Path,
+        metavar="D_OUT",
+        help="metric depth in metres (needs --focal-px and --baseline-m): .pfm/.npy float with +inf where there is "
+        "none, .png KITTI 16-bit x256 with 0 (folder mode: a folder of .pfm)",
+    )
+    parser.add_argument("--focal-px", type=float, help="focal length in px (with --baseline-m: depth, metric points)")
+    parser.add_argument("--baseline-m", type=float, help="stereo baseline in metres")
     parser.add_argument("--cx", type=float, help="--ply: principal point x in px [the image centre]")
     parser.add_argument("--cy", type=float, help="--ply: principal point y in px [the image centre]")
     parser.add_argument("--max-uncertainty", type=float, help="--ply: drop points whose uncertainty is above this")
+    parser.add_argument(
+        "--min-disparity",
+        type=float,
+        default=MIN_DISPARITY,
+        metavar="PX",
+        help=f"--depth, --ply: no depth and no point at or below this disparity [{MIN_DISPARITY:g}]",
+    )
+    parser.add_argument(
+        "--max-depth-m", type=float, metavar="M", help="--depth, --ply: no depth and no point beyond this depth"
+    )
+    parser.add_argument("--mkdir", action="store_true", help="create missing output folders (else they are an error)")
     parser.add_argument(
         "--raw-uncertainty",
         action="store_true",
@@ -118,45 +144,100 @@ def find_pairs(left: str, right: str) -> list[PairPaths]:
     ]
 
 
+@dataclass(frozen=True)
+class Output:
+    """One output option: its flag, the path given, what is written there and the suffixes it takes
+    (the first is the one of folder mode)."""
+
+    flag: str
+    path: Path
+    what: str
+    suffixes: tuple[str, ...]
+
+    def file(self, pair: PairPaths, single: bool) -> Path:
+        return self.path if single else self.path / f"{pair.stem}{self.suffixes[0]}"
+
+
+def outputs(args: argparse.Namespace) -> list[Output]:
+    """The outputs asked for, disparity first."""
+    maps = (".pfm", ".png", ".npy")
+    disparity_suffixes = (f".{args.format}", *(s for s in maps if s != f".{args.format}"))
+    candidates = [
+        Output("--output", args.output, "disparity", disparity_suffixes),
+        Output("--uncertainty", args.uncertainty, "uncertainty", maps),
+        Output("--depth", args.depth, "depth", maps),
+        Output("--color", args.color, "colour picture", (".png",)),
+        Output("--ply", args.ply, "point cloud", (".ply",)),
+    ]
+    return [output for output in candidates if output.path is not None]
+
+
+def check_outputs(targets: list[Output], single: bool, mkdir: bool) -> None:
+    """Refuse, before anything is computed, an output that could not be written: a file name
+    without a suffix of its kind, a folder that is a file, or a missing folder (unless `mkdir`)."""
+    for output in targets:
+        if single and output.path.suffix.lower() not in output.suffixes:
+            raise ValueError(f"{output.flag} {output.path}: the file name must end in {', '.join(output.suffixes)}")
+        if not single and output.path.exists() and not output.path.is_dir():
+            raise ValueError(f"{output.flag} {output.path}: is a file; with several pairs it names a folder")
+        folder = output.path.parent if single else output.path
+        if not folder.is_dir() and not mkdir:
+            raise ValueError(
+                f"{output.flag} {output.path}: the folder {folder} does not exist (create it, or add --mkdir)"
+            )
+
+
 def run(args: argparse.Namespace) -> int:
     if (args.focal_px is None) != (args.baseline_m is None):
         raise ValueError("give both --focal-px and --baseline-m, or neither")
+    if args.depth is not None and args.focal_px is None:
+        raise ValueError("--depth needs --focal-px and --baseline-m")
+    limits = DepthRange(args.min_disparity, args.max_depth_m)
     pairs = find_pairs(args.left, args.right)
     single = is_single_pair(args.left, args.right)
+    targets = outputs(args)
+    check_outputs(targets, single, args.mkdir)
     predictor = load_predictor(args)
     calibration = None if args.focal_px is None else Calibration(args.focal_px, args.baseline_m, args.cx, args.cy)
+    written: dict[str, int] = {}
     for pair in tqdm(pairs, desc=f"predict {args.model}", unit="pair", disable=single):
-        left = read_image(pair.left)
+        left, right = read_image(pair.left), read_image(pair.right)
+        if left.shape != right.shape:
+            sizes = [
+                f"{path} is {image.shape[1]}x{image.shape[0]}"
+                for path, image in ((pair.left, left), (pair.right, right))
+            ]
+            raise ValueError(f"{sizes[0]} but {sizes[1]}: a rectified pair has two images of one size")
         prediction = predictor.predict(
             left,
-            read_image(pair.right),
+            right,
             iters=iterations(args),
             two_pass=args.two_pass,
             scale=args.scale,
             raw_uncertainty=args.raw_uncertainty,
         )
-        disparity_path = args.output if single else args.output / f"{pair.stem}.{args.format}"
-        disparity_path.parent.mkdir(parents=True, exist_ok=True)
-        write_disparity(disparity_path, prediction.disparity)
-        if args.uncertainty is not None:
-            uncertainty_path = args.uncertainty if single else args.uncertainty / f"{pair.stem}.pfm"
-            uncertainty_path.parent.mkdir(parents=True, exist_ok=True)
-            write_uncertainty(uncertainty_path, prediction.uncertainty)
-        if args.color is not None:
-            color_path = args.color if single else args.color / f"{pair.stem}.png"
-            color_path.parent.mkdir(parents=True, exist_ok=True)
-            scale = scale_range(prediction.disparity, args.color_min, args.color_max)
-            picture = disparity_picture(prediction.disparity, scale)
-            cv2.imwrite(str(color_path), picture[:, :, ::-1])
-        if args.ply is not None:
-            ply_path = args.ply if single else args.ply / f"{pair.stem}.ply"
-            ply_path.parent.mkdir(parents=True, exist_ok=True)
-            points, colours = point_cloud(
-                prediction.disparity, left, prediction.uncertainty, calibration, args.max_uncertainty
-            )
-            ply_path.write_bytes(encode_ply(points, colours))
-    if single:
-        print(f"wrote {args.output}")
-    else:
-        print(f"wrote {len(pairs)} disparity maps to {args.output}")
+        for output in targets:
+            path = output.file(pair, single)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            if output.flag == "--output":
+                write_disparity(path, prediction.disparity)
+            elif output.flag == "--uncertainty":
+                write_uncertainty(path, prediction.uncertainty)
+            elif output.flag == "--depth":
+                assert calibration is not None  # checked above
+                write_depth(path, metric_depth(prediction.disparity, calibration, limits))
+            elif output.flag == "--color":
+                scale = scale_range(prediction.disparity, args.color_min, args.color_max)
+                path.write_bytes(encode_png(disparity_picture(prediction.disparity, scale)))
+            else:
+                points, colours = point_cloud(
+                    prediction.disparity, left, prediction.uncertainty, calibration, args.max_uncertainty, limits
+                )
+                path.write_bytes(encode_ply(points, colours, IMAGE_FRAME if calibration is None else METRIC_FRAME))
+            if single:
+                print(f"wrote {output.what} {path}")
+            written[output.flag] = written.get(output.flag, 0) + 1
+    if not single:
+        for output in targets:
+            print(f"wrote {written.get(output.flag, 0)} {output.what} files to {output.path}")
     return 0

@@ -18,7 +18,7 @@ from service.schemas import (
     Timings,
 )
 from stereo_data.formats import KITTI_SCALE, UNCERTAINTY_SCALE, encode_png, encode_png16
-from stereo_data.pointcloud import Calibration, encode_ply, point_cloud
+from stereo_data.pointcloud import IMAGE_FRAME, METRIC_FRAME, DepthRange, encode_ply, metric_depth, point_cloud
 from stereo_data.visualize import preview, scale_range
 
 
@@ -32,9 +32,9 @@ def render(
     cloud); weights: the weights' identity (`service.runtime.weights_identity`); size: the input
     images' size.
     """
-    depth = None
-    if options.focal_px is not None and options.baseline_m is not None:
-        depth = depth_from_disparity(result.disparity, options.focal_px, options.baseline_m)
+    calibration = options.calibration
+    limits = DepthRange(options.min_disparity, options.max_depth_m)
+    depth = None if calibration is None else metric_depth(result.disparity, calibration, limits)
     match options.format:
         case OutputFormat.json:
             body = DisparityResponse(
@@ -66,22 +66,11 @@ def render(
         case OutputFormat.uncertainty_png16:
             return encode_png16(result.uncertainty, UNCERTAINTY_SCALE), "image/png"
         case OutputFormat.ply:
-            calibration = (
-                None
-                if options.focal_px is None or options.baseline_m is None
-                else Calibration(options.focal_px, options.baseline_m, options.cx_px, options.cy_px)
-            )
             points, colours = point_cloud(
-                result.disparity, left, result.uncertainty, calibration, options.max_uncertainty
+                result.disparity, left, result.uncertainty, calibration, options.max_uncertainty, limits
             )
-            return encode_ply(points, colours), "application/x-ply"
-
-
-def depth_from_disparity(disparity: np.ndarray, focal_px: float, baseline_m: float) -> np.ndarray:
-    """Metric depth Z = f B / d in metres (float32), +inf where d <= 0."""
-    with np.errstate(divide="ignore"):
-        depth = np.float32(focal_px * baseline_m) / disparity
-    return np.where(disparity > 0, depth, np.inf).astype(np.float32)
+            frame = IMAGE_FRAME if calibration is None else METRIC_FRAME
+            return encode_ply(points, colours, frame), "application/x-ply"
 
 
 def encode_array(values: np.ndarray) -> EncodedArray:

@@ -10,6 +10,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, field_validator, model_validator
 
 from model.config import ModelName
+from stereo_data.pointcloud import MIN_DISPARITY, Calibration
 
 
 class OutputFormat(StrEnum):
@@ -91,9 +92,30 @@ class DisparityOptions(BaseModel):
         "map Z = focal_px x baseline_m / disparity (invalid where disparity <= 0).",
     )
     baseline_m: FiniteFloat | None = Field(None, gt=0, description="Stereo baseline in metres; see `focal_px`.")
+    min_disparity: FiniteFloat = Field(
+        MIN_DISPARITY,
+        ge=0,
+        description="Depth and point clouds: pixels whose disparity is at or below this (px) give no depth and no "
+        "point (depth there is beyond what matching resolves, and runs off to infinity at 0).",
+    )
+    max_depth_m: FiniteFloat | None = Field(
+        None,
+        gt=0,
+        description="Depth and metric point clouds: pixels deeper than this (metres) give no depth and no point.",
+    )
 
     @field_validator(
-        "scale", "color_min", "color_max", "cx_px", "cy_px", "max_uncertainty", "focal_px", "baseline_m", mode="before"
+        "scale",
+        "color_min",
+        "color_max",
+        "cx_px",
+        "cy_px",
+        "max_uncertainty",
+        "focal_px",
+        "baseline_m",
+        "min_disparity",
+        "max_depth_m",
+        mode="before",
     )
     @classmethod
     def _plain_decimal(cls, value: object) -> object:
@@ -101,6 +123,13 @@ class DisparityOptions(BaseModel):
         if isinstance(value, str) and not _DECIMAL.fullmatch(value):
             raise ValueError(f"expected a decimal number such as 0.5 or 1e-3, got {value[:32]!r}")
         return value
+
+    @property
+    def calibration(self) -> Calibration | None:
+        """The rig of `focal_px`, `baseline_m`, `cx_px`, `cy_px`; None without one."""
+        if self.focal_px is None or self.baseline_m is None:
+            return None
+        return Calibration(self.focal_px, self.baseline_m, self.cx_px, self.cy_px)
 
     @property
     def iterations(self) -> int | tuple[int, int, int] | None:
@@ -118,6 +147,8 @@ class DisparityOptions(BaseModel):
             raise ValueError("format=depth_png16 needs focal_px and baseline_m")
         if (self.cx_px is not None or self.cy_px is not None) and self.focal_px is None:
             raise ValueError("cx_px and cy_px need focal_px and baseline_m")
+        if self.max_depth_m is not None and self.focal_px is None:
+            raise ValueError("max_depth_m needs focal_px and baseline_m")
         if self.color_min is not None and self.color_max is not None and self.color_max <= self.color_min:
             raise ValueError("color_max must be above color_min")
         if (

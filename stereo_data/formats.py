@@ -31,6 +31,7 @@ __all__ = [
     "encode_png16",
     "write_disparity",
     "write_uncertainty",
+    "write_depth",
     "read_image",
     "decode_image",
 ]
@@ -160,6 +161,12 @@ def write_disparity(path: PathLike, disparity: np.ndarray) -> None:
     """Write a float HxW disparity map (px) by the path's extension: ``.pfm`` (float32, ``+inf``
     kept), ``.png`` (KITTI 16-bit, x256, 0 = unknown) or ``.npy`` (float32)."""
     _write_map(path, disparity, KITTI_SCALE)
+
+
+def write_depth(path: PathLike, depth: np.ndarray) -> None:
+    """Write a float HxW depth map (metres, ``+inf`` where there is none) by the path's extension:
+    ``.pfm`` or ``.npy`` (float32), or ``.png`` (KITTI depth: 16-bit, x256, 0 = none)."""
+    _write_map(path, depth, KITTI_SCALE)
 
 
 def write_uncertainty(path: PathLike, uncertainty: np.ndarray) -> None:

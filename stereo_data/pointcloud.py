@@ -1,10 +1,11 @@
-"""Point clouds from a disparity map: coloured points, written as binary PLY.
+"""Metric depth and point clouds from a disparity map; point clouds written as binary PLY.
 
 With a calibration (focal length f in px, baseline B in m, principal point (cx, cy) in px) the
 points are metric, in the left camera's frame (x right, y down, z forward, metres):
 Z = f B / d, X = (u - cx) Z / f, Y = (v - cy) Z / f. Without one they are image-space points
-(u px, v px, d px). Pixels with no positive disparity, or whose uncertainty is above a chosen
-threshold, are left out.
+(u px, v px, d px). Disparities at or below a minimum (`MIN_DISPARITY` px by default: depth there
+is beyond what the matching can resolve, out to infinity at 0), metric points beyond a maximum
+depth, and pixels whose uncertainty is above a chosen threshold are left out.
 """
 
 from __future__ import annotations
@@ -12,6 +13,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+
+MIN_DISPARITY = 1.0
+"""Default smallest disparity (px) that gives a depth or a point: below a pixel the matching's own
+error (about 2 px) exceeds the disparity, and Z = f B / d runs off to kilometres (KITTI: 389 m at
+1 px)."""
 
 
 @dataclass(frozen=True)
@@ -25,22 +31,52 @@ class Calibration:
     cy: float | None = None
 
 
+@dataclass(frozen=True)
+class DepthRange:
+    """Which pixels give a depth or a point: disparity above `min_disparity` px and, for metric
+    depth, Z at most `max_depth_m` metres (None: no limit)."""
+
+    min_disparity: float = MIN_DISPARITY
+    max_depth_m: float | None = None
+
+    def __post_init__(self) -> None:
+        if not self.min_disparity >= 0:
+            raise ValueError(f"min_disparity must be >= 0 px, got {self.min_disparity}")
+        if self.max_depth_m is not None and not self.max_depth_m > 0:
+            raise ValueError(f"max_depth_m must be positive, got {self.max_depth_m}")
+
+
+def metric_depth(disparity: np.ndarray, calibration: Calibration, limits: DepthRange = DepthRange()) -> np.ndarray:
+    """Depth Z = f B / d in metres, float32 HxW; +inf where the pixel gives no depth (disparity
+    not finite or at most `limits.min_disparity`, or Z beyond `limits.max_depth_m`)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        depth = np.float32(calibration.focal_px * calibration.baseline_m) / disparity
+    keep = np.isfinite(disparity) & (disparity > limits.min_disparity)
+    if limits.max_depth_m is not None:
+        keep &= depth <= limits.max_depth_m
+    return np.where(keep, depth, np.inf).astype(np.float32)
+
+
 def point_cloud(
     disparity: np.ndarray,
     left: np.ndarray,
     uncertainty: np.ndarray | None = None,
     calibration: Calibration | None = None,
     max_uncertainty: float | None = None,
+    limits: DepthRange = DepthRange(),
 ) -> tuple[np.ndarray, np.ndarray]:
     """(points float32 Nx3, colours uint8 Nx3 RGB) of the kept pixels, in row-major order.
 
     disparity: float HxW px; left: uint8 HxWx3 RGB (the colours); uncertainty: float HxW, needed
-    with `max_uncertainty` (pixels above it are dropped).
+    with `max_uncertainty` (pixels above it are dropped); limits: see `DepthRange` (its depth
+    limit applies to metric points only).
     """
     height, width = disparity.shape
     if left.shape[:2] != (height, width):
         raise ValueError(f"left image {left.shape[:2]} and disparity {disparity.shape} differ in size")
-    keep = np.isfinite(disparity) & (disparity > 0)
+    keep = np.isfinite(disparity) & (disparity > limits.min_disparity)
+    if calibration is not None:
+        keep &= np.isfinite(metric_depth(disparity, calibration, limits))
     if max_uncertainty is not None:
         if uncertainty is None:
             raise ValueError("max_uncertainty needs the uncertainty map")
@@ -57,8 +93,13 @@ def point_cloud(
     return points.astype(np.float32), np.ascontiguousarray(left[keep][:, :3]).astype(np.uint8)
 
 
-def encode_ply(points: np.ndarray, colours: np.ndarray) -> bytes:
-    """Binary little-endian PLY of float32 x, y, z and uint8 red, green, blue per vertex."""
+METRIC_FRAME = "units metres; frame: left camera, x right, y down, z forward"
+IMAGE_FRAME = "units pixels; x = column, y = row, z = disparity (left image)"
+
+
+def encode_ply(points: np.ndarray, colours: np.ndarray, frame: str) -> bytes:
+    """Binary little-endian PLY of float32 x, y, z and uint8 red, green, blue per vertex; `frame`
+    (METRIC_FRAME or IMAGE_FRAME) is written as a header comment."""
     if points.ndim != 2 or points.shape[1] != 3 or colours.shape != points.shape:
         raise ValueError(f"expected Nx3 points and Nx3 colours, got {points.shape} and {colours.shape}")
     vertex = np.empty(
@@ -67,7 +108,7 @@ def encode_ply(points: np.ndarray, colours: np.ndarray) -> bytes:
     vertex["x"], vertex["y"], vertex["z"] = points[:, 0], points[:, 1], points[:, 2]
     vertex["red"], vertex["green"], vertex["blue"] = colours[:, 0], colours[:, 1], colours[:, 2]
     header = (
-        "ply\nformat binary_little_endian 1.0\ncomment crestereo-pp point cloud\n"
+        f"ply\nformat binary_little_endian 1.0\ncomment crestereo-pp point cloud\ncomment {frame}\n"
         f"element vertex {len(points)}\n"
         "property float x\nproperty float y\nproperty float z\n"
         "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n"

@@ -92,7 +92,20 @@ def test_two_folders_pair_images_by_name_and_write_a_folder(tmp_path, pairs_dir)
     out = tmp_path / "out"
 
     assert (
-        main(["predict", str(lefts), str(rights), "-o", str(out), "--format", "npy", "--color", str(tmp_path / "c")])
+        main(
+            [
+                "predict",
+                str(lefts),
+                str(rights),
+                "-o",
+                str(out),
+                "--format",
+                "npy",
+                "--color",
+                str(tmp_path / "c"),
+                "--mkdir",
+            ]
+        )
         == 0
     )
 
@@ -115,6 +128,7 @@ def test_globs_pair_in_sorted_order_and_mirror_the_folders_of_the_left_images(pa
             str(out),
             "--uncertainty",
             str(tmp_path / "u"),
+            "--mkdir",
             "--device",
             "cpu",
         ],
@@ -145,7 +159,7 @@ def test_unmatched_inputs_are_errors(tmp_path, pairs_dir):
 def test_an_unknown_output_extension_is_refused(pairs_dir, tmp_path, capsys):
     pair = pairs_dir / "shift4"
     assert main(["predict", str(pair / "left.png"), str(pair / "right.png"), "-o", str(tmp_path / "d.tif")]) == 2
-    assert "use .pfm, .png or .npy" in capsys.readouterr().err
+    assert "--output" in (err := capsys.readouterr().err) and "must end in .pfm, .png, .npy" in err
 
 
 def test_predict_on_a_real_pair_keeps_its_size(small_stereo_dev, tmp_path):
@@ -195,7 +209,47 @@ def test_a_metric_point_cloud_is_written_as_ply(pairs_dir, tmp_path):
     assert main(argv) == 0
     vertex = PlyData.read(io.BytesIO(ply.read_bytes()))["vertex"]
     disparity = read_pfm(tmp_path / "d.pfm")
-    assert len(vertex) == int((disparity > 0).sum())
-    np.testing.assert_allclose(np.sort(vertex["z"]), np.sort(50.0 / disparity[disparity > 0]), rtol=1e-4)
+    kept = disparity > 1.0  # the default --min-disparity
+    assert len(vertex) == int(kept.sum())
+    np.testing.assert_allclose(np.sort(vertex["z"]), np.sort(50.0 / disparity[kept]), rtol=1e-4)
+    assert b"comment units metres" in ply.read_bytes()[:300]
     without_baseline = [a for a in argv if a not in ("--baseline-m", "0.1")]
     assert main(without_baseline) == 2  # metric points need both --focal-px and --baseline-m
+
+
+def test_every_output_is_checked_before_computing_and_every_written_file_is_named(pairs_dir, tmp_path, capsys):
+    pair = pairs_dir / "shift4"
+    inputs = ["predict", str(pair / "left.png"), str(pair / "right.png"), "--device", "cpu"]
+    missing = tmp_path / "new" / "d.pfm"
+    assert main([*inputs, "-o", str(missing), "--color", str(tmp_path / "c.jpg")]) == 2
+    assert "does not exist" in capsys.readouterr().err and not missing.parent.exists()
+    assert main([*inputs, "-o", str(tmp_path / "d.pfm"), "--color", str(tmp_path / "c.jpg")]) == 2
+    assert "--color" in capsys.readouterr().err and not (tmp_path / "d.pfm").exists()  # refused before computing
+
+    argv = [*inputs, "-o", str(missing), "--uncertainty", str(tmp_path / "new" / "u.png"), "--mkdir"]
+    argv += ["--depth", str(tmp_path / "new" / "z.pfm"), "--focal-px", "500", "--baseline-m", "0.1"]
+    assert main([*argv, "--max-depth-m", "8"]) == 0
+    printed = capsys.readouterr().out.splitlines()
+    assert printed == [
+        f"wrote disparity {missing}",
+        f"wrote uncertainty {tmp_path / 'new' / 'u.png'}",
+        f"wrote depth {tmp_path / 'new' / 'z.pfm'}",
+    ]
+    disparity, depth = read_pfm(missing), read_pfm(tmp_path / "new" / "z.pfm")
+    metric = (disparity > 1.0) & (50.0 / disparity <= 8.0)
+    np.testing.assert_allclose(depth[metric], 50.0 / disparity[metric], rtol=1e-5)
+    assert np.isinf(depth[~metric]).all()
+
+
+def test_a_pair_of_two_sizes_is_named_in_image_terms(pairs_dir, tmp_path, capsys):
+    right = cv2.imread(str(pairs_dir / "shift4" / "right.png"))
+    cv2.imwrite(str(tmp_path / "narrow.png"), right[:, :80])
+    argv = [
+        "predict",
+        str(pairs_dir / "shift4" / "left.png"),
+        str(tmp_path / "narrow.png"),
+        "-o",
+        str(tmp_path / "d.pfm"),
+    ]
+    assert main([*argv, "--device", "cpu"]) == 2
+    assert "is 96x64 but" in (err := capsys.readouterr().err) and "narrow.png is 80x64" in err

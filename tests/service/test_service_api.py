@@ -72,7 +72,8 @@ async def test_every_format_encodes_the_same_maps_and_depth_is_focal_times_basel
             for name in ("disparity", "depth", "uncertainty")
         }
     disparity, uncertainty, depth = (decode_array(body[name]) for name in ("disparity", "uncertainty", "depth"))
-    expected_depth = np.where(disparity > 0, 700.0 * 0.5 / np.maximum(disparity, 1e-30), np.inf)
+    # no depth at or below the default min_disparity of 1 px
+    expected_depth = np.where(disparity > 1.0, 700.0 * 0.5 / np.maximum(disparity, 1e-30), np.inf)
     np.testing.assert_allclose(depth, expected_depth, rtol=1e-5)
     assert sorted(archive.files) == ["depth", "disparity", "uncertainty"]
     np.testing.assert_allclose(archive["disparity"], disparity, atol=1e-4)
@@ -226,7 +227,24 @@ async def test_a_metric_point_cloud_is_served_as_binary_ply():
         direct = h.predictors["lite"].predict(left, right)
     assert response.status_code == 200 and response.headers["content-type"] == "application/x-ply"
     vertex = PlyData.read(io.BytesIO(response.content))["vertex"]
-    assert len(vertex) == int((direct.disparity > 0).sum())
-    np.testing.assert_allclose(
-        np.sort(vertex["z"]), np.sort(500.0 * 0.12 / direct.disparity[direct.disparity > 0]), rtol=1e-3
-    )
+    kept = direct.disparity > 1.0  # the default min_disparity
+    assert len(vertex) == int(kept.sum())
+    np.testing.assert_allclose(np.sort(vertex["z"]), np.sort(500.0 * 0.12 / direct.disparity[kept]), rtol=1e-3)
+
+
+async def test_a_depth_limit_bounds_the_metric_point_cloud_and_needs_a_calibration():
+    import io
+
+    from plyfile import PlyData
+
+    left, right = stereo_pair()
+    params = {"format": "ply", "focal_px": 500.0, "baseline_m": 0.12, "max_depth_m": 3.0}
+    async with serve_asgi() as h:
+        bounded = await h.client.post("/disparity", params=params, files=pair_files(left, right))
+        uncalibrated = await h.client.post(
+            "/disparity", params={"format": "ply", "max_depth_m": 3.0}, files=pair_files(left, right)
+        )
+    ply = PlyData.read(io.BytesIO(bounded.content))
+    assert 0 < len(ply["vertex"]) and ply["vertex"]["z"].max() <= 3.0
+    assert "units metres; frame: left camera, x right, y down, z forward" in ply.comments
+    assert uncalibrated.status_code == 422 and "max_depth_m needs focal_px" in uncalibrated.json()["error"]["message"]

@@ -56,6 +56,8 @@ def test_every_disparity_answer_is_documented_with_examples_of_its_error_codes()
         "max_uncertainty",
         "focal_px",
         "baseline_m",
+        "min_disparity",
+        "max_depth_m",
         "X-Request-Timeout-Ms",
     }
 

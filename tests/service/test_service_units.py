@@ -12,7 +12,7 @@ import pytest
 from pydantic import ValidationError
 
 from service.cpu import cgroup_cpu_quota, usable_cpus
-from service.encoding import depth_from_disparity, encode_preview
+from service.encoding import encode_preview
 from service.images import ImageError, decode_rgb, read_header
 from service.settings import Settings
 from service_helpers import REPO, encode, stereo_pair
@@ -162,12 +162,6 @@ def test_unknown_and_truncated_files_are_told_apart():
 
 
 # --- encodings ---------------------------------------------------------------------------------
-
-
-def test_depth_is_focal_times_baseline_over_disparity_and_inf_where_disparity_is_not_positive():
-    depth = depth_from_disparity(np.array([[10.0, 0.0, -1.0]], np.float32), 700.0, 0.5)
-    assert depth.dtype == np.float32
-    assert depth.tolist() == [[35.0, np.inf, np.inf]]
 
 
 def test_preview_puts_disparity_left_of_uncertainty_with_colour_bars_on_their_scales():

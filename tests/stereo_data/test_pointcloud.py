@@ -6,7 +6,15 @@ import numpy as np
 import pytest
 from plyfile import PlyData
 
-from stereo_data.pointcloud import Calibration, encode_ply, point_cloud
+from stereo_data.pointcloud import (
+    IMAGE_FRAME,
+    METRIC_FRAME,
+    Calibration,
+    DepthRange,
+    encode_ply,
+    metric_depth,
+    point_cloud,
+)
 
 
 def test_metric_points_follow_the_pinhole_model_and_keep_their_colours():
@@ -31,8 +39,32 @@ def test_without_calibration_points_are_in_image_space_and_uncertain_ones_are_dr
 def test_the_ply_is_binary_and_reads_back_with_plyfile():
     points = np.array([[0.5, -1.0, 2.0], [3.0, 4.0, 5.0]], np.float32)
     colours = np.array([[255, 0, 10], [1, 2, 3]], np.uint8)
-    data = encode_ply(points, colours)
+    data = encode_ply(points, colours, METRIC_FRAME)
     assert data.startswith(b"ply\nformat binary_little_endian 1.0\n")
+    assert f"comment {METRIC_FRAME}\n".encode() in data  # units and frame, for whoever opens the file
     vertex = PlyData.read(io.BytesIO(data))["vertex"]
     np.testing.assert_array_equal(np.stack([vertex["x"], vertex["y"], vertex["z"]], axis=1), points)
     np.testing.assert_array_equal(np.stack([vertex["red"], vertex["green"], vertex["blue"]], axis=1), colours)
+
+
+def test_depth_is_focal_times_baseline_over_disparity_within_its_range():
+    disparity = np.array([[10.0, 0.0, -1.0, 0.8, 2.0, np.nan]], np.float32)
+    rig = Calibration(700.0, 0.5)
+    assert metric_depth(disparity, rig).tolist() == [[35.0, np.inf, np.inf, np.inf, 175.0, np.inf]]
+    # 0.8 px passes a 0.5 px floor but lies at 437.5 m, beyond 100 m; 2 px lies at 175 m
+    assert metric_depth(disparity, rig, DepthRange(0.5, 100.0)).tolist() == [[35.0] + [np.inf] * 5]
+
+
+def test_points_at_vanishing_disparity_or_beyond_the_depth_limit_are_left_out():
+    disparity = np.array([[0.01, 0.5, 2.0, 50.0]], np.float32)  # 0.01 px is 35 km away on this rig
+    left = np.zeros((1, 4, 3), np.uint8)
+    rig = Calibration(700.0, 0.5)
+    points, _ = point_cloud(disparity, left, calibration=rig)
+    assert points[:, 2].tolist() == [175.0, 7.0]  # the default drops disparities at or below 1 px
+    points, _ = point_cloud(disparity, left, calibration=rig, limits=DepthRange(0.0, 100.0))
+    assert points[:, 2].tolist() == [7.0]
+    points, _ = point_cloud(disparity, left, limits=DepthRange(0.0, 100.0))  # image space: no depth limit
+    assert len(points) == 4
+    with pytest.raises(ValueError):
+        DepthRange(-1.0)
+    assert IMAGE_FRAME != METRIC_FRAME
