@@ -79,12 +79,14 @@ def disparity_picture(disparity: np.ndarray, disparity_range: tuple[float, float
     return with_colour_bar(disparity, low, high, DISPARITY_COLORMAP, "disparity px")
 
 
+PREVIEW_GAP = 12
+"""White pixels between the two pictures of a preview, so that the end labels of their colour bars
+stay apart."""
+
+
 def preview(disparity: np.ndarray, uncertainty: np.ndarray, disparity_range: tuple[float, float]) -> np.ndarray:
     """Disparity (turbo, over `disparity_range` px) left of uncertainty (inferno, 0-1), each with
-    a colour bar that prints its range."""
-    return np.hstack(
-        [
-            disparity_picture(disparity, disparity_range),
-            with_colour_bar(uncertainty, 0.0, 1.0, UNCERTAINTY_COLORMAP, "uncertainty"),
-        ]
-    )
+    a colour bar that prints its range, PREVIEW_GAP white pixels apart."""
+    left = disparity_picture(disparity, disparity_range)
+    gap = np.full((left.shape[0], PREVIEW_GAP, 3), 255, np.uint8)
+    return np.hstack([left, gap, with_colour_bar(uncertainty, 0.0, 1.0, UNCERTAINTY_COLORMAP, "uncertainty")])

@@ -220,6 +220,7 @@ async function showResult(body, params, left) {
   $("readout").textContent = "hover over an image for the values at that pixel";
   renderDownloads(result.depth !== null);
   $("results").hidden = false;
+  $("results").scrollIntoView({ block: "start" });  // below the form on most screens: bring it into view
 }
 
 /** The values under the mouse, in the readout line. */

@@ -14,7 +14,7 @@ import pytest
 from service.logs import JsonFormatter
 from service.settings import Settings
 from service_helpers import HEIGHT, WIDTH, encode, pair_files, serve_asgi, stereo_pair
-from stereo_data.visualize import BAR_HEIGHT
+from stereo_data.visualize import BAR_HEIGHT, PREVIEW_GAP
 
 pytestmark = pytest.mark.anyio
 
@@ -78,7 +78,7 @@ async def test_every_format_encodes_the_same_maps_and_depth_is_focal_times_basel
     assert sorted(archive.files) == ["depth", "disparity", "uncertainty"]
     np.testing.assert_allclose(archive["disparity"], disparity, atol=1e-4)
     np.testing.assert_allclose(archive["uncertainty"], uncertainty, atol=1e-4)
-    assert preview.shape == (HEIGHT + BAR_HEIGHT, 2 * WIDTH, 3) and preview.dtype == np.uint8  # maps, bars
+    assert preview.shape == (HEIGHT + BAR_HEIGHT, 2 * WIDTH + PREVIEW_GAP, 3) and preview.dtype == np.uint8
     for name, values, scale in (
         ("disparity", disparity, 256),
         ("depth", depth, 256),

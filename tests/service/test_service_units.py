@@ -16,7 +16,7 @@ from service.encoding import encode_preview
 from service.images import ImageError, decode_rgb, read_header
 from service.settings import Settings
 from service_helpers import REPO, encode, stereo_pair
-from stereo_data.visualize import BAR_HEIGHT, scale_range
+from stereo_data.visualize import BAR_HEIGHT, PREVIEW_GAP, scale_range
 
 # --- settings ----------------------------------------------------------------------------------
 
@@ -169,13 +169,14 @@ def test_preview_puts_disparity_left_of_uncertainty_with_colour_bars_on_their_sc
     uncertainty = np.tile(np.linspace(0.0, 1.0, 64, dtype=np.float32), (40, 1))
     png = encode_preview(disparity, uncertainty, scale_range(disparity))
     preview = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)[:, :, ::-1]
-    assert preview.shape == (40 + BAR_HEIGHT, 128, 3)
+    assert preview.shape == (40 + BAR_HEIGHT, 128 + PREVIEW_GAP, 3)
     turbo = cv2.applyColorMap(np.array([[0, 255]], np.uint8), cv2.COLORMAP_TURBO)[0, :, ::-1]
     # the map's own range spans the whole colour map (not the bottom quarter of a fixed 0-192)
     assert np.abs(preview[0, 0].astype(int) - turbo[0]).max() <= 40
     assert np.abs(preview[0, 63].astype(int) - turbo[1]).max() <= 40
     inferno = cv2.applyColorMap(np.array([[255]], np.uint8), cv2.COLORMAP_INFERNO)[0, 0, ::-1]
-    assert (preview[0, 127] == inferno).all()
+    assert (preview[0, 127 + PREVIEW_GAP] == inferno).all()
+    assert (preview[:, 64 : 64 + PREVIEW_GAP] == 255).all()  # the two bars' end labels stay apart
     assert (preview[40:] == 255).any() and (preview[40:] < 128).any()  # bars: white with dark text
 
 

@@ -20,7 +20,7 @@ import pytest
 from service.routes.page import STATIC_DIR
 from service.schemas import OutputFormat
 from service_helpers import Server, run_uvicorn
-from stereo_data.visualize import DISPARITY_COLORMAP, colorize, robust_range
+from stereo_data.visualize import DISPARITY_COLORMAP, PREVIEW_GAP, colorize, robust_range
 from web_helpers import WebPage
 
 expect = pytest.importorskip(
@@ -158,6 +158,7 @@ def test_example_pair_gives_three_pictures_with_colour_bars_in_px(web: WebPage) 
     same = np.all(np.abs(pictures["disparity"].astype(int) - expected) <= 8, axis=2).mean()
     assert same > 0.99
     assert "lite" in page.inner_text("#summary") and "192x128" in page.inner_text("#summary")
+    expect(page.locator("#results")).to_be_in_viewport()  # brought into view below the form
 
 
 def test_colour_range_follows_color_min_and_color_max(web: WebPage) -> None:
@@ -214,7 +215,7 @@ def test_every_format_downloads(web: WebPage, tmp_path: Path) -> None:
     body = json.loads(saved["json"].read_text())
     assert body["image_size"] == {"width": WIDTH, "height": HEIGHT}
     preview = cv2.imread(str(saved["png"]))
-    assert preview is not None and preview.shape[1] == 2 * WIDTH
+    assert preview is not None and preview.shape[1] == 2 * WIDTH + PREVIEW_GAP
     kitti = cv2.imread(str(saved["disparity_png16"]), cv2.IMREAD_UNCHANGED)
     assert kitti.dtype == np.uint16 and kitti.shape == (HEIGHT, WIDTH)
     assert saved["ply"].read_bytes().startswith(b"ply\nformat binary_little_endian")
