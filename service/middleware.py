@@ -104,24 +104,10 @@ class RequestSizeLimitMiddleware:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
-        query_bytes = len(scope.get("query_string", b""))
-        if query_bytes > MAX_QUERY_BYTES:
+        refusal = self._refusal(scope)
+        if refusal is not None:
             self.metrics.reject("too_large")
-            await error_response(
-                414, "query_too_long", f"query string of {query_bytes} bytes; the limit is {MAX_QUERY_BYTES}"
-            )(scope, receive, send)
-            return
-        header_bytes = sum(len(name) + len(value) for name, value in scope["headers"])
-        if header_bytes > MAX_HEADER_BYTES:
-            self.metrics.reject("too_large")
-            await error_response(
-                431, "headers_too_large", f"request headers of {header_bytes} bytes; the limit is {MAX_HEADER_BYTES}"
-            )(scope, receive, send)
-            return
-        declared = dict(scope["headers"]).get(b"content-length")
-        if declared is not None and declared.isdigit() and int(declared) > self.max_bytes:
-            self.metrics.reject("too_large")
-            await error_response(413, "body_too_large", self._message())(scope, receive, send)
+            await error_response(*refusal)(scope, receive, send)
             return
         received = 0
 
@@ -135,6 +121,20 @@ class RequestSizeLimitMiddleware:
             return message
 
         await self.app(scope, limited_receive, send)
+
+    def _refusal(self, scope: Scope) -> tuple[int, str, str] | None:
+        """(status, code, message) for a request whose query, headers or declared body are over
+        their limits, else None."""
+        query_bytes = len(scope.get("query_string", b""))
+        if query_bytes > MAX_QUERY_BYTES:
+            return 414, "query_too_long", f"query string of {query_bytes} bytes; the limit is {MAX_QUERY_BYTES}"
+        header_bytes = sum(len(name) + len(value) for name, value in scope["headers"])
+        if header_bytes > MAX_HEADER_BYTES:
+            return 431, "headers_too_large", f"request headers of {header_bytes} bytes; the limit is {MAX_HEADER_BYTES}"
+        declared = dict(scope["headers"]).get(b"content-length")
+        if declared is not None and declared.isdigit() and int(declared) > self.max_bytes:
+            return 413, "body_too_large", self._message()
+        return None
 
     def _message(self) -> str:
         return f"request body larger than {self.max_bytes} bytes"
