@@ -36,7 +36,6 @@ import os
 import platform
 import shutil
 import signal
-import socket
 import statistics
 import subprocess
 import sys
@@ -657,38 +656,23 @@ def service_stage(plan: Plan, deadline: float, args: argparse.Namespace, save: C
         view: (f"{view}.png", cv2.imencode(".png", np.ascontiguousarray(image[:, :, ::-1]))[1].tobytes())
         for view, image in (("left", sample.left), ("right", sample.right))
     }
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        port = probe.getsockname()[1]
-    environment = {
-        **os.environ,
+    from service.local import start_service
+
+    settings = {
         "CRESTEREO_DEVICE": plan.device,
         "CRESTEREO_MODELS": ",".join(plan.service_models),
         "CRESTEREO_MAX_BATCH_PIXELS": str(8 * 480 * 1248),
         "CRESTEREO_LOG_LEVEL": "warning",
     }
-    server = subprocess.Popen(
-        [sys.executable, "-m", "service", "--host", "127.0.0.1", "--port", str(port)], cwd=REPO, env=environment
-    )
-    base_url = f"http://127.0.0.1:{port}"
     try:
-        with httpx.Client(base_url=base_url, timeout=max(10.0, deadline - time.monotonic())) as client:
-            while True:
-                if server.poll() is not None or time.monotonic() > deadline - 15:
-                    return StageResult("failed", f"the service did not become ready (exit status {server.poll()})")
-                try:
-                    if client.get("/health/ready").status_code == 200:
-                        break
-                except httpx.TransportError:
-                    pass
-                time.sleep(0.25)
+        server = start_service(settings, ready_timeout_s=max(1.0, deadline - 15 - time.monotonic()))
+    except RuntimeError as error:
+        return StageResult("failed", f"the service did not become ready ({error})")
+    try:
+        with httpx.Client(base_url=server.base_url, timeout=max(10.0, deadline - time.monotonic())) as client:
             data = exchange(client, plan, sample, files)
     finally:
-        server.terminate()
-        try:
-            server.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            server.kill()
+        server.stop()
     problems = data.pop("problems")
     detail = f"{data['requests']} requests on {plan.device}, batch sizes {data['batch_sizes']}"
     return StageResult("failed" if problems else "passed", "; ".join(problems) or detail, data=data)

@@ -19,10 +19,7 @@ from __future__ import annotations
 
 import argparse
 import os
-import socket
 import statistics
-import subprocess
-import sys
 import tempfile
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -33,7 +30,7 @@ import cv2
 import httpx
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
+from service.local import local_service
 
 
 @dataclass(frozen=True)
@@ -65,54 +62,15 @@ def stereo_pair_files(height: int, width: int, shift: int = 8) -> dict[str, tupl
     }
 
 
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
-
-
-def start_server(max_batch_size: int, threads: int, log_dir: Path) -> tuple[subprocess.Popen, str]:
-    port = free_port()
-    env = {
-        **os.environ,
+def server_settings(max_batch_size: int, threads: int) -> dict[str, str]:
+    """The settings of the server measured: lite only, `max_batch_size`, `threads` torch threads."""
+    return {
         "CRESTEREO_MODELS": "lite",
         "CRESTEREO_MAX_BATCH_SIZE": str(max_batch_size),
         "CRESTEREO_THREADS": str(threads),
         "CRESTEREO_LOG_LEVEL": "warning",
         "PYTHONWARNINGS": "ignore::RuntimeWarning",
     }
-    log = (log_dir / f"uvicorn-batch{max_batch_size}.log").open("wb")
-    process = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "uvicorn",
-            "service.app:create_app",
-            "--factory",
-            "--host",
-            "127.0.0.1",
-            "--port",
-            str(port),
-            "--log-level",
-            "warning",
-        ],
-        cwd=REPO,
-        env=env,
-        stdout=log,
-        stderr=subprocess.STDOUT,
-    )
-    base_url = f"http://127.0.0.1:{port}"
-    deadline = time.monotonic() + 120
-    while True:
-        if process.poll() is not None or time.monotonic() > deadline:
-            process.kill()
-            raise RuntimeError(f"uvicorn did not become ready; see {log.name}")
-        try:
-            if httpx.get(base_url + "/health/ready").status_code == 200:
-                return process, base_url
-        except httpx.TransportError:
-            pass
-        time.sleep(0.2)
 
 
 def run_cell(base_url: str, files: dict, concurrency: int, requests: int) -> tuple[float, list[float], list[int]]:
@@ -134,9 +92,11 @@ def run_cell(base_url: str, files: dict, concurrency: int, requests: int) -> tup
 
 
 def measure(batching: bool, args: argparse.Namespace, log_dir: Path) -> list[Cell]:
-    process, base_url = start_server(args.max_batch_size if batching else 1, args.threads, log_dir)
+    settings = server_settings(args.max_batch_size if batching else 1, args.threads)
     cells = []
-    try:
+    log_path = log_dir / f"uvicorn-batch{settings['CRESTEREO_MAX_BATCH_SIZE']}.log"
+    with log_path.open("wb") as log, local_service(settings, log, ready_timeout_s=120) as server:
+        base_url = server.base_url
         for height, width in args.sizes:
             files = stereo_pair_files(height, width)
             run_cell(base_url, files, 1, 2)  # warm-up
@@ -146,9 +106,6 @@ def measure(batching: bool, args: argparse.Namespace, log_dir: Path) -> list[Cel
                 cell = Cell(batching, (height, width), concurrency, requests, seconds, latencies, batches)
                 cells.append(cell)
                 print(row(cell), flush=True)
-    finally:
-        process.terminate()
-        process.wait(timeout=60)
     return cells
 
 

@@ -3,12 +3,9 @@ ASGI, and real uvicorn processes on a free loopback port."""
 
 from __future__ import annotations
 
-import os
-import socket
+import itertools
 import subprocess
-import sys
 import threading
-import time
 import warnings
 from collections.abc import AsyncIterator, Iterator
 from contextlib import asynccontextmanager, contextmanager
@@ -26,6 +23,7 @@ from fastapi import FastAPI
 from model import load_model
 from service.app import create_app
 from service.batching import Predictor
+from service.local import start_service
 from service.settings import Settings
 from shared_data import STEREO_DEV  # noqa: F401  (re-exported for the server tests)
 
@@ -156,53 +154,28 @@ class Server:
         return self.log_path.read_text(errors="replace")
 
 
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
+_logs = itertools.count()
 
 
 @contextmanager
 def run_uvicorn(tmp_path: Path, **env: str) -> Iterator[Server]:
     """`python -m service` (uvicorn with the service's limits) on a free loopback port with `CRESTEREO_*`
     settings from `env` (lite only unless given); stopped (and killed if need be) on exit."""
-    port = free_port()
-    log_path = tmp_path / f"uvicorn-{port}.log"
-    environ = {
-        **os.environ,
+    log_path = tmp_path / f"uvicorn-{next(_logs)}.log"
+    settings = {
         "CRESTEREO_MODELS": "lite",
         "PYTHONWARNINGS": "ignore::RuntimeWarning",
         **{f"CRESTEREO_{key.upper()}": value for key, value in env.items()},
     }
     with log_path.open("wb") as log:
-        process = subprocess.Popen(
-            [sys.executable, "-m", "service", "--host", "127.0.0.1", "--port", str(port)],
-            cwd=REPO,
-            env=environ,
-            stdout=log,
-            stderr=subprocess.STDOUT,
-        )
-    server = Server(f"http://127.0.0.1:{port}", process, log_path)
+        try:
+            service = start_service(settings, log)
+        except RuntimeError as error:
+            raise AssertionError(f"{error}:\n{log_path.read_text(errors='replace')}") from None
     try:
-        deadline = time.monotonic() + 90
-        while True:
-            assert process.poll() is None, f"uvicorn exited:\n{server.log()}"
-            assert time.monotonic() < deadline, f"uvicorn not ready:\n{server.log()}"
-            try:
-                if httpx.get(server.base_url + "/health/ready").status_code == 200:
-                    break
-            except httpx.TransportError:
-                pass
-            time.sleep(0.1)
-        yield server
+        yield Server(service.base_url, service.process, log_path)
     finally:
-        if process.poll() is None:
-            process.terminate()
-            try:
-                process.wait(timeout=30)
-            except subprocess.TimeoutExpired:
-                process.kill()
-                process.wait()
+        service.stop()
 
 
 # --- fixtures, imported by the conftest of every folder whose tests need a server -----------------

@@ -1,24 +1,18 @@
 """Two-process DistributedDataParallel training on the CPU (gloo), as torchrun would start it."""
 
 import os
-import socket
 from pathlib import Path
 
 import torch
 import torch.multiprocessing as mp
 
 from model import CREStereoPP, ModelConfig
+from service.local import free_port
 from training.records import read_csv
 from training.trainer import train
 from training_helpers import tiny
 
 WORLD_SIZE = 2
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def train_as_rank(rank: int, port: int, out_dir: str) -> None:
