@@ -644,17 +644,16 @@ def service_stage(plan: Plan, deadline: float, args: argparse.Namespace, save: C
     missing = [package for module, package in SERVICE_PACKAGES.items() if importlib.util.find_spec(module) is None]
     if missing:
         return StageResult("skipped", f"skipped: {', '.join(missing)} not installed (carry wheels: --wheels)")
-    import cv2
     import httpx
-    import numpy as np
+
+    from stereo_data.formats import encode_png
 
     origins = {module: getattr(importlib.util.find_spec(module), "origin", None) for module in SERVICE_PACKAGES}
     print(f"service packages from: {origins}", flush=True)
     height, width = plan.sizes[0]
     sample = samples_for(args.data, 1, height, width, "cpu")[0][0]
     files = {
-        view: (f"{view}.png", cv2.imencode(".png", np.ascontiguousarray(image[:, :, ::-1]))[1].tobytes())
-        for view, image in (("left", sample.left), ("right", sample.right))
+        view: (f"{view}.png", encode_png(image)) for view, image in (("left", sample.left), ("right", sample.right))
     }
     from service.local import start_service
 

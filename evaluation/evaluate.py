@@ -8,12 +8,12 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 from tqdm import tqdm
 
 from model import Prediction, StereoPredictor
 from model.inference import Iterations
+from stereo_data.formats import encode_png
 from stereo_data.readers import StereoSample
 from stereo_data.visualize import UNCERTAINTY_COLORMAP, colorize
 
@@ -231,7 +231,7 @@ def evaluate(
             curves = {name: result.sparsification for name, result in methods.items()}
             sheet = evaluation_sheet(sample, known, prediction.uncertainty, disparities, curves)
             sheets_dir.mkdir(parents=True, exist_ok=True)
-            cv2.imwrite(str(sheets_dir / f"{sample.name}.png"), sheet[:, :, ::-1])
+            (sheets_dir / f"{sample.name}.png").write_bytes(encode_png(sheet))
     return report
 
 

@@ -6,9 +6,8 @@ import csv
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
-import cv2
-
 from evaluation.visualize import line_plot
+from stereo_data.formats import encode_png
 
 
 class CsvLog:
@@ -57,4 +56,4 @@ def plot_curves(
 ) -> None:
     """Draw named (x, y) line series on one pair of axes (`line_plot`) into a PNG at `path`."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    cv2.imwrite(str(path), line_plot(series, x_label, y_label, log_y)[:, :, ::-1])
+    Path(path).write_bytes(encode_png(line_plot(series, x_label, y_label, log_y)))
