@@ -644,18 +644,13 @@ def service_stage(plan: Plan, deadline: float, args: argparse.Namespace, save: C
     missing = [package for module, package in SERVICE_PACKAGES.items() if importlib.util.find_spec(module) is None]
     if missing:
         return StageResult("skipped", f"skipped: {', '.join(missing)} not installed (carry wheels: --wheels)")
-    import httpx
-
-    from stereo_data.formats import encode_png
+    from client import StereoClient
+    from service.local import start_service
 
     origins = {module: getattr(importlib.util.find_spec(module), "origin", None) for module in SERVICE_PACKAGES}
     print(f"service packages from: {origins}", flush=True)
     height, width = plan.sizes[0]
     sample = samples_for(args.data, 1, height, width, "cpu")[0][0]
-    files = {
-        view: (f"{view}.png", encode_png(image)) for view, image in (("left", sample.left), ("right", sample.right))
-    }
-    from service.local import start_service
 
     settings = {
         "CRESTEREO_DEVICE": plan.device,
@@ -668,8 +663,9 @@ def service_stage(plan: Plan, deadline: float, args: argparse.Namespace, save: C
     except RuntimeError as error:
         return StageResult("failed", f"the service did not become ready ({error})")
     try:
-        with httpx.Client(base_url=server.base_url, timeout=max(10.0, deadline - time.monotonic())) as client:
-            data = exchange(client, plan, sample, files)
+        timeout_s = max(10.0, deadline - time.monotonic())
+        with StereoClient(server.base_url, timeout_s=timeout_s, max_retries=0) as client:
+            data = exchange(client, plan, sample)
     finally:
         server.stop()
     problems = data.pop("problems")
@@ -677,28 +673,30 @@ def service_stage(plan: Plan, deadline: float, args: argparse.Namespace, save: C
     return StageResult("failed" if problems else "passed", "; ".join(problems) or detail, data=data)
 
 
-def exchange(client: Any, plan: Plan, sample: Any, files: dict) -> dict[str, Any]:
-    """Requests to the ready service: one per model, then `service_requests` concurrent lite
-    ones; checks each answer (200, shapes, finite non-negative disparity, uncertainty in [0, 1])."""
-    import io
+def exchange(client: Any, plan: Plan, sample: Any) -> dict[str, Any]:
+    """Requests to the ready service through `client` (a `client.StereoClient`): one per model,
+    then `service_requests` concurrent lite ones; checks each answer (shapes, finite non-negative
+    disparity, uncertainty in [0, 1])."""
     from concurrent.futures import ThreadPoolExecutor
 
     import numpy as np
 
+    from client import ServiceError
+
     known = sample.valid & np.isfinite(sample.disparity)
-    params = {"format": "npz"} | ({"iters": ",".join(map(str, plan.iters))} if plan.iters else {})
+    iters = tuple(plan.iters) if plan.iters else None
     problems: list[str] = []
     epe: dict[str, float] = {}
     compute_ms: dict[str, list[float]] = collections.defaultdict(list)
     batch_sizes: list[int] = []
 
     def ask(model: str) -> None:
-        response = client.post("/disparity", params=params | {"model": model}, files=files)
-        if response.status_code != 200:
-            problems.append(f"{model}: HTTP {response.status_code} {response.text[:200]}")
+        try:
+            result = client.disparity(sample.left, sample.right, model=model, iters=iters)
+        except ServiceError as error:
+            problems.append(f"{model}: HTTP {error.status} {error.code}: {error.message[:200]}")
             return
-        maps = np.load(io.BytesIO(response.content))
-        disparity, uncertainty = maps["disparity"], maps["uncertainty"]
+        disparity, uncertainty = result.disparity, result.uncertainty
         if disparity.shape != sample.disparity.shape or uncertainty.shape != disparity.shape:
             problems.append(f"{model}: maps of shape {disparity.shape}, not {sample.disparity.shape}")
         elif not (np.isfinite(disparity).all() and (disparity >= 0).all() and disparity.std() > 0):
@@ -707,8 +705,8 @@ def exchange(client: Any, plan: Plan, sample: Any, files: dict) -> dict[str, Any
             problems.append(f"{model}: uncertainty outside [0, 1]")
         else:
             epe[model] = round(float(np.abs(disparity - sample.disparity)[known].mean()), 3)
-        compute_ms[model].append(float(response.headers["x-compute-ms"]))
-        batch_sizes.append(int(response.headers["x-batch-size"]))
+        compute_ms[model].append(result.compute_ms)
+        batch_sizes.append(result.batch_size)
 
     for model in plan.service_models:
         for _ in range(2):  # the second request of a shape replays a CUDA graph
