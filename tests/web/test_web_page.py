@@ -292,3 +292,26 @@ def test_choosing_the_untrained_model_shows_a_warning(browser: Any, tmp_path: Pa
             expect(warning).to_be_hidden()
         finally:
             context.close()
+
+
+def test_at_420_px_wide_no_word_of_the_page_breaks_across_lines(web: WebPage) -> None:
+    page = web.page
+    page.set_viewport_size({"width": 420, "height": 900})
+    split = page.evaluate(
+        """() => {
+          const split = [];
+          const walker = document.createTreeWalker(document.body, NodeFilter.SHOW_TEXT);
+          for (let node = walker.nextNode(); node; node = walker.nextNode()) {
+            if (!node.parentElement.offsetParent) continue;  // not shown
+            for (const match of node.textContent.matchAll(/\\S+/g)) {
+              const range = document.createRange();
+              range.setStart(node, match.index);
+              range.setEnd(node, match.index + match[0].length);
+              const lines = new Set([...range.getClientRects()].map((rect) => Math.round(rect.top)));
+              if (lines.size > 1) split.push(match[0]);
+            }
+          }
+          return split;
+        }"""
+    )
+    assert split == []
