@@ -2,6 +2,7 @@
 
     .venv/bin/python bench/data_speed.py                      # CPU, default batch sizes
     .venv/bin/python bench/data_speed.py --device cuda --batch-sizes 8 24 64
+    .venv/bin/python bench/data_speed.py --threads 1 --batch-sizes 2 --supersample 1 2   # anti-aliasing's cost
 
 Each cell: pairs per second of ``SceneGenerator.generate`` (scene drawing, both views, occlusion
 mask, photometric changes), the median of ``--repeats`` timed calls after one warm-up call.
@@ -17,7 +18,7 @@ import torch
 
 from stereo_data.synthetic import SceneConfig, SceneGenerator
 
-SIZES = ((256, 512), (384, 512))
+SIZES = ((128, 320), (256, 512), (384, 512))  # the CPU campaign's crops first
 
 
 def pairs_per_second(generator: SceneGenerator, batch_size: int, repeats: int) -> float:
@@ -42,6 +43,9 @@ def main() -> None:
     parser.add_argument("--batch-sizes", type=int, nargs="+", default=[1, 4, 8])
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--threads", type=int, default=None, help="CPU threads (default: torch's)")
+    parser.add_argument(
+        "--supersample", type=int, nargs="+", default=[1], help="anti-aliasing factors to compare, a row each [1]"
+    )
     args = parser.parse_args()
     if args.threads is not None:
         torch.set_num_threads(args.threads)
@@ -52,12 +56,14 @@ def main() -> None:
     else:
         name = f"CPU, {torch.get_num_threads()} threads"
     print(f"stereo_data.synthetic throughput, pairs/s ({name}, torch {torch.__version__})\n")
-    print("| H x W | " + " | ".join(f"batch {b}" for b in args.batch_sizes) + " |")
-    print("|---|" + "---:|" * len(args.batch_sizes))
+    print("| H x W | supersample | " + " | ".join(f"batch {b}" for b in args.batch_sizes) + " |")
+    print("|---|---:|" + "---:|" * len(args.batch_sizes))
     for height, width in SIZES:
-        generator = SceneGenerator(SceneConfig(height=height, width=width), device=device)
-        cells = [f"{pairs_per_second(generator, b, args.repeats):.1f}" for b in args.batch_sizes]
-        print(f"| {height} x {width} | " + " | ".join(cells) + " |")
+        for supersample in args.supersample:
+            config = SceneConfig(height=height, width=width, supersample=supersample)
+            generator = SceneGenerator(config, device=device)
+            cells = [f"{pairs_per_second(generator, b, args.repeats):.1f}" for b in args.batch_sizes]
+            print(f"| {height} x {width} | {supersample} | " + " | ".join(cells) + " |")
 
 
 if __name__ == "__main__":
