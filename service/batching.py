@@ -174,6 +174,7 @@ class Batcher:
         self._times = ComputeTimes()
         self._changed = asyncio.Event()
         self._draining = False
+        self._abandoned: BatchingError | None = None  # set by `abandon`: the answer to all work from then on
         self._task: asyncio.Task[None] | None = None
         for name in predictors:
             metrics.queue_depth.labels(model=name).set(0)
@@ -199,8 +200,10 @@ class Batcher:
         self._draining = True
 
     def abandon(self, error: BatchingError) -> None:
-        """Answer every queued and computing request with `error`; a computing batch runs on,
-        but its result is dropped."""
+        """Answer every queued and computing request with `error`, and every request queued from
+        now on (one still being decoded now, say); a computing batch runs on, but its result is
+        dropped."""
+        self._abandoned = error
         self._fail([*self._running, *self._take_queued()], error)
 
     def _take_queued(self) -> list[_Job]:
@@ -277,6 +280,8 @@ class Batcher:
             self._changed.set()
 
     def enqueue(self, job: _Job) -> None:
+        if self._abandoned is not None:
+            raise self._abandoned
         self._queues[job.key.model].append(job)
         self._changed.set()
 

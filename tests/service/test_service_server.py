@@ -16,6 +16,7 @@ import pytest
 from service_helpers import (
     STEREO_DEV,
     Server,
+    assert_same_maps,
     metric_total,
     pair_files,
     quiet_load_model,
@@ -64,7 +65,7 @@ def test_a_real_pair_over_http_gives_the_library_result_at_the_image_size(defaul
     assert disparity.shape == (height, width)
     assert np.isfinite(disparity).all() and disparity.min() >= 0
     direct = quiet_load_model("lite").predict(left, right)
-    np.testing.assert_allclose(disparity, direct.disparity, rtol=1e-4, atol=1e-3)
+    assert_same_maps(disparity, direct.disparity)
 
 
 @pytest.mark.skipif(not REAL_PAIR.is_dir(), reason=f"real stereo pair not found at {REAL_PAIR}")
@@ -88,7 +89,7 @@ def test_eight_concurrent_requests_run_in_batches_and_match_the_single_result(de
     batch_sizes = [r.json()["batch_size"] for r in responses]
     assert max(batch_sizes) > 1
     for response in responses:
-        np.testing.assert_allclose(disparity_of(response), disparity_of(single), rtol=1e-4, atol=1e-3)
+        assert_same_maps(disparity_of(response), disparity_of(single))
     batches = metric_total(after, "crestereo_batch_size_count") - metric_total(before, "crestereo_batch_size_count")
     batched_requests = metric_total(after, "crestereo_batch_size_sum") - metric_total(
         before, "crestereo_batch_size_sum"
