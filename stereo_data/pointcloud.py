@@ -74,21 +74,19 @@ def point_cloud(
     height, width = disparity.shape
     if left.shape[:2] != (height, width):
         raise ValueError(f"left image {left.shape[:2]} and disparity {disparity.shape} differ in size")
-    keep = np.isfinite(disparity) & (disparity > limits.min_disparity)
-    if calibration is not None:
-        keep &= np.isfinite(metric_depth(disparity, calibration, limits))
+    depth = None if calibration is None else metric_depth(disparity, calibration, limits)
+    keep = np.isfinite(disparity) & (disparity > limits.min_disparity) if depth is None else np.isfinite(depth)
     if max_uncertainty is not None:
         if uncertainty is None:
             raise ValueError("max_uncertainty needs the uncertainty map")
         keep &= uncertainty <= max_uncertainty
     v, u = np.nonzero(keep)
-    d = disparity[keep].astype(np.float64)
-    if calibration is None:
-        points = np.stack([u, v, d], axis=1)
+    if calibration is None or depth is None:
+        points = np.stack([u, v, disparity[keep].astype(np.float64)], axis=1)
     else:
         cx = (width - 1) / 2 if calibration.cx is None else calibration.cx
         cy = (height - 1) / 2 if calibration.cy is None else calibration.cy
-        z = calibration.focal_px * calibration.baseline_m / d
+        z = depth[keep].astype(np.float64)
         points = np.stack([(u - cx) * z / calibration.focal_px, (v - cy) * z / calibration.focal_px, z], axis=1)
     return points.astype(np.float32), np.ascontiguousarray(left[keep][:, :3]).astype(np.uint8)
 

@@ -234,8 +234,11 @@ class SceneGenerator:
     def render(self, scene: Scene) -> SyntheticBatch:
         """Render both views of ``scene`` exactly, without photometric changes."""
         x, y = self._x, self._y
-        left_disparity, _, _ = _nearest_surface(scene, x, y, "left")
-        left = self._view(scene, "left")
+        left_disparity, left_surface, _ = _nearest_surface(scene, x, y, "left")
+        if self.config.supersample == 1:  # the point samples are the pixel centres: shade what was found
+            left = _shade(scene, left_surface, x.expand_as(left_disparity), y)
+        else:
+            left = self._view(scene, "left")
         right = self._view(scene, "right")
         x_match = x - left_disparity
         match_disparity, _, _ = _nearest_surface(scene, x_match, y, "right")

@@ -4,6 +4,7 @@ subresource integrity, and the page under a Content-Security-Policy that allows 
 from __future__ import annotations
 
 import base64
+import functools
 import hashlib
 import re
 
@@ -26,9 +27,11 @@ STYLE_URL, STYLE_INTEGRITY = (
 )
 
 
+@functools.cache
 def docs_page(openapi_url: str, title: str) -> tuple[str, str]:
     """The page's HTML and its Content-Security-Policy: the pinned script and style with their
-    integrity, the page's one inline script allowed by its hash, data only from this server."""
+    integrity, the page's one inline script allowed by its hash, data only from this server.
+    Built once per process: it never changes."""
     page = get_swagger_ui_html(
         openapi_url=openapi_url,
         title=title,
