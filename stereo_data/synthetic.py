@@ -59,6 +59,11 @@ class SceneConfig:
     partial-coverage pixels and texels finer than a pixel are averaged, not aliased. The ground truth
     (disparity, occlusion) stays the point value at the pixel centre.
 
+    Road scenes: with ``road_probability`` a scene is laid out as driving scenes are: a ground plane
+    receding to a horizon (a strong vertical disparity gradient), a far and weakly textured sky
+    above it, and the foreground surfaces standing on the ground (each at least as near as the
+    ground at its centre row); the ground's texture is seen in perspective (see `_Road`).
+
     Scale/crop augmentation: each scene is magnified by a random ``s = 2**U(log2_scale)``: every
     length (shape sizes, bar widths, texel sizes) is its unscaled length times s. A random crop of a
     procedural scene is distributed like the scene itself, so the crop is implicit: shapes are
@@ -88,6 +93,7 @@ class SceneConfig:
     contrast: tuple[float, float] = (6.0, 100.0)  # grey-level std of a surface's texture, log-uniform
     shading: float = 60.0  # at most this many grey levels of linear ramp across a surface
     log2_scale: tuple[float, float] = (-0.2, 0.4)
+    road_probability: float = 0.0  # scenes laid out as a road under a sky (see `_Road`); the others as before
     supersample: int = 1  # anti-aliasing: images are the mean of supersample x supersample samples per pixel
     photometric: PhotometricConfig | None = field(default_factory=PhotometricConfig)
 
@@ -106,6 +112,8 @@ class SceneConfig:
             raise ValueError("ranges must be (low, high)")
         if self.texture_count < 1:
             raise ValueError("need at least one texture")
+        if not 0.0 <= self.road_probability <= 1.0:
+            raise ValueError(f"road_probability must be in [0, 1], got {self.road_probability}")
         if self.supersample < 1:
             raise ValueError(f"supersample must be a positive integer, got {self.supersample}")
         if 2 ** self.log2_scale[0] * self.texel_size[0] * self.supersample < 1:
@@ -134,7 +142,12 @@ class Scene:
     has_hole: (B, S) bool.
     present: (B, S) bool; absent surfaces are never drawn.
     texture: (B, S) int64, which of the scene's K textures the surface shows.
-    to_texture: (B, S, 2, 3) float, affine map from (x, y) px to texel coordinates (wrapping).
+    to_texture: (B, S, 2, 3) float, affine map from (x, y) px to texel coordinates (wrapping); for a
+        ``projective`` surface the texel coordinates are that map divided by the surface's
+        disparity, which is a texture fixed to the plane seen in perspective.
+    projective: (B, S) bool.
+    fade_disparity: (B, S) float px, projective surfaces only: where their disparity falls below
+        twice this the texture fades out (it would be finer than a sample), to nothing at this.
     base: (B, S, 3) float, mean RGB colour, grey levels.
     contrast: (B, S) float, grey levels per unit of (standardised) texture.
     ramp: (B, S, 3) float, (gx, gy, g0): gx*x + gy*y + g0 grey levels are added (shading).
@@ -151,6 +164,8 @@ class Scene:
     present: torch.Tensor
     texture: torch.Tensor
     to_texture: torch.Tensor
+    projective: torch.Tensor
+    fade_disparity: torch.Tensor
     base: torch.Tensor
     contrast: torch.Tensor
     ramp: torch.Tensor
@@ -304,6 +319,12 @@ class SceneGenerator:
         centre_x[:, 0], centre_y[:, 0] = (width - 1) / 2, (height - 1) / 2
         extent = torch.maximum(radius_x, radius_y) * radii.amax(-1)  # shape within this of its centre
         extent[:, 0] = math.hypot(width, height) / 2
+        road = _Road.draw(batch_size, cfg, draw) if cfg.road_probability > 0 else None
+        if road is not None:  # the ground (surface 1) covers the whole plane, as the background does
+            centre_x[:, 1] = torch.where(road.present, centre_x[:, 0], centre_x[:, 1])
+            centre_y[:, 1] = torch.where(road.present, centre_y[:, 0], centre_y[:, 1])
+            extent[:, 1] = torch.where(road.present, extent[:, 0], extent[:, 1])
+            has_hole[:, 1] &= ~road.present
         cos, sin = torch.cos(angle), torch.sin(angle)
         to_shape = _affine(
             torch.stack(
@@ -314,6 +335,8 @@ class SceneGenerator:
             centre_y,
         )
         to_shape[:, 0] = 0.0
+        if road is not None:
+            to_shape[:, 1] = torch.where(road.present[:, None, None], 0.0, to_shape[:, 1])
         has_hole[:, 0] = False
 
         # Disparity planes: the background spans at most [0, background_max_fraction * max], the
@@ -330,6 +353,9 @@ class SceneGenerator:
             background_low + cfg.background_max_fraction * max_disparity,
         )
         foreground_low = background_disparity - background_gradient * extent[:, :1]
+        if road is not None:  # the sky is far; things stand on the ground: nearer than it at their centre row
+            on_ground = road.disparity(centre_x[:, 1:], centre_y[:, 1:]).clamp(0, 0.9 * max_disparity)
+            foreground_low = torch.where(road.present[:, None], on_ground, foreground_low)
         foreground_gradient, foreground_disparity = _fit_plane(
             gradient[:, 1:],
             extent[:, 1:],
@@ -341,6 +367,8 @@ class SceneGenerator:
         centre_disparity = torch.cat([background_disparity, foreground_disparity], dim=1)
         slope_x, slope_y = gradient * torch.cos(gradient_angle), gradient * torch.sin(gradient_angle)
         plane = torch.stack([slope_x, slope_y, centre_disparity - slope_x * centre_x - slope_y * centre_y], dim=-1)
+        if road is not None:
+            plane[:, :2] = torch.where(road.present[:, None, None], road.planes, plane[:, :2])
 
         # Appearance.
         texel = scale * draw.log_uniform(shape, *cfg.texel_size)  # output px per texel
@@ -352,6 +380,8 @@ class SceneGenerator:
             centre_y,
         )
         to_texture[..., 2] += draw.uniform((*shape, 2), 0, cfg.texture_size)
+        projective = torch.zeros(shape, dtype=torch.bool, device=self.device)
+        fade_disparity = torch.zeros(shape, device=self.device)
         grey = draw.uniform((*shape, 1), 20, 235)
         base = grey + draw.uniform((*shape, 3), -30, 30)
         contrast = draw.log_uniform(shape, *cfg.contrast)
@@ -360,6 +390,11 @@ class SceneGenerator:
         ramp_x, ramp_y = ramp_size * torch.cos(ramp_angle), ramp_size * torch.sin(ramp_angle)
         ramp = torch.stack([ramp_x, ramp_y, -ramp_x * centre_x - ramp_y * centre_y], dim=-1)
         texture = draw.integers(shape, 0, cfg.texture_count - 1)
+        if road is not None:
+            to_texture[:, 1] = torch.where(road.present[:, None, None], road.to_texture, to_texture[:, 1])
+            projective[:, 1] = road.present
+            fade_disparity[:, 1] = road.fade_disparity
+            contrast[:, 0] = torch.where(road.present, road.sky_contrast, contrast[:, 0])
 
         return Scene(
             plane=plane,
@@ -372,11 +407,82 @@ class SceneGenerator:
             present=present,
             texture=texture,
             to_texture=to_texture,
+            projective=projective,
+            fade_disparity=fade_disparity,
             base=base,
             contrast=contrast,
             ramp=ramp,
             textures=_texture_bank(batch_size, cfg, draw, self._photos),
         )
+
+
+@dataclass
+class _Road:
+    """The layout of road scenes: surface 0 becomes a far sky, surface 1 the ground.
+
+    The ground is the plane d = a*(x - cx) + b*(y - horizon) px (cx the frame's centre column): zero
+    at the horizon, growing downwards by b px per row (b = baseline / camera height), tilted by a
+    small camera roll (a). Above the horizon it is behind the sky, so the z-buffer cuts it there.
+    Its texture is fixed to the ground and seen through a pinhole of focal length f px: texel
+    coordinates (u, v) = (q * (x - cx) / d, f * q / d) plus offsets, square on the ground, q chosen
+    so that texels are ``ground_texel`` px wide at the bottom row; so rows nearer the horizon show
+    the texture smaller and squashed, and it fades out where its texels get finer than the
+    sample.
+
+    present: (B,) bool, which scenes are road scenes.
+    planes: (B, 2, 3) the (a, b, c) planes of surfaces 0 (the sky, fronto-parallel) and 1 (the ground).
+    to_texture: (B, 2, 3) the ground's texture map, to be divided by its disparity (projective).
+    fade_disparity: (B,) px, see `Scene.fade_disparity`.
+    sky_contrast: (B,) grey levels: the sky is weakly textured.
+    """
+
+    present: torch.Tensor
+    planes: torch.Tensor
+    to_texture: torch.Tensor
+    fade_disparity: torch.Tensor
+    sky_contrast: torch.Tensor
+
+    @staticmethod
+    def draw(batch_size: int, cfg: SceneConfig, draw: _Draw) -> _Road:
+        assert cfg.max_disparity is not None
+        height, width, max_disparity = cfg.height, cfg.width, float(cfg.max_disparity)
+        shape = (batch_size,)
+        present = draw.chance(shape, cfg.road_probability)
+        horizon = height * draw.uniform(shape, -0.5, 0.6)  # may lie above the frame
+        roll = draw.uniform(shape, -0.08, 0.08)  # a / b, about +-4.5 degrees
+        # The ground's nearest point in the frame (a bottom corner) stays within 0.95 * max.
+        reach = height - 1 - horizon + roll.abs() * (width - 1) / 2
+        slope = torch.minimum(draw.log_uniform(shape, 0.15, 0.8), 0.95 * max_disparity / reach)
+        focal = height * draw.log_uniform(shape, 2.0, 8.0)
+        ground_texel = draw.log_uniform(shape, 3.0, 32.0)  # px, at the bottom row
+        offset_u, offset_v = draw.uniform((2, batch_size), 0, cfg.texture_size)
+        sky_disparity = draw.uniform(shape, 0, 0.02 * max_disparity)
+        sky_contrast = draw.log_uniform(shape, 1.0, 6.0)
+
+        centre = (width - 1) / 2
+        a, b = roll * slope, slope
+        c = -a * centre - b * horizon
+        zero = torch.zeros_like(a)
+        sky = torch.stack([zero, zero, sky_disparity], dim=-1)
+        ground = torch.stack([a, b, c], dim=-1)
+        q = b * (height - 1 - horizon) / ground_texel  # texel width d / q px at disparity d
+        # Numerators of u and v, each an affine function of (x, y); the offsets ride on d itself.
+        to_texture = torch.stack(
+            [
+                torch.stack([q + offset_u * a, offset_u * b, -q * centre + offset_u * c], dim=-1),
+                torch.stack([offset_v * a, offset_v * b, focal * q + offset_v * c], dim=-1),
+            ],
+            dim=-2,
+        )
+        # Texels are d / q px wide and d^2 / (f q b) px tall: both at least a sample (1 / supersample px).
+        smallest = 1 / cfg.supersample
+        fade = torch.maximum(q * smallest, torch.sqrt(focal * q * b * smallest))
+        return _Road(present, torch.stack([sky, ground], dim=1), to_texture, fade, sky_contrast)
+
+    def disparity(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+        """The ground's disparity (px) at points x, y (B, n) px; negative above the horizon."""
+        a, b, c = self.planes[:, 1, :, None].unbind(1)
+        return a * x + b * y + c
 
 
 def _fit_plane(
@@ -501,10 +607,18 @@ def _shade(scene: Scene, surface: torch.Tensor, x_left: torch.Tensor, y: torch.T
     x = x_left.flatten()
     point = torch.stack([x, y.expand_as(x_left).flatten(), torch.ones_like(x)], dim=-1)  # (N, 3)
     texel_u, texel_v = (at_pixels(scene.to_texture) * point[:, None, :]).sum(-1).unbind(-1)
+    contrast = at_pixels(scene.contrast)
+    if scene.projective.any():
+        projective = at_pixels(scene.projective)
+        disparity = (at_pixels(scene.plane) * point).sum(-1)
+        fade = at_pixels(scene.fade_disparity).clamp_min(1e-6)
+        depth = torch.where(projective, 1 / torch.maximum(disparity, fade), 1.0)
+        texel_u, texel_v = texel_u * depth, texel_v * depth
+        contrast = torch.where(projective, contrast * (disparity / fade - 1).clamp(0, 1), contrast)
     slot = batch_index.flatten() * scene.textures.shape[1] + at_pixels(scene.texture)
     texture = _sample_wrapped(scene.textures.flatten(0, 1), slot, texel_u, texel_v)  # (N, 3)
     shading = (at_pixels(scene.ramp) * point).sum(-1, keepdim=True)
-    colour = at_pixels(scene.base) + at_pixels(scene.contrast)[:, None] * texture + shading
+    colour = at_pixels(scene.base) + contrast[:, None] * texture + shading
     return colour.clamp(0, 255).view(batch, *surface.shape[2:], 3).permute(0, 3, 1, 2).contiguous()
 
 

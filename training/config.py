@@ -81,6 +81,11 @@ class TrainConfig:
         "rendering); allows texels down to 1/N px",
         metavar="N",
     )
+    road_probability: float = _knob(
+        0.0,
+        "procedural scenes: fraction laid out as a road scene (a ground plane receding to a horizon under a far, "
+        "weakly textured sky, things standing on the ground)",
+    )
     real_scale_range: tuple[float, float] = _knob(
         (0.8, 1.25), "random rescale range of real pairs before cropping (raised where a pair is smaller than the crop)"
     )
@@ -157,6 +162,7 @@ class TrainConfig:
             photo_textures=self.photo_textures,
             texel_size=self.texel_size,
             supersample=self.supersample,
+            road_probability=self.road_probability,
         )
 
     @property

@@ -60,6 +60,7 @@ def test_default_max_disparity_is_192_at_512_px_and_scales_with_width() -> None:
         {"max_disparity": 0.0},
         {"supersample": 0},
         {"texel_size": (0.6, 2.0)},  # under a pixel: needs supersample 2
+        {"road_probability": 1.5},
     ],
 )
 def test_config_rejects_settings_the_generator_cannot_honour(bad: dict) -> None:
@@ -120,8 +121,9 @@ def test_different_seeds_give_different_scenes() -> None:
     assert (first.left - second.left).abs().mean() > 10
 
 
-def test_right_view_warped_by_ground_truth_reproduces_left_where_not_occluded() -> None:
-    config = replace(CLEAN, height=96, width=192)
+@pytest.mark.parametrize("road_probability", [0.0, 1.0])
+def test_right_view_warped_by_ground_truth_reproduces_left_where_not_occluded(road_probability: float) -> None:
+    config = replace(CLEAN, height=96, width=192, road_probability=road_probability)
     batch = SceneGenerator(config).generate(batch_size=4, seed=3)
     visible = (~batch.occluded).expand_as(batch.left)
     error = (warp_right_to_left(batch.right, batch.disparity) - batch.left).abs()[visible]
@@ -192,6 +194,59 @@ def test_scenes_mix_polygons_ellipses_thin_bars_and_holes() -> None:
     assert (slope == 0).any() and (slope > 0.05).any()
 
 
+ROADS = replace(CLEAN, height=96, width=192, road_probability=1.0)
+
+
+def test_road_scenes_recede_to_a_horizon_under_a_far_sky() -> None:
+    generator = SceneGenerator(ROADS)
+    scene = generator.sample_scene(batch_size=6, seed=2)
+    scene.present[:, 2:] = False  # only the sky and the ground
+    disparity = generator.render(scene).disparity[:, 0]  # (B, H, W)
+    assert ROADS.max_disparity is not None
+    sky = disparity <= 0.02 * ROADS.max_disparity
+    ground = ~sky
+    assert ground.float().mean() > 0.3 and sky.any()
+    # Down each column the disparity never falls: sky above, then the ground nearing the camera.
+    assert (disparity[:, 1:] - disparity[:, :-1] >= -1e-4).all()
+    # The ground is seen in every scene, and its disparity grows from row to row (a vertical gradient).
+    rows_down = (disparity[:, 1:] - disparity[:, :-1])[ground[:, 1:] & ground[:, :-1]]
+    assert ground.flatten(1).any(1).all() and rows_down.median() > 0.15
+    assert disparity.max() <= ROADS.max_disparity
+
+
+def test_things_in_road_scenes_stand_on_the_ground_at_least_as_near_as_it() -> None:
+    scene = SceneGenerator(ROADS).sample_scene(batch_size=6, seed=3)
+    ground_a, ground_b, ground_c = scene.plane[:, 1:2].unbind(-1)  # (B, 1) each
+    centre = -torch.linalg.solve(scene.to_shape[:, 2:, :, :2], scene.to_shape[:, 2:, :, 2:])[..., 0]  # (B, S-2, 2) px
+    x, y = centre.unbind(-1)
+    thing_a, thing_b, thing_c = scene.plane[:, 2:].unbind(-1)
+    ground_there = (ground_a * x + ground_b * y + ground_c).clamp(0, 0.9 * ROADS.max_disparity)
+    assert (thing_a * x + thing_b * y + thing_c >= ground_there - 1e-3).all()
+    assert scene.projective[:, 1].all() and not scene.projective[:, 2:].any()
+
+
+def test_the_ground_texture_is_seen_in_perspective_twice_as_fine_at_half_the_disparity() -> None:
+    generator = SceneGenerator(ROADS)
+    scene = generator.sample_scene(batch_size=4, seed=4)
+    scene.present[:, 2:] = False
+    scene.fade_disparity[:, 1] = 1e-3  # stripes along u vary across rows only: they never alias vertically
+    size = ROADS.texture_size
+    u = torch.arange(size, dtype=torch.float32).view(1, -1, 1)
+    stripes = torch.cos(2 * math.pi * 16 * u / size).expand(size, size, 3)  # 16 periods across the texture, along u
+    scene.textures[torch.arange(4), scene.texture[:, 1]] = stripes
+    scene.base[:, 1], scene.contrast[:, 1] = 128.0, 100.0
+    scene.plane[:, 1, 0] = 0.0  # no roll: a row has one disparity
+    scene.ramp.zero_()
+    batch = generator.render(scene)
+    for n in range(4):
+        disparity, grey = batch.disparity[n, 0, :, 0], batch.left[n].mean(0) - 128.0
+        near_row = int(disparity.argmax())
+        far_row = int((disparity - disparity[near_row] / 2).abs().argmin())
+        crossings = [int((grey[row, 1:].sign() != grey[row, :-1].sign()).sum()) for row in (near_row, far_row)]
+        expected = float(disparity[near_row] / disparity[far_row])
+        assert crossings[1] / crossings[0] == pytest.approx(expected, rel=0.15), (n, crossings, expected)
+
+
 def test_scale_augmentation_multiplies_every_length_by_the_scale() -> None:
     def lengths(log2_scale: float) -> tuple[torch.Tensor, torch.Tensor]:
         config = replace(CLEAN, log2_scale=(log2_scale, log2_scale))
@@ -232,6 +287,8 @@ def one_square_scene() -> Scene:
         present=torch.tensor([[True, True]]),
         texture=torch.zeros(1, 2, dtype=torch.long),
         to_texture=no_texture,
+        projective=torch.tensor([[False, False]]),
+        fade_disparity=torch.zeros(1, 2),
         base=pair([50] * 3, [200] * 3),
         contrast=torch.zeros(1, 2),
         ramp=torch.zeros(1, 2, 3),
