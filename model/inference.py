@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import os
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
@@ -17,6 +18,7 @@ from .calibration import UncertaintyCalibration
 from .config import ModelConfig
 from .cuda_graphs import Forward, GraphedForward
 from .network import CREStereoPP, padded_size
+from .openvino_backend import OpenVINOForward, native_bf16, openvino_available
 from .upsample import resize_disparity
 from .weights import USABLE_BAD2, WEIGHTS_DIR, file_sha256, is_trained, network_from_weights, read_weights
 
@@ -24,7 +26,41 @@ Iterations = int | tuple[int, int, int] | None
 """None: the config's iterations; int: iterations of the finest (1/4) stage; or (n16, n8, n4)."""
 
 Precision = Literal["fp32", "bf16"]
-"""fp32: the network in float32; bf16: under bf16 autocast (CUDA), the maps still float32."""
+"""fp32: the network in float32; bf16: torch under bf16 autocast, OpenVINO with bf16 inference
+precision; the maps stay float32 either way."""
+
+Backend = Literal["torch", "openvino"]
+"""torch: eager (CUDA graphs on a GPU), the reference; openvino: compiled for the CPU
+(``model.openvino_backend``)."""
+
+BackendChoice = Literal["auto", "torch", "openvino"]
+PrecisionChoice = Literal["auto", "fp32", "bf16"]
+
+
+def resolve_backend(backend: BackendChoice, device: torch.device) -> Backend:
+    """``auto``: ``$CRESTEREO_BACKEND`` where set, else OpenVINO on a CPU where it is installed,
+    else torch. ValueError where OpenVINO is asked for and cannot run (another device, or not
+    installed), or for an unknown name."""
+    if backend == "auto":
+        backend = os.environ.get("CRESTEREO_BACKEND", "auto").strip().lower() or "auto"  # type: ignore[assignment]
+        if backend == "auto":
+            return "openvino" if device.type == "cpu" and openvino_available() else "torch"
+    if backend not in ("torch", "openvino"):
+        raise ValueError(f"unknown backend {backend!r}; choose auto, torch or openvino")
+    if backend == "openvino":
+        if device.type != "cpu":
+            raise ValueError(f"the openvino backend runs on the CPU, not on {device}")
+        if not openvino_available():
+            raise ValueError("the openvino backend needs the openvino package: pip install openvino")
+    return backend
+
+
+def resolve_precision(precision: PrecisionChoice, backend: Backend) -> Precision:
+    """``auto``: bf16 for OpenVINO on a CPU that computes bf16 natively (AMX, AVX512-BF16),
+    fp32 everywhere else (torch's bf16 autocast on a CPU spends its time casting)."""
+    if precision == "auto":
+        return "bf16" if backend == "openvino" and native_bf16() else "fp32"
+    return precision
 
 
 MIN_SCALED_SIDE = 16
@@ -69,7 +105,8 @@ def load_model(
     weights: str | Path | None = None,
     device: str | torch.device = "cpu",
     *,
-    precision: Precision = "fp32",
+    backend: BackendChoice = "auto",
+    precision: PrecisionChoice = "auto",
     cuda_graphs: bool = True,
 ) -> StereoPredictor:
     """Build the ``name`` network (``lite`` | ``full``) and load its weights.
@@ -77,8 +114,17 @@ def load_model(
     ``weights``: a weights file or training checkpoint (a dict with ``"model"`` = state_dict and
     ``"config"``); None loads the bundled ``model/weights/{name}.pt`` if present, else the network is
     randomly initialised (seed 0, so every process gets the same one) with a warning.
-    ``precision`` and ``cuda_graphs``: see ``StereoPredictor``.
+    ``backend`` and ``precision``: see ``resolve_backend`` and ``resolve_precision``; the
+    predictor's ``backend`` and ``precision`` say what was picked. ``cuda_graphs``: see
+    ``StereoPredictor``.
     """
+    device = torch.device(device)
+    chosen = resolve_backend(backend, device)
+    options: dict[str, Any] = {
+        "backend": chosen,
+        "precision": resolve_precision(precision, chosen),
+        "cuda_graphs": cuda_graphs,
+    }
     path = Path(weights) if weights is not None else WEIGHTS_DIR / f"{name}.pt"
     if weights is None and not path.is_file():
         warnings.warn(
@@ -89,7 +135,7 @@ def load_model(
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(0)
             network = CREStereoPP(ModelConfig.preset(name))
-        return StereoPredictor(network, name, None, device, precision=precision, cuda_graphs=cuda_graphs)
+        return StereoPredictor(network, name, None, device, **options)
 
     payload = read_weights(path)
     if not is_trained(payload.get("training")):
@@ -107,8 +153,7 @@ def load_model(
         device,
         UncertaintyCalibration.from_dict(calibration) if calibration is not None else None,
         payload.get("training"),
-        precision=precision,
-        cuda_graphs=cuda_graphs,
+        **options,
     )
 
 
@@ -175,8 +220,11 @@ class StereoPredictor:
     given, ``predict`` returns P(|error| > calibration.threshold_px) as the uncertainty, else the
     paper's raw U. training: the weights file's cumulative training record, as stored there
     ("total_steps", "total_pairs", "total_minutes", "runs" with each run's validation), or None.
-    precision: "fp32", or "bf16" to run the network under bf16 autocast (the maps stay float32;
-    bench/gpu_check.py measures how far they move); may be changed at any time.
+    precision: "fp32", or "bf16" (see ``Precision``; the maps stay float32; bench/gpu_check.py
+    and the model card measure how far they move); may be changed at any time.
+    backend: "torch", or "openvino" to run every forward through ``openvino`` (an
+    ``OpenVINOForward``, with torch as its fallback while a graph is being exported; its graphs
+    are cached on disk under the weights' hash). ``prepare`` makes a graph ready before timing.
     graphs: on a CUDA device with ``cuda_graphs``, the CUDA-graph replay (``model.cuda_graphs``)
     that ``predict_batch`` runs its forward through, one graph per padded shape; else None.
     """
@@ -190,6 +238,7 @@ class StereoPredictor:
         calibration: UncertaintyCalibration | None = None,
         training: dict[str, Any] | None = None,
         *,
+        backend: Backend = "torch",
         precision: Precision = "fp32",
         cuda_graphs: bool = True,
     ) -> None:
@@ -199,8 +248,18 @@ class StereoPredictor:
         self.weights_sha256 = weights_sha256
         self.calibration = calibration
         self.training = training
+        self.backend: Backend = resolve_backend(backend, self.device)
         self.precision: Precision = precision
         self.graphs = GraphedForward(self.forward) if cuda_graphs and self.device.type == "cuda" else None
+        self.openvino = (
+            OpenVINOForward(
+                self.network,
+                self.forward,
+                cache_key=None if weights_sha256 is None else f"{name}-{weights_sha256[:16]}-torch{torch.__version__}",
+            )
+            if self.backend == "openvino"
+            else None
+        )
 
     @property
     def config(self) -> ModelConfig:
@@ -214,6 +273,14 @@ class StereoPredictor:
     @property
     def num_parameters(self) -> int:
         return sum(p.numel() for p in self.network.parameters())
+
+    def prepare(self, iters: Iterations = None, *, warm_start: bool = False, wait: bool = True) -> bool:
+        """Make the fast path of this backend ready for these iterations (and a cold or warm
+        start): on OpenVINO, load or export its graph, in the background unless ``wait``.
+        Returns whether calls of that kind now run on this backend (always True on torch)."""
+        if self.openvino is None:
+            return True
+        return self.openvino.prepare(self.iterations(iters), warm_start, wait=wait)
 
     def iterations(self, iters: Iterations) -> tuple[int, int, int]:
         if iters is None:
@@ -361,7 +428,7 @@ class StereoPredictor:
         (where there are graphs)."""
         if left_batch.shape != right_batch.shape:
             raise ValueError(f"left and right differ in size: {tuple(left_batch.shape)} vs {tuple(right_batch.shape)}")
-        forward = self.graphs if graphed and self.graphs is not None else self.forward
+        forward = self.openvino or (self.graphs if graphed and self.graphs is not None else self.forward)
         counts = self.iterations(iters)
         height, width = left_batch.shape[-2:]
         size = scaled_size(height, width, scale)

@@ -79,7 +79,9 @@ class CREStereoPP(nn.Module):
             raise ValueError(f"input {height}x{width} is not a multiple of {INPUT_MULTIPLE}; pad it first")
         iters = iters or self.config.iters
         images = torch.cat((left, right), dim=0) * (2.0 / 255.0) - 1.0
-        left_features, right_features = self.fem(images).chunk(2, dim=0)
+        features = self.fem(images)
+        batch = left.shape[0]  # sliced, not chunked: an export keeps the batch size symbolic
+        left_features, right_features = features[:batch], features[batch:]
         pyramid = list(zip(feature_pyramid(left_features), feature_pyramid(right_features), strict=True))
 
         if init_disparity is None:

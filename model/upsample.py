@@ -28,5 +28,5 @@ def convex_upsample(disparity: Tensor, mask_logits: Tensor) -> Tensor:
 
 def resize_disparity(disparity: Tensor, height: int, width: int) -> Tensor:
     """Bilinear resize of (B, 1, h, w) disparity to (B, 1, height, width), values scaled by width / w."""
-    scale = width / disparity.shape[-1]
-    return scale * F.interpolate(disparity, size=(height, width), mode="bilinear", align_corners=False)
+    resized = F.interpolate(disparity, size=(height, width), mode="bilinear", align_corners=False)
+    return resized * width / disparity.shape[-1]  # tensor arithmetic: an export keeps the sizes symbolic

@@ -42,9 +42,10 @@ def deformable_sample(feature: Tensor, x: Tensor, y: Tensor) -> Tensor:
     """
     b, c, height, width = feature.shape
     groups, points, h, w = x.shape[1:]
-    grid = torch.stack((x * (2.0 / max(width - 1, 1)) - 1.0, y * (2.0 / max(height - 1, 1)) - 1.0), dim=-1).view(
-        b * groups, points * h, w, 2
-    )
+    # Pixels in grid_sample's [-1, 1] frame (align_corners: pixel x is 2x / (W - 1) - 1), written as
+    # tensor arithmetic so that an export with symbolic sizes keeps it graph ops.
+    grid = torch.stack((2 * x / max(width - 1, 1) - 1, 2 * y / max(height - 1, 1) - 1), dim=-1)
+    grid = grid.view(b * groups, points * h, w, 2)
     sampled = F.grid_sample(
         feature.reshape(b * groups, c // groups, height, width),
         grid,

@@ -3,11 +3,16 @@
 OpenMP threads that spin while waiting turn 10-50x slower when the cores are oversubscribed,
 which the suite does on purpose (a pytest process beside uvicorn servers and trainers on two
 cores). Passive waiting keeps every process at its normal speed; children inherit it.
+
+The suite runs on torch, the reference backend: `backend="auto"` would otherwise export an
+OpenVINO graph (a minute of CPU) in every process that predicts. The OpenVINO tests ask for it by
+name, with their own cache folder.
 """
 
 import os
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+os.environ["CRESTEREO_BACKEND"] = "torch"
 
 import pytest  # noqa: E402  (after the environment above, as the docstring says)
 

@@ -1,0 +1,266 @@
+"""The OpenVINO backend: the network compiled for the CPU, behind the same forward as torch.
+
+The network is exported once per iteration counts and start (cold, or warm from a given
+disparity) with symbolic batch, height and width (``torch.export``, converted by
+``openvino.convert_model``), and the graph is saved to a disk cache (OpenVINO IR, keyed by the
+weights' hash and the library versions). Each padded input shape then gets its own compiled
+model (a static shape runs about 10 % faster than the symbolic one), kept in a bounded in-memory
+cache; OpenVINO's own ``CACHE_DIR`` keeps the compiled blobs, so a restart neither exports nor
+compiles again. Precision is OpenVINO's inference precision hint: ``f32``, or ``bf16`` where the
+CPU computes bf16 natively (AVX512-BF16, AMX).
+
+An export takes about a minute of CPU. It never blocks a caller that did not ask to wait: a graph
+that is not ready yet is exported in a background thread while its calls run on torch (logged
+once); a graph whose export fails runs on torch from then on (logged once).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import threading
+import warnings
+from collections import OrderedDict
+from dataclasses import dataclass
+from importlib.util import find_spec
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from .cuda_graphs import Forward, Iters, Maps, put_bounded
+from .network import INPUT_MULTIPLE
+
+logger = logging.getLogger(__name__)
+
+EXPORT_VERSION = 1
+"""Bumped whenever the exported graph changes for the same weights (part of the cache key)."""
+
+MAX_BATCH = 64
+MAX_SIDE = 8192
+"""Largest batch and padded side (px) an exported graph accepts."""
+
+BF16_CPU_FLAGS = ("amx_bf16", "avx512_bf16")
+
+
+def openvino_available() -> bool:
+    """Whether the ``openvino`` package can be imported."""
+    return find_spec("openvino") is not None
+
+
+def native_bf16(cpuinfo: Path = Path("/proc/cpuinfo")) -> bool:
+    """Whether this CPU computes bf16 natively (AMX or AVX512-BF16), from the kernel's flags."""
+    try:
+        text = cpuinfo.read_text()
+    except OSError:
+        return False
+    flags = {flag for line in text.splitlines() if line.startswith("flags") for flag in line.split(":", 1)[1].split()}
+    return any(flag in flags for flag in BF16_CPU_FLAGS)
+
+
+def default_cache_dir() -> Path:
+    """Where exported graphs and compiled blobs are kept: ``$CRESTEREO_CACHE_DIR``, else
+    ``$XDG_CACHE_HOME/crestereo-pp``, else ``~/.cache/crestereo-pp``; then ``openvino/``."""
+    root = os.environ.get("CRESTEREO_CACHE_DIR")
+    if root:
+        return Path(root) / "openvino"
+    xdg = os.environ.get("XDG_CACHE_HOME")
+    return (Path(xdg) if xdg else Path.home() / ".cache") / "crestereo-pp" / "openvino"
+
+
+@dataclass(frozen=True)
+class GraphKind:
+    """What an exported graph computes: the iterations per stage (1/16, 1/8, 1/4) and whether it
+    starts warm from a given disparity (an extra input)."""
+
+    iters: Iters
+    warm_start: bool
+
+    @property
+    def file_stem(self) -> str:
+        n16, n8, n4 = self.iters
+        return f"iters{n16}-{n8}-{n4}-{'warm' if self.warm_start else 'cold'}"
+
+
+class _Graph(nn.Module):
+    """The module that is exported: the network at fixed iterations, maps in float32."""
+
+    def __init__(self, network: nn.Module, iters: Iters) -> None:
+        super().__init__()
+        self.network = network
+        self.iters = iters
+
+    def forward(self, left: Tensor, right: Tensor, init: Tensor | None = None) -> Maps:
+        out = self.network(left, right, iters=self.iters, init_disparity=init)
+        return out.disparity.float(), out.uncertainty.float()
+
+
+def export_graph(network: nn.Module, kind: GraphKind) -> Any:
+    """The network as an ``openvino.Model`` with symbolic batch, height and width (multiples of
+    INPUT_MULTIPLE): inputs left, right (B, 3, H, W) float32 in [0, 255] and, warm, init
+    (B, 1, H, W) px; outputs disparity and uncertainty (B, 1, H, W) float32."""
+    import openvino as ov
+
+    batch = torch.export.Dim("batch", min=1, max=MAX_BATCH)
+    rows = torch.export.Dim("rows", min=1, max=MAX_SIDE // INPUT_MULTIPLE)
+    columns = torch.export.Dim("columns", min=1, max=MAX_SIDE // INPUT_MULTIPLE)
+    sizes = {0: batch, 2: INPUT_MULTIPLE * rows, 3: INPUT_MULTIPLE * columns}
+    # Batch 2 and distinct tensors: an example of size 1, or one tensor passed twice, would be specialised.
+    left = torch.full((2, 3, 2 * INPUT_MULTIPLE, 4 * INPUT_MULTIPLE), 128.0)
+    inputs: tuple[Tensor, ...] = (left, left + 1.0)
+    if kind.warm_start:
+        inputs = (*inputs, torch.full((2, 1, *left.shape[-2:]), 4.0))
+    with torch.no_grad(), warnings.catch_warnings():
+        warnings.simplefilter("ignore", FutureWarning)  # the exporter's own deprecation notices, not ours
+        program = torch.export.export(
+            _Graph(network, kind.iters).eval(), inputs, dynamic_shapes=tuple(sizes for _ in inputs), strict=False
+        )
+    return ov.convert_model(program)
+
+
+class OpenVINOForward:
+    """A ``Forward`` (see ``model.cuda_graphs``) computed by OpenVINO on the CPU.
+
+    network: the eval-mode network to export. fallback: the torch forward for graphs not ready.
+    cache_key: names these weights in the disk cache (their hash); None keeps graphs in memory
+    only. max_shapes: compiled shapes kept in memory (least recently used dropped first).
+    Thread-safe: calls may come from several threads; one export runs at a time, in a daemon thread.
+    """
+
+    def __init__(
+        self,
+        network: nn.Module,
+        fallback: Forward,
+        *,
+        cache_key: str | None,
+        cache_dir: Path | None = None,
+        max_shapes: int = 8,
+    ) -> None:
+        import openvino as ov
+
+        if max_shapes < 1:
+            raise ValueError(f"max_shapes must be positive, got {max_shapes}")
+        self.network = network
+        self.fallback = fallback
+        self.max_shapes = max_shapes
+        directory = cache_dir or default_cache_dir()
+        self.graph_dir = None if cache_key is None else directory / f"{cache_key}-v{EXPORT_VERSION}"
+        self.core = ov.Core()
+        if cache_key is not None:
+            self.core.set_property({"CACHE_DIR": str(directory / "compiled")})
+        self.graphs: dict[GraphKind, Any] = {}
+        self.compiled: OrderedDict[tuple[GraphKind, tuple[int, ...], bool], Any] = OrderedDict()
+        self.failed: set[GraphKind] = set()
+        self.exports = self.compiles = self.runs = self.fallback_runs = 0
+        self._pending: dict[GraphKind, threading.Event] = {}  # set when the export has ended
+        self._lock = threading.Lock()
+        self._export_lock = threading.Lock()  # one export at a time
+
+    def __call__(self, left: Tensor, right: Tensor, init: Tensor | None, iters: Iters, bf16: bool) -> Maps:
+        kind = GraphKind((*iters,), init is not None)
+        graph = self._graph_or_prepare(kind)
+        if graph is None:
+            with self._lock:
+                self.fallback_runs += 1
+            return self.fallback(left, right, init, iters, bf16)
+        compiled = self._compiled(kind, graph, tuple(left.shape), bf16)
+        given = (left, right) if init is None else (left, right, init)
+        inputs = [np.ascontiguousarray(t.detach().cpu().numpy(), dtype=np.float32) for t in given]
+        request = compiled.create_infer_request()
+        request.infer(inputs)
+        with self._lock:
+            self.runs += 1
+        disparity, uncertainty = (torch.from_numpy(request.get_output_tensor(i).data.copy()) for i in (0, 1))
+        return disparity.to(left.device), uncertainty.to(left.device)
+
+    def ready(self, iters: Iters, warm_start: bool = False) -> bool:
+        """Whether calls of this kind run on OpenVINO now."""
+        kind = GraphKind((*iters,), warm_start)
+        with self._lock:
+            return kind in self.graphs
+
+    def prepare(self, iters: Iters, warm_start: bool = False, *, wait: bool = True) -> bool:
+        """Load or export the graph of this kind (in the background unless `wait`); returns
+        whether it is ready (False after a failed export: that kind runs on torch)."""
+        kind = GraphKind((*iters,), warm_start)
+        if self._graph_or_prepare(kind) is not None:
+            return True
+        with self._lock:
+            pending = self._pending.get(kind)
+        if wait and pending is not None:
+            pending.wait()
+        return self.ready(iters, warm_start)
+
+    def _graph_or_prepare(self, kind: GraphKind) -> Any | None:
+        """The kind's graph if it is in memory or on disk; else None, with its export under way."""
+        with self._lock:
+            if kind in self.graphs:
+                return self.graphs[kind]
+            if kind in self.failed or kind in self._pending:
+                return None
+            path = None if self.graph_dir is None else self.graph_dir / f"{kind.file_stem}.xml"
+            if path is not None and path.is_file():
+                self.graphs[kind] = self.core.read_model(path)
+                return self.graphs[kind]
+            logger.info(
+                "openvino: exporting the graph for iterations %s (%s start) in the background, once "
+                "(about a minute); these calls run on torch until it is ready",
+                kind.iters,
+                "warm" if kind.warm_start else "cold",
+            )
+            self._pending[kind] = threading.Event()
+            # A daemon thread: an export under way never holds up the process's exit (the graph
+            # reaches the disk cache complete or not at all).
+            threading.Thread(target=self._export, args=(kind, path), name="openvino-export", daemon=True).start()
+            return None
+
+    def _export(self, kind: GraphKind, path: Path | None) -> None:
+        with self._export_lock:
+            self._export_one(kind, path)
+        with self._lock:
+            self._pending.pop(kind).set()
+
+    def _export_one(self, kind: GraphKind, path: Path | None) -> None:
+        import openvino as ov
+
+        try:
+            graph = export_graph(self.network, kind)
+            if path is not None:
+                path.parent.mkdir(parents=True, exist_ok=True)
+                partial = path.with_name(f".{os.getpid()}-{path.name}")
+                ov.save_model(graph, partial, compress_to_fp16=False)
+                partial.with_suffix(".bin").replace(path.with_suffix(".bin"))
+                partial.replace(path)  # the .xml last: a graph on disk is complete
+        except Exception:
+            logger.exception("openvino: export failed for iterations %s; they run on torch", kind.iters)
+            with self._lock:
+                self.failed.add(kind)
+            return
+        with self._lock:
+            self.graphs[kind] = graph
+            self.exports += 1
+
+    def _compiled(self, kind: GraphKind, graph: Any, shape: tuple[int, ...], bf16: bool) -> Any:
+        key = (kind, shape, bf16)
+        with self._lock:
+            if key in self.compiled:
+                self.compiled.move_to_end(key)
+                return self.compiled[key]
+            static = graph.clone()
+            batch, _, height, width = shape
+            images, init = [batch, 3, height, width], [batch, 1, height, width]
+            static.reshape({port: images if i < 2 else init for i, port in enumerate(static.inputs)})
+            compiled = self.core.compile_model(
+                static,
+                "CPU",
+                {
+                    "INFERENCE_PRECISION_HINT": "bf16" if bf16 else "f32",
+                    "INFERENCE_NUM_THREADS": torch.get_num_threads(),
+                    "PERFORMANCE_HINT": "LATENCY",
+                },
+            )
+            self.compiles += 1
+            put_bounded(self.compiled, key, compiled, self.max_shapes)
+            return compiled
