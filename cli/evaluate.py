@@ -47,6 +47,7 @@ def run(args: argparse.Namespace) -> int:
         iters=iterations(args),
         scale=args.scale,
     )
+    print(f"{predictor.name} on {predictor.backend}, {predictor.precision}")
     print(report.table())
     print()
     print(report.uncertainty_table())

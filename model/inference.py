@@ -108,6 +108,7 @@ def load_model(
     backend: BackendChoice = "auto",
     precision: PrecisionChoice = "auto",
     cuda_graphs: bool = True,
+    cache_dir: str | Path | None = None,
 ) -> StereoPredictor:
     """Build the ``name`` network (``lite`` | ``full``) and load its weights.
 
@@ -115,8 +116,8 @@ def load_model(
     ``"config"``); None loads the bundled ``model/weights/{name}.pt`` if present, else the network is
     randomly initialised (seed 0, so every process gets the same one) with a warning.
     ``backend`` and ``precision``: see ``resolve_backend`` and ``resolve_precision``; the
-    predictor's ``backend`` and ``precision`` say what was picked. ``cuda_graphs``: see
-    ``StereoPredictor``.
+    predictor's ``backend`` and ``precision`` say what was picked. ``cuda_graphs`` and
+    ``cache_dir``: see ``StereoPredictor``.
     """
     device = torch.device(device)
     chosen = resolve_backend(backend, device)
@@ -124,6 +125,7 @@ def load_model(
         "backend": chosen,
         "precision": resolve_precision(precision, chosen),
         "cuda_graphs": cuda_graphs,
+        "cache_dir": None if cache_dir is None else Path(cache_dir),
     }
     path = Path(weights) if weights is not None else WEIGHTS_DIR / f"{name}.pt"
     if weights is None and not path.is_file():
@@ -224,7 +226,8 @@ class StereoPredictor:
     and the model card measure how far they move); may be changed at any time.
     backend: "torch", or "openvino" to run every forward through ``openvino`` (an
     ``OpenVINOForward``, with torch as its fallback while a graph is being exported; its graphs
-    are cached on disk under the weights' hash). ``prepare`` makes a graph ready before timing.
+    are cached under the weights' hash in ``cache_dir``, by default ``$CRESTEREO_CACHE_DIR`` or
+    ``~/.cache/crestereo-pp``). ``prepare`` makes a graph ready before timing.
     graphs: on a CUDA device with ``cuda_graphs``, the CUDA-graph replay (``model.cuda_graphs``)
     that ``predict_batch`` runs its forward through, one graph per padded shape; else None.
     """
@@ -241,6 +244,7 @@ class StereoPredictor:
         backend: Backend = "torch",
         precision: Precision = "fp32",
         cuda_graphs: bool = True,
+        cache_dir: Path | None = None,
     ) -> None:
         self.device = torch.device(device)
         self.network = network.to(self.device).eval()
@@ -256,6 +260,7 @@ class StereoPredictor:
                 self.network,
                 self.forward,
                 cache_key=None if weights_sha256 is None else f"{name}-{weights_sha256[:16]}-torch{torch.__version__}",
+                cache_dir=cache_dir,
             )
             if self.backend == "openvino"
             else None
@@ -281,6 +286,11 @@ class StereoPredictor:
         if self.openvino is None:
             return True
         return self.openvino.prepare(self.iterations(iters), warm_start, wait=wait)
+
+    def ready(self, iters: Iterations = None, *, warm_start: bool = False) -> bool:
+        """Whether calls with these iterations (and a cold or warm start) run on this predictor's
+        backend now; False while OpenVINO is still exporting their graph (torch computes them)."""
+        return self.openvino is None or self.openvino.ready(self.iterations(iters), warm_start)
 
     def iterations(self, iters: Iterations) -> tuple[int, int, int]:
         if iters is None:

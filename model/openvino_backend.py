@@ -61,13 +61,13 @@ def native_bf16(cpuinfo: Path = Path("/proc/cpuinfo")) -> bool:
 
 
 def default_cache_dir() -> Path:
-    """Where exported graphs and compiled blobs are kept: ``$CRESTEREO_CACHE_DIR``, else
-    ``$XDG_CACHE_HOME/crestereo-pp``, else ``~/.cache/crestereo-pp``; then ``openvino/``."""
+    """Where the project's caches live: ``$CRESTEREO_CACHE_DIR``, else
+    ``$XDG_CACHE_HOME/crestereo-pp``, else ``~/.cache/crestereo-pp``."""
     root = os.environ.get("CRESTEREO_CACHE_DIR")
     if root:
-        return Path(root) / "openvino"
+        return Path(root)
     xdg = os.environ.get("XDG_CACHE_HOME")
-    return (Path(xdg) if xdg else Path.home() / ".cache") / "crestereo-pp" / "openvino"
+    return (Path(xdg) if xdg else Path.home() / ".cache") / "crestereo-pp"
 
 
 @dataclass(frozen=True)
@@ -125,7 +125,8 @@ class OpenVINOForward:
 
     network: the eval-mode network to export. fallback: the torch forward for graphs not ready.
     cache_key: names these weights in the disk cache (their hash); None keeps graphs in memory
-    only. max_shapes: compiled shapes kept in memory (least recently used dropped first).
+    only. cache_dir: the cache's root (``default_cache_dir()``); graphs and blobs go to its
+    ``openvino/`` folder. max_shapes: compiled shapes kept in memory (least recently used dropped first).
     Thread-safe: calls may come from several threads; one export runs at a time, in a daemon thread.
     """
 
@@ -145,11 +146,12 @@ class OpenVINOForward:
         self.network = network
         self.fallback = fallback
         self.max_shapes = max_shapes
-        directory = cache_dir or default_cache_dir()
+        directory = (cache_dir or default_cache_dir()) / "openvino"
         self.graph_dir = None if cache_key is None else directory / f"{cache_key}-v{EXPORT_VERSION}"
         self.core = ov.Core()
-        if cache_key is not None:
-            self.core.set_property({"CACHE_DIR": str(directory / "compiled")})
+        compiled_dir = directory / "compiled"
+        if cache_key is not None and _writable(compiled_dir):
+            self.core.set_property({"CACHE_DIR": str(compiled_dir)})
         self.graphs: dict[GraphKind, Any] = {}
         self.compiled: OrderedDict[tuple[GraphKind, tuple[int, ...], bool], Any] = OrderedDict()
         self.failed: set[GraphKind] = set()
@@ -227,12 +229,6 @@ class OpenVINOForward:
 
         try:
             graph = export_graph(self.network, kind)
-            if path is not None:
-                path.parent.mkdir(parents=True, exist_ok=True)
-                partial = path.with_name(f".{os.getpid()}-{path.name}")
-                ov.save_model(graph, partial, compress_to_fp16=False)
-                partial.with_suffix(".bin").replace(path.with_suffix(".bin"))
-                partial.replace(path)  # the .xml last: a graph on disk is complete
         except Exception:
             logger.exception("openvino: export failed for iterations %s; they run on torch", kind.iters)
             with self._lock:
@@ -241,6 +237,16 @@ class OpenVINOForward:
         with self._lock:
             self.graphs[kind] = graph
             self.exports += 1
+        if path is None:
+            return
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            partial = path.with_name(f".{os.getpid()}-{path.name}")
+            ov.save_model(graph, partial, compress_to_fp16=False)
+            partial.with_suffix(".bin").replace(path.with_suffix(".bin"))
+            partial.replace(path)  # the .xml last: a graph on disk is complete
+        except (OSError, RuntimeError) as error:  # a read-only cache: the graph serves from memory
+            logger.warning("openvino: the graph is not cached on disk (%s); a restart exports it again", error)
 
     def _compiled(self, kind: GraphKind, graph: Any, shape: tuple[int, ...], bf16: bool) -> Any:
         key = (kind, shape, bf16)
@@ -264,3 +270,12 @@ class OpenVINOForward:
             self.compiles += 1
             put_bounded(self.compiled, key, compiled, self.max_shapes)
             return compiled
+
+
+def _writable(directory: Path) -> bool:
+    """Whether `directory` exists or can be made, and files can be written in it."""
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+    except OSError:
+        return False
+    return os.access(directory, os.W_OK)

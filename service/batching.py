@@ -27,6 +27,7 @@ import numpy as np
 
 from model import Iterations, ModelConfig, Prediction
 from model.calibration import UncertaintyCalibration
+from model.inference import Backend, Precision
 from service.metrics import Metrics
 from service.scheduling import (
     BatchKey,
@@ -50,6 +51,8 @@ class Predictor(Protocol):
     weights_sha256: str | None
     calibration: UncertaintyCalibration | None
     training: dict[str, Any] | None
+    backend: Backend
+    precision: Precision
 
     @property
     def num_parameters(self) -> int: ...
@@ -61,6 +64,8 @@ class Predictor(Protocol):
     def config(self) -> ModelConfig: ...
 
     def iterations(self, iters: Iterations) -> tuple[int, int, int]: ...
+
+    def ready(self, iters: Iterations = None, *, warm_start: bool = False) -> bool: ...
 
     def predict_batch(
         self,

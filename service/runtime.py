@@ -119,7 +119,9 @@ class ServiceRuntime:
                         name,
                         weights=weights,
                         device=self.settings.device,
+                        backend=self.settings.backend,
                         precision=self.settings.precision,
+                        cache_dir=self.settings.cache_dir,
                     ),
                 )
                 logger.info(
@@ -128,6 +130,8 @@ class ServiceRuntime:
                         "model": name,
                         "parameters": self.predictors[name].num_parameters,
                         "weights": weights_identity(self.predictors[name]),
+                        "backend": self.predictors[name].backend,
+                        "precision": self.predictors[name].precision,
                     },
                 )
         except Exception:

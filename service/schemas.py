@@ -320,6 +320,15 @@ class ModelInfo(BaseModel):
         "maps are not usable (answers carry `X-Model-Status: untrained`). `training.dev_metrics` has the numbers."
     )
     parameters: int
+    backend: Literal["torch", "openvino"] = Field(
+        description="What computes the maps: `openvino` (compiled for the CPU) or `torch`."
+    )
+    precision: Literal["fp32", "bf16"]
+    compiled: bool = Field(
+        description="Whether requests with the default iterations run on `backend` now. False while OpenVINO "
+        "is still compiling them (once per weights, in the background, from the first request; about a "
+        "minute): torch answers those meanwhile, with the same maps."
+    )
     iterations: list[int] = Field(description="Default ARM iterations at 1/16, 1/8, 1/4.")
     uncertainty: str = Field(description="What the `uncertainty` map means for these weights.")
     training: TrainingSummary | None = Field(None, description="None for weights without a record.")
