@@ -1,12 +1,16 @@
-"""Inference speed of lite and full on this machine, against its own fp32 matmul rate.
+"""Inference speed of lite and full per backend and precision on this machine, beside SGBM.
 
-    python bench/model_speed.py [--runs 5] [--models lite full] [--sizes 384x1248 480x640] [--profile]
+    python bench/model_speed.py [--runs 5] [--models lite full] [--sizes 384x1248 480x640 256x512]
+                                [--backends torch openvino] [--precisions fp32 bf16] [--profile]
 
-Prints the measured fp32 matmul GFLOP/s, then per model and size: median latency over --runs
-runs after one warm-up, counted model FLOPs (torch.utils.flop_counter: convolutions and matrix
-products; grid_sample and elementwise work are not counted), achieved GFLOP/s, its ratio to the
-matmul rate, and peak memory. Each (model, size) runs in a fresh child process so that its
-peak RSS is its own. --profile adds the top operators by CPU time (torch.profiler).
+Prints the CPU's bf16 support and the measured fp32 matmul GFLOP/s, then per model, size,
+backend and precision: median latency over --runs runs, its speed-up over torch fp32 at that
+size (measured in the same run), counted model FLOPs (torch.utils.flop_counter on the torch row:
+convolutions and matrix products; grid_sample and elementwise work are not counted) and the
+GFLOP/s they make, the OpenVINO graph's preparation time (its export, or reading it from the
+cache) and the first call's time (OpenVINO compiles the shape there), and peak memory; then
+OpenCV SGBM on the same pairs. Each row runs in a fresh child process, so that its peak RSS is its
+own. torch rows with bf16 run under autocast. --profile adds the torch rows' top operators.
 """
 
 from __future__ import annotations
@@ -21,12 +25,16 @@ import time
 import warnings
 from pathlib import Path
 
+import numpy as np
 import torch
 from torch.utils.flop_counter import FlopCounterMode
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a checkout without installing
+from evaluation.sgbm import sgbm_disparity  # noqa: E402
 from model import load_model  # noqa: E402
 from model.config import MODEL_NAMES  # noqa: E402
+from model.inference import Backend, Precision  # noqa: E402
+from model.openvino_backend import native_bf16  # noqa: E402
 
 
 def matmul_gflops(n: int = 2048, runs: int = 10) -> float:
@@ -45,72 +53,111 @@ def peak_rss_mib() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
-def measure(name: str, height: int, width: int, runs: int, profile: bool) -> dict:
-    """One model at one size, in this process."""
+def measure(
+    name: str, height: int, width: int, backend: Backend, precision: Precision, runs: int, profile: bool
+) -> dict:
+    """One model at one size on one backend and precision, in this process."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # random weights time the same as trained ones
-        predictor = load_model(name)
+        predictor = load_model(name, backend=backend, precision=precision)
     left = torch.rand(1, 3, height, width) * 255
     right = torch.rand(1, 3, height, width) * 255
-    rss_loaded = peak_rss_mib()
-    with FlopCounterMode(display=False) as counter:
-        predictor.predict(left, right)  # also the warm-up
+    start = time.perf_counter()
+    if not predictor.prepare():
+        raise RuntimeError(f"{name} could not be prepared on {backend}")
+    prepare_s = time.perf_counter() - start
+    start = time.perf_counter()
+    if backend == "torch":
+        with FlopCounterMode(display=False) as counter:
+            predictor.predict(left, right)  # the warm-up
+        gflop: float | None = counter.get_total_flops() / 1e9
+    else:
+        predictor.predict(left, right)  # the warm-up, which compiles the shape
+        gflop = None
+    first_call_s = time.perf_counter() - start
     times = []
     for _ in range(runs):
         start = time.perf_counter()
         predictor.predict(left, right)
         times.append(time.perf_counter() - start)
     result = {
-        "model": name,
-        "size": f"{height}x{width}",
         "median_s": statistics.median(times),
-        "gflop": counter.get_total_flops() / 1e9,
+        "gflop": gflop,
+        "prepare_s": prepare_s,
+        "first_call_s": first_call_s,
         "peak_rss_mib": peak_rss_mib(),
-        "rss_increase_mib": peak_rss_mib() - rss_loaded,
     }
-    if profile:
+    if profile and backend == "torch":
         with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU]) as prof:
             predictor.predict(left, right)
         result["profile"] = prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=15)
     return result
 
 
+def sgbm_seconds(height: int, width: int, runs: int) -> float:
+    """Median seconds of OpenCV SGBM (the evaluation's baseline, with its left-right check) on a
+    random pair, disparities up to a quarter of the width (at most 192 px)."""
+    rng = np.random.default_rng(0)
+    left = rng.integers(0, 256, (height, width, 3), dtype=np.uint8)
+    right = np.ascontiguousarray(np.roll(left, -8, axis=1))
+    times = []
+    for _ in range(runs + 1):
+        start = time.perf_counter()
+        sgbm_disparity(left, right, float(min(192, width // 4)))
+        times.append(time.perf_counter() - start)
+    return statistics.median(times[1:])
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--runs", type=int, default=5)
     parser.add_argument("--models", nargs="+", default=list(MODEL_NAMES))
-    parser.add_argument("--sizes", nargs="+", default=["384x1248", "480x640"])
+    parser.add_argument("--sizes", nargs="+", default=["384x1248", "480x640", "256x512"])
+    parser.add_argument("--backends", nargs="+", choices=["torch", "openvino"], default=["torch", "openvino"])
+    parser.add_argument("--precisions", nargs="+", choices=["fp32", "bf16"], default=["fp32", "bf16"])
     parser.add_argument("--profile", action="store_true")
-    parser.add_argument("--one", help=argparse.SUPPRESS)  # child mode: "model:HxW"
+    parser.add_argument("--one", help=argparse.SUPPRESS)  # child mode: "model:HxW:backend:precision"
     args = parser.parse_args()
 
     if args.one:
-        name, size = args.one.split(":")
+        name, size, backend, precision = args.one.split(":")
         height, width = map(int, size.split("x"))
-        print(json.dumps(measure(name, height, width, args.runs, args.profile)))
+        print(json.dumps(measure(name, height, width, backend, precision, args.runs, args.profile)))
         return
 
     rate = matmul_gflops()
-    print(f"torch {torch.__version__}, {torch.get_num_threads()} intra-op threads")
+    print(f"torch {torch.__version__}, {torch.get_num_threads()} intra-op threads; native bf16: {native_bf16()}")
     print(f"fp32 matmul (2048^3): {rate:.1f} GFLOP/s\n")
-    header = "| model | size | median latency (s) | GFLOP | GFLOP/s | of matmul | peak RSS (MiB) | RSS increase (MiB) |"
-    print(header)
-    print("|" + "---|" * 8)
+    print(
+        "| model | size | backend | precision | median latency (s) | vs torch fp32 | GFLOP/s | prepare (s) "
+        "| first call (s) | peak RSS (MiB) |"
+    )
+    print("|" + "---|" * 10)
     profiles = []
     for name in args.models:
         for size in args.sizes:
-            command = [sys.executable, __file__, "--one", f"{name}:{size}", "--runs", str(args.runs)]
-            if args.profile:
-                command.append("--profile")
-            r = json.loads(subprocess.run(command, check=True, capture_output=True, text=True).stdout)
-            achieved = r["gflop"] / r["median_s"]
-            print(
-                f"| {name} | {size} | {r['median_s']:.3f} | {r['gflop']:.1f} | {achieved:.1f} | "
-                f"{100 * achieved / rate:.0f} % | {r['peak_rss_mib']:.0f} | {r['rss_increase_mib']:.0f} |",
-                flush=True,
-            )
-            if "profile" in r:
-                profiles.append((f"{name} {size}", r["profile"]))
+            reference: float | None = None
+            gflop: float | None = None
+            for backend in args.backends:
+                for precision in args.precisions:
+                    command = [sys.executable, __file__, "--one", f"{name}:{size}:{backend}:{precision}"]
+                    command += ["--runs", str(args.runs)] + (["--profile"] if args.profile else [])
+                    r = json.loads(subprocess.run(command, check=True, capture_output=True, text=True).stdout)
+                    gflop = r["gflop"] or gflop
+                    if (backend, precision) == ("torch", "fp32"):
+                        reference = r["median_s"]
+                    ratio = f"{reference / r['median_s']:.2f}x" if reference else "-"
+                    achieved = f"{gflop / r['median_s']:.1f}" if gflop else "-"
+                    print(
+                        f"| {name} | {size} | {backend} | {precision} | {r['median_s']:.3f} | {ratio} | {achieved} | "
+                        f"{r['prepare_s']:.1f} | {r['first_call_s']:.2f} | {r['peak_rss_mib']:.0f} |",
+                        flush=True,
+                    )
+                    if "profile" in r:
+                        profiles.append((f"{name} {size}", r["profile"]))
+    for size in args.sizes:
+        height, width = map(int, size.split("x"))
+        print(f"| SGBM | {size} | OpenCV | - | {sgbm_seconds(height, width, args.runs):.3f} | | | | | |", flush=True)
     for title, table in profiles:
         print(f"\n## profile: {title}\n{table}")
 
