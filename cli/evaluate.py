@@ -9,7 +9,7 @@ from pathlib import Path
 from evaluation.evaluate import evaluate
 from stereo_data.readers import LAYOUTS, open_dataset
 
-from .options import add_model_options, iterations, load_predictor
+from .options import add_model_options, inference_options, load_predictor
 
 
 def add_parser(commands: argparse._SubParsersAction) -> None:
@@ -43,9 +43,7 @@ def run(args: argparse.Namespace) -> int:
         dataset_name=str(args.data_dir),
         baseline_sgbm=args.baseline == "sgbm",
         sheets_dir=args.sheets,
-        two_pass=args.two_pass,
-        iters=iterations(args),
-        scale=args.scale,
+        options=inference_options(args),
     )
     print(f"{predictor.name} on {predictor.backend}, {predictor.precision}")
     print(report.table())

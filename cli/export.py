@@ -5,11 +5,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from model import load_model
+from model import load_model, parse_iterations
 from model.weights import read_weights
 from training.export import export_weights
-
-from .options import iterations
 
 
 def add_parser(commands: argparse._SubParsersAction) -> None:
@@ -66,7 +64,11 @@ def run_onnx(args: argparse.Namespace) -> int:
         ) from error
     name = str(read_weights(args.checkpoint).get("model_name") or "lite")
     predictor = load_model(name, args.checkpoint, "cpu")
-    export_onnx(predictor, args.output, args.height, args.width, args.batch, iterations(args))
+    try:
+        iters = parse_iterations(args.iters)
+    except ValueError as error:
+        raise SystemExit(f"crestereo-pp: {error}") from None
+    export_onnx(predictor, args.output, args.height, args.width, args.batch, iters)
     size_mib = args.output.stat().st_size / 2**20
     print(f"wrote {args.output} ({size_mib:.2f} MiB, {name}, input {args.batch}x3x{args.height}x{args.width})")
     return 0

@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from model import StereoPredictor, load_model
+from model import InferenceOptions, StereoPredictor, load_model, parse_iterations
 from model.config import MODEL_NAMES
 from model.device import resolve_device
 
@@ -44,15 +44,18 @@ def add_model_options(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def iterations(args: argparse.Namespace) -> int | tuple[int, int, int] | None:
-    """--iters as `StereoPredictor.predict` takes it; a usage error unless 1 or 3 counts."""
-    if args.iters is None:
-        return None
-    if len(args.iters) == 1:
-        return args.iters[0]
-    if len(args.iters) == 3:
-        return (args.iters[0], args.iters[1], args.iters[2])
-    raise SystemExit(f"crestereo-pp: --iters takes 1 or 3 counts, got {len(args.iters)}")
+def inference_options(args: argparse.Namespace) -> InferenceOptions:
+    """--iters, --two-pass, --scale (and --raw-uncertainty where the command has it) as one value;
+    a usage error where they are invalid."""
+    try:
+        return InferenceOptions(
+            parse_iterations(args.iters),
+            args.two_pass,
+            args.scale,
+            getattr(args, "raw_uncertainty", False),
+        )
+    except ValueError as error:
+        raise SystemExit(f"crestereo-pp: {error}") from None
 
 
 def load_predictor(args: argparse.Namespace) -> StereoPredictor:
@@ -66,13 +69,14 @@ def load_predictor(args: argparse.Namespace) -> StereoPredictor:
         backend=args.backend,
         precision=args.precision,
     )
-    for warm_start in (False, True) if args.two_pass else (False,):
-        if not predictor.prepare(iterations(args), warm_start=warm_start, wait=False):
+    options = inference_options(args)
+    for warm_start in (False, True) if options.two_pass else (False,):
+        if not predictor.prepare(options.iters, warm_start=warm_start, wait=False):
             print(
                 f"crestereo-pp: compiling {args.model} for OpenVINO ({'warm' if warm_start else 'cold'} start), once: "
                 "about a minute; later runs read it from the cache",
                 file=sys.stderr,
             )
-            if not predictor.prepare(iterations(args), warm_start=warm_start, wait=True):
+            if not predictor.prepare(options.iters, warm_start=warm_start, wait=True):
                 print("crestereo-pp: the OpenVINO export failed (see the log); running on torch", file=sys.stderr)
     return predictor

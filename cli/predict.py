@@ -23,7 +23,7 @@ from stereo_data.pointcloud import (
 )
 from stereo_data.visualize import disparity_picture, scale_range
 
-from .options import add_model_options, iterations, load_predictor
+from .options import add_model_options, inference_options, load_predictor
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".ppm", ".pgm", ".tif", ".tiff", ".webp"}
 DISPARITY_FORMATS = ("pfm", "png", "npy")
@@ -198,6 +198,7 @@ def run(args: argparse.Namespace) -> int:
     targets = outputs(args)
     check_outputs(targets, single, args.mkdir)
     predictor = load_predictor(args)
+    options = inference_options(args)
     calibration = None if args.focal_px is None else Calibration(args.focal_px, args.baseline_m, args.cx, args.cy)
     for pair in tqdm(pairs, desc=f"predict {args.model}", unit="pair", disable=single):
         left, right = read_image(pair.left), read_image(pair.right)
@@ -207,14 +208,7 @@ def run(args: argparse.Namespace) -> int:
                 for path, image in ((pair.left, left), (pair.right, right))
             ]
             raise ValueError(f"{sizes[0]} but {sizes[1]}: a rectified pair has two images of one size")
-        prediction = predictor.predict(
-            left,
-            right,
-            iters=iterations(args),
-            two_pass=args.two_pass,
-            scale=args.scale,
-            raw_uncertainty=args.raw_uncertainty,
-        )
+        prediction = predictor.predict(left, right, **options.keywords())
         for output in targets:
             path = output.file(pair, single)
             path.parent.mkdir(parents=True, exist_ok=True)

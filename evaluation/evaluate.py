@@ -11,8 +11,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from model import Prediction, StereoPredictor
-from model.inference import Iterations
+from model import InferenceOptions, Prediction, StereoPredictor
 from stereo_data.formats import encode_png
 from stereo_data.readers import StereoSample
 from stereo_data.visualize import UNCERTAINTY_COLORMAP, colorize
@@ -163,14 +162,12 @@ def evaluate(
     dataset_name: str,
     baseline_sgbm: bool = False,
     sheets_dir: Path | None = None,
-    two_pass: bool = False,
-    iters: Iterations = None,
-    scale: float = 1.0,
+    options: InferenceOptions | None = None,
     progress: bool = True,
 ) -> EvaluationReport:
     """Predict every pair of `dataset` with `predictor` (and SGBM when `baseline_sgbm`), score it.
 
-    two_pass, iters, scale: the inference knobs of `StereoPredictor.predict`.
+    options: how each pair is computed (`StereoPredictor.predict`'s options; None: the defaults).
     Times are wall-clock seconds of one prediction, the model's after one untimed warm-up
     prediction at each image size (where OpenVINO compiles the size). With `sheets_dir`, writes
     `sheets_dir/NAME.png` per pair: left image, ground truth, uncertainty, then each method's
@@ -179,6 +176,7 @@ def evaluate(
     """
     if len(dataset) == 0:
         raise ValueError(f"{dataset_name} holds no stereo pairs")
+    options = options or InferenceOptions()
     report = EvaluationReport(
         dataset=dataset_name,
         model={
@@ -187,9 +185,9 @@ def evaluate(
             "num_parameters": predictor.num_parameters,
             "backend": predictor.backend,
             "precision": predictor.precision,
-            "iters": iters,  # None: the model's own
-            "two_pass": two_pass,
-            "scale": scale,
+            "iters": options.iters,  # None: the model's own
+            "two_pass": options.two_pass,
+            "scale": options.scale,
             "uncertainty": (
                 f"P(error > {predictor.calibration.threshold_px:g} px), fitted on {predictor.calibration.fitted_on}"
                 if predictor.calibration is not None
@@ -199,7 +197,7 @@ def evaluate(
     )
 
     def predict(sample: StereoSample) -> Prediction:
-        return predictor.predict(sample.left, sample.right, two_pass=two_pass, iters=iters, scale=scale)
+        return predictor.predict(sample.left, sample.right, **options.keywords())
 
     sizes_seen: set[tuple[int, ...]] = set()
     for index in tqdm(range(len(dataset)), desc=f"eval {predictor.name}", unit="pair", disable=not progress):

@@ -8,12 +8,14 @@ Disparity is positive everywhere, in pixels of the left image (the right match i
 """
 
 from .config import ModelConfig
-from .inference import Iterations, Prediction, StereoPredictor, TensorPrediction, load_model
+from .inference import Prediction, StereoPredictor, TensorPrediction, load_model
 from .loss import matching_loss, sequence_loss
 from .network import CREStereoPP, NetworkOutput, padded_size
+from .options import InferenceOptions, Iterations, parse_iterations
 
 __all__ = [
     "CREStereoPP",
+    "InferenceOptions",
     "Iterations",
     "ModelConfig",
     "NetworkOutput",
@@ -23,5 +25,6 @@ __all__ = [
     "load_model",
     "matching_loss",
     "padded_size",
+    "parse_iterations",
     "sequence_loss",
 ]

@@ -19,11 +19,9 @@ from .config import ModelConfig
 from .cuda_graphs import Forward, GraphedForward
 from .network import CREStereoPP, padded_size
 from .openvino_backend import OpenVINOForward, native_bf16, openvino_available
+from .options import Iterations, parse_iterations
 from .upsample import resize_disparity
 from .weights import USABLE_BAD2, WEIGHTS_DIR, file_sha256, is_trained, network_from_weights, read_weights
-
-Iterations = int | tuple[int, int, int] | None
-"""None: the config's iterations; int: iterations of the finest (1/4) stage; or (n16, n8, n4)."""
 
 Precision = Literal["fp32", "bf16"]
 """fp32: the network in float32; bf16: torch under bf16 autocast, OpenVINO with bf16 inference
@@ -293,13 +291,13 @@ class StereoPredictor:
         return self.openvino is None or self.openvino.ready(self.iterations(iters), warm_start)
 
     def iterations(self, iters: Iterations) -> tuple[int, int, int]:
-        if iters is None:
+        """The counts per stage (1/16, 1/8, 1/4) that ``iters`` (see ``parse_iterations``) means here."""
+        parsed = parse_iterations(iters)
+        if parsed is None:
             return self.config.iters
-        if isinstance(iters, int):
-            return (*self.config.iters[:2], iters)
-        if len(iters) != 3:
-            raise ValueError(f"iters must be an int or three counts (1/16, 1/8, 1/4), got {iters}")
-        return (*iters,)  # a tuple also when given as a list
+        if isinstance(parsed, int):
+            return (*self.config.iters[:2], parsed)
+        return parsed
 
     @overload
     def predict(

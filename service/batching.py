@@ -25,7 +25,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from model import Iterations, ModelConfig, Prediction
+from model import InferenceOptions, Iterations, ModelConfig, Prediction
 from model.calibration import UncertaintyCalibration
 from model.inference import Backend, Precision
 from service.metrics import Metrics
@@ -34,7 +34,6 @@ from service.scheduling import (
     BatchLimits,
     ComputeTime,
     ComputeTimes,
-    Knobs,
     batch_key,
     choose_batch,
     relative_cost,
@@ -142,14 +141,14 @@ class Admission:
         left: np.ndarray,
         right: np.ndarray,
         *,
-        knobs: Knobs,
+        options: InferenceOptions,
         deadline: float | None,
         is_disconnected: Callable[[], Awaitable[bool]],
         request_id: str | None = None,
     ) -> JobResult:
         """Queue a decoded pair (uint8 HxWx3 RGB) and wait for its result."""
         height, width = left.shape[:2]
-        job = _Job(batch_key(self.model, knobs, height, width), left, right, deadline, is_disconnected, request_id)
+        job = _Job(batch_key(self.model, options, height, width), left, right, deadline, is_disconnected, request_id)
         if deadline is not None and deadline <= job.enqueued_at:
             raise DeadlineExceeded("deadline passed before the request was queued")
         self.job = job
@@ -242,8 +241,8 @@ class Batcher:
     def work(self, key: BatchKey) -> float:
         """Units of compute of one request of `key` (`service.scheduling.relative_cost`)."""
         predictor = self._predictors[key.model]
-        counts = predictor.iterations(key.knobs.iters)
-        cost = relative_cost(counts, predictor.config.iters, key.knobs.scale, key.knobs.two_pass)
+        counts = predictor.iterations(key.options.iters)
+        cost = relative_cost(counts, predictor.config.iters, key.options.scale, key.options.two_pass)
         return key.pixels * cost
 
     def retry_after(self, model: str) -> int:
@@ -396,13 +395,5 @@ def compute_batch(
 ) -> list[tuple[np.ndarray, np.ndarray]]:
     """Run one batch on the calling (worker) thread: `StereoPredictor.predict_batch`, which pads
     every pair to the batch shape the way the network pads one and returns host arrays."""
-    knobs = key.knobs
-    predictions = predictor.predict_batch(
-        lefts,
-        rights,
-        two_pass=knobs.two_pass,
-        iters=knobs.iters,
-        scale=knobs.scale,
-        raw_uncertainty=knobs.raw_uncertainty,
-    )
+    predictions = predictor.predict_batch(lefts, rights, **key.options.keywords())
     return [(p.disparity, p.uncertainty) for p in predictions]

@@ -8,17 +8,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Protocol, TypeVar
 
-from model import Iterations, padded_size
-
-
-@dataclass(frozen=True)
-class Knobs:
-    """The inference options of a request (`StereoPredictor.predict`'s keywords)."""
-
-    two_pass: bool = False
-    iters: Iterations = None
-    scale: float = 1.0
-    raw_uncertainty: bool = False
+from model import InferenceOptions, padded_size
 
 
 @dataclass(frozen=True)
@@ -26,7 +16,7 @@ class BatchKey:
     """Requests with equal keys may share a batch."""
 
     model: str
-    knobs: Knobs
+    options: InferenceOptions
     height: int  # input shape of the batch: padded to a multiple of 32, or exact (see batch_key)
     width: int
 
@@ -35,13 +25,13 @@ class BatchKey:
         return self.height * self.width
 
 
-def batch_key(model: str, knobs: Knobs, height: int, width: int) -> BatchKey:
+def batch_key(model: str, options: InferenceOptions, height: int, width: int) -> BatchKey:
     """Plain requests batch by padded shape: padding them to it is what the network does anyway.
     Two-pass and scaled requests batch by exact shape, since their resized passes see the
     unpadded image."""
-    if knobs.two_pass or knobs.scale != 1.0:
-        return BatchKey(model, knobs, height, width)
-    return BatchKey(model, knobs, padded_size(height), padded_size(width))
+    if options.two_pass or options.scale != 1.0:
+        return BatchKey(model, options, height, width)
+    return BatchKey(model, options, padded_size(height), padded_size(width))
 
 
 @dataclass(frozen=True)

@@ -10,6 +10,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, field_validator, model_validator
 
 from model.config import ModelName
+from model.options import InferenceOptions, parse_iterations
 from stereo_data.pointcloud import MIN_DISPARITY, Calibration
 
 
@@ -132,12 +133,9 @@ class DisparityOptions(BaseModel):
         return Calibration(self.focal_px, self.baseline_m, self.cx_px, self.cy_px)
 
     @property
-    def iterations(self) -> int | tuple[int, int, int] | None:
-        """`iters` as `StereoPredictor.predict` takes it."""
-        if self.iters is None:
-            return None
-        counts = tuple(int(n) for n in self.iters.split(","))
-        return counts[0] if len(counts) == 1 else (counts[0], counts[1], counts[2])
+    def inference(self) -> InferenceOptions:
+        """The options that say how the pair is computed (`model.InferenceOptions`)."""
+        return InferenceOptions(parse_iterations(self.iters), self.two_pass, self.scale, self.raw_uncertainty)
 
     @model_validator(mode="after")
     def _depth_needs_calibration(self) -> DisparityOptions:

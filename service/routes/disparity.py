@@ -26,7 +26,7 @@ from service.errors import ApiError, bad_input, client_gone, draining
 from service.images import ImageHeader
 from service.logs import request_id_var
 from service.runtime import ServiceRuntime, weights_identity
-from service.scheduling import Knobs, batch_key
+from service.scheduling import batch_key
 from service.schemas import DisparityOptions, DisparityResponse
 from service.uploads import ImageLimits, boundary_of
 
@@ -79,15 +79,15 @@ async def estimate_disparity(
     # Parsing and decoding untrusted bytes happen in the decoder processes, never here.
     left_bytes, right_bytes, header = await runtime.decoders.read_pair(body, content_type, limits, stop)
     del body
-    knobs = Knobs(options.two_pass, options.iterations, options.scale, options.raw_uncertainty)
+    inference = options.inference
     _check_scale(header, options.scale)
-    key = batch_key(options.model, knobs, header.height, header.width)
+    key = batch_key(options.model, inference, header.height, header.width)
     async with batcher.admit(options.model, key, deadline=deadline) as admission:
         left, right = await runtime.decoders.decode_pair(left_bytes, right_bytes, header, stop)
         result = await admission.run(
             left,
             right,
-            knobs=knobs,
+            options=inference,
             deadline=deadline,
             is_disconnected=request.is_disconnected,
             request_id=request_id_var.get(),

@@ -20,13 +20,15 @@ class OffsetPredictor:
     weights_sha256 = None
     num_parameters = 0
     calibration = None
+    backend = "torch"
+    precision = "fp32"
 
     def __init__(self, samples: list[StereoSample], offset: float) -> None:
         self.truth = {id(s.left): s.disparity for s in samples}
         self.offset = offset
         self.calls = 0
 
-    def predict(self, left, right, *, two_pass=False, iters=None, scale=1.0):
+    def predict(self, left, right, *, two_pass=False, iters=None, scale=1.0, raw_uncertainty=False):
         self.calls += 1
         truth = self.truth[id(left)]
         disparity = np.where(np.isfinite(truth), truth + self.offset, 0.0).astype(np.float32)

@@ -11,9 +11,10 @@ from dataclasses import dataclass
 import anyio
 import pytest
 
+from model import InferenceOptions
 from service.batching import Batcher, JobResult
 from service.metrics import Metrics
-from service.scheduling import BatchKey, BatchLimits, ComputeTimes, Knobs, batch_key, choose_batch, relative_cost
+from service.scheduling import BatchKey, BatchLimits, ComputeTimes, batch_key, choose_batch, relative_cost
 from service_helpers import GatedPredictor, lite_settings, quiet_load_model, stereo_pair
 
 pytestmark = pytest.mark.anyio  # the async tests; the sync ones ignore it
@@ -22,8 +23,8 @@ LEFT, RIGHT = stereo_pair()
 # --- the choice of the next batch (pure) -------------------------------------------------------
 
 LIMITS = BatchLimits(max_batch_size=3, max_batch_pixels=64 * 96 * 3, max_wait_s=0.010)
-SMALL = batch_key("lite", Knobs(), 64, 96)
-LARGE = batch_key("lite", Knobs(), 128, 192)  # twice as large each way: one per batch
+SMALL = batch_key("lite", InferenceOptions(), 64, 96)
+LARGE = batch_key("lite", InferenceOptions(), 128, 192)  # twice as large each way: one per batch
 
 
 @dataclass(frozen=True)
@@ -53,7 +54,7 @@ def test_a_partial_batch_waits_for_incoming_requests_until_its_oldest_has_waited
 
 
 def test_a_full_group_runs_before_an_older_partial_one_that_has_not_waited_long():
-    older = queue((batch_key("lite", Knobs(two_pass=True), 64, 96), 1.0))
+    older = queue((batch_key("lite", InferenceOptions(two_pass=True), 64, 96), 1.0))
     full = queue((SMALL, 1.001), (SMALL, 1.002), (SMALL, 1.003))
     assert choose_batch(older + full, incoming=1, now=1.004, limits=LIMITS) == (full, None)
     # ... but once the older group has waited max_wait it goes first
@@ -68,17 +69,17 @@ def test_a_batch_takes_the_oldest_requests_of_its_group_up_to_its_capacity():
 
 def test_the_pixel_limit_caps_a_batch_and_a_larger_image_runs_alone():
     assert LIMITS.capacity(SMALL) == 3
-    assert LIMITS.capacity(batch_key("lite", Knobs(), 64, 192)) == 1  # the pixel limit: 1.5 fit
+    assert LIMITS.capacity(batch_key("lite", InferenceOptions(), 64, 192)) == 1  # the pixel limit: 1.5 fit
     assert LIMITS.capacity(LARGE) == 1  # beyond the pixel limit: alone, never refused
     queued = queue((LARGE, 1.0), (LARGE, 1.001))
     assert choose_batch(queued, incoming=0, now=1.002, limits=LIMITS) == (queued[:1], None)
 
 
-def test_models_knobs_and_shapes_never_share_a_batch():
+def test_models_options_and_shapes_never_share_a_batch():
     others = [
-        batch_key("full", Knobs(), 64, 96),
-        batch_key("lite", Knobs(iters=4), 64, 96),
-        batch_key("lite", Knobs(), 96, 64),
+        batch_key("full", InferenceOptions(), 64, 96),
+        batch_key("lite", InferenceOptions(iters=4), 64, 96),
+        batch_key("lite", InferenceOptions(), 96, 64),
     ]
     queued = queue((SMALL, 1.0), *((key, 1.001 + i / 1000) for i, key in enumerate(others)), (SMALL, 1.005))
     batch, _ = choose_batch(queued, incoming=0, now=1.006, limits=LIMITS)
@@ -86,11 +87,11 @@ def test_models_knobs_and_shapes_never_share_a_batch():
 
 
 def test_plain_requests_batch_by_padded_shape_two_pass_and_scaled_ones_by_exact_shape():
-    plain = batch_key("lite", Knobs(), 50, 90)
-    assert plain == batch_key("lite", Knobs(), 64, 96) and (plain.height, plain.width) == (64, 96)
-    for knobs in (Knobs(two_pass=True), Knobs(scale=0.5)):
-        assert batch_key("lite", knobs, 50, 90) != batch_key("lite", knobs, 64, 96)
-        assert batch_key("lite", knobs, 50, 90).pixels == 50 * 90
+    plain = batch_key("lite", InferenceOptions(), 50, 90)
+    assert plain == batch_key("lite", InferenceOptions(), 64, 96) and (plain.height, plain.width) == (64, 96)
+    for options in (InferenceOptions(two_pass=True), InferenceOptions(scale=0.5)):
+        assert batch_key("lite", options, 50, 90) != batch_key("lite", options, 64, 96)
+        assert batch_key("lite", options, 50, 90).pixels == 50 * 90
 
 
 # --- compute-time statistics (pure) ------------------------------------------------------------
@@ -159,7 +160,9 @@ async def batcher(**settings: float) -> AsyncIterator[tuple[Batcher, GatedPredic
 
 async def run(batcher: Batcher, results: list[JobResult]) -> None:
     async with batcher.admit("lite") as admission:
-        results.append(await admission.run(LEFT, RIGHT, knobs=Knobs(), deadline=None, is_disconnected=connected))
+        results.append(
+            await admission.run(LEFT, RIGHT, options=InferenceOptions(), deadline=None, is_disconnected=connected)
+        )
 
 
 async def test_an_idle_server_runs_a_lone_request_at_once_whatever_the_max_wait():
@@ -178,7 +181,11 @@ async def test_a_partial_batch_waits_for_requests_still_being_decoded():
                 tg.start_soon(run, b, results)  # queued while `decoding` is still admitted
                 await anyio.sleep(0.2)
                 assert predictor.calls == []  # held back: another request is on its way
-                results.append(await decoding.run(LEFT, RIGHT, knobs=Knobs(), deadline=None, is_disconnected=connected))
+                results.append(
+                    await decoding.run(
+                        LEFT, RIGHT, options=InferenceOptions(), deadline=None, is_disconnected=connected
+                    )
+                )
     assert predictor.calls == [2] and [r.batch_size for r in results] == [2, 2]
 
 

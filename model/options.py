@@ -1,0 +1,68 @@
+"""How a pair is computed: one type for the per-call inference options, and the one parser of
+iteration counts. The HTTP query, the command line, the service's batch key and the predictor
+all speak `InferenceOptions`; the backend and precision are the predictor's own (``load_model``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+Iterations = int | tuple[int, int, int] | None
+"""None: the model's iterations; int: iterations of the finest (1/4) stage; or (n16, n8, n4)."""
+
+MAX_ITERATIONS = 99
+"""Most ARM iterations per stage that a caller may ask for."""
+
+
+def parse_iterations(value: str | int | Sequence[int] | None) -> Iterations:
+    """Iteration counts as given anywhere ("4", "1,2,4", 4, [1, 2, 4], (1, 2, 4), or None for the
+    model's) as ``Iterations``: one count or three, each 1..MAX_ITERATIONS; ValueError otherwise."""
+    if value is None:
+        return None
+    if isinstance(value, str):
+        try:
+            counts = tuple(int(part) for part in value.split(","))
+        except ValueError:
+            raise ValueError(f"iterations take 1 or 3 comma-separated counts, got {value!r}") from None
+    elif isinstance(value, int):
+        counts = (value,)
+    else:
+        counts = tuple(value)
+    if len(counts) not in (1, 3) or not all(isinstance(n, int) for n in counts):
+        raise ValueError(f"iterations take 1 or 3 counts (at 1/4, or at 1/16, 1/8, 1/4), got {value!r}")
+    if not all(1 <= n <= MAX_ITERATIONS for n in counts):
+        raise ValueError(f"each iteration count must be 1..{MAX_ITERATIONS}, got {value!r}")
+    return counts[0] if len(counts) == 1 else (counts[0], counts[1], counts[2])
+
+
+@dataclass(frozen=True)
+class InferenceOptions:
+    """The options of one prediction (``StereoPredictor.predict`` and ``predict_batch``).
+
+    iters: see ``Iterations`` (given in any form ``parse_iterations`` reads).
+    two_pass: a half-resolution pass first, then refinement at full resolution from it.
+    scale: in (0, 1]: the network sees the pair resized by this factor; maps come at input size.
+    raw_uncertainty: the paper's U instead of the calibrated probability of an error.
+    Hashable: requests with equal options (and shapes) may share a batch.
+    """
+
+    iters: Iterations = None
+    two_pass: bool = False
+    scale: float = 1.0
+    raw_uncertainty: bool = False
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "iters", parse_iterations(self.iters))
+        if not 0.0 < self.scale <= 1.0:
+            raise ValueError(f"scale must be in (0, 1], got {self.scale}")
+
+    def keywords(self) -> dict[str, Any]:
+        """The options as ``predict`` / ``predict_batch`` keywords."""
+        return {
+            "iters": self.iters,
+            "two_pass": self.two_pass,
+            "scale": self.scale,
+            "raw_uncertainty": self.raw_uncertainty,
+        }
