@@ -178,10 +178,10 @@ class OpenVINOForward:
         return disparity.to(left.device), uncertainty.to(left.device)
 
     def ready(self, iters: Iters, warm_start: bool = False) -> bool:
-        """Whether calls of this kind run on OpenVINO now."""
-        kind = GraphKind((*iters,), warm_start)
+        """Whether calls of this kind run on OpenVINO now (its graph in memory or in the disk
+        cache); starts nothing."""
         with self._lock:
-            return kind in self.graphs
+            return self._cached(GraphKind((*iters,), warm_start)) is not None
 
     def prepare(self, iters: Iters, warm_start: bool = False, *, wait: bool = True) -> bool:
         """Load or export the graph of this kind (in the background unless `wait`); returns
@@ -198,14 +198,10 @@ class OpenVINOForward:
     def _graph_or_prepare(self, kind: GraphKind) -> Any | None:
         """The kind's graph if it is in memory or on disk; else None, with its export under way."""
         with self._lock:
-            if kind in self.graphs:
-                return self.graphs[kind]
-            if kind in self.failed or kind in self._pending:
-                return None
-            path = None if self.graph_dir is None else self.graph_dir / f"{kind.file_stem}.xml"
-            if path is not None and path.is_file():
-                self.graphs[kind] = self.core.read_model(path)
-                return self.graphs[kind]
+            graph = self._cached(kind)
+            if graph is not None or kind in self.failed or kind in self._pending:
+                return graph
+            path = self._path(kind)
             logger.info(
                 "openvino: exporting the graph for iterations %s (%s start) in the background, once "
                 "(about a minute); these calls run on torch until it is ready",
@@ -217,6 +213,19 @@ class OpenVINOForward:
             # reaches the disk cache complete or not at all).
             threading.Thread(target=self._export, args=(kind, path), name="openvino-export", daemon=True).start()
             return None
+
+    def _path(self, kind: GraphKind) -> Path | None:
+        return None if self.graph_dir is None else self.graph_dir / f"{kind.file_stem}.xml"
+
+    def _cached(self, kind: GraphKind) -> Any | None:
+        """The kind's graph from memory, else from the disk cache (read into memory); None if
+        neither has it. Call with the lock held."""
+        if kind not in self.graphs:
+            path = self._path(kind)
+            if path is None or not path.is_file():
+                return None
+            self.graphs[kind] = self.core.read_model(path)
+        return self.graphs[kind]
 
     def _export(self, kind: GraphKind, path: Path | None) -> None:
         with self._export_lock:

@@ -33,3 +33,10 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
             or path.parent.name in SLOW_FOLDERS
         ):
             item.add_marker(pytest.mark.slow)
+
+
+@pytest.fixture(scope="session")
+def openvino_cache(tmp_path_factory: pytest.TempPathFactory):
+    """One OpenVINO cache folder for the whole run: a graph exported by one test is read from
+    disk by the next, as a restarted process reads it."""
+    return tmp_path_factory.mktemp("openvino-cache")

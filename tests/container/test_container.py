@@ -185,6 +185,12 @@ def test_disparity_of_a_real_pair(ready: tuple[str, str]) -> None:
     assert ((uncertainty >= 0) & (uncertainty <= 1)).all()
 
 
+def test_lite_runs_on_openvino_from_the_graph_the_image_carries(ready: tuple[str, str]) -> None:
+    _, url = ready
+    lite = httpx.get(f"{url}/models/lite", timeout=10).json()
+    assert lite["backend"] == "openvino" and lite["compiled"], lite  # no export at run time
+
+
 def test_malformed_request_is_a_json_4xx(ready: tuple[str, str]) -> None:
     _, url = ready
     left, _, _ = _stereo_pair()

@@ -31,8 +31,8 @@ def tsukuba():
 
 
 @pytest.fixture(scope="module")
-def cache_dir(tmp_path_factory):
-    return tmp_path_factory.mktemp("openvino-cache")
+def cache_dir(openvino_cache):
+    return openvino_cache
 
 
 @pytest.fixture(scope="module")

@@ -11,9 +11,19 @@ import cv2
 import numpy as np
 import pytest
 
+from model import load_model
 from service.logs import JsonFormatter
 from service.settings import Settings
-from service_helpers import HEIGHT, WIDTH, encode, pair_files, serve_asgi, stereo_pair
+from service_helpers import (
+    HEIGHT,
+    WIDTH,
+    assert_same_maps,
+    encode,
+    lite_settings,
+    pair_files,
+    serve_asgi,
+    stereo_pair,
+)
 from stereo_data.visualize import BAR_HEIGHT, PREVIEW_GAP
 
 pytestmark = pytest.mark.anyio
@@ -202,6 +212,22 @@ async def test_models_describe_each_loaded_model_in_open_inference_protocol_shap
     assert set(info["training"]["dev_metrics"]) == {"epe", "bad1", "bad2", "bad3", "d1_all"}
     assert (missing.status_code, missing.json()["error"]["code"]) == (404, "model_not_found")
     assert info["status"] == "trained"
+    assert (info["backend"], info["precision"], info["compiled"]) == ("torch", "fp32", True)
+
+
+async def test_on_openvino_the_service_says_so_and_answers_with_the_maps_torch_gives(openvino_cache):
+    left, right = stereo_pair()
+    settings = lite_settings(backend="openvino", precision="fp32", cache_dir=openvino_cache)
+    async with serve_asgi(settings) as h:
+        info = (await h.client.get("/models/lite")).json()
+        predictor = h.predictors["lite"]
+        assert predictor.prepare((1, 1, 1))  # exported, or read from the cache another test filled
+        runs = predictor.openvino.runs
+        answer = await h.client.post("/disparity", params={"iters": "1,1,1"}, files=pair_files(left, right))
+    assert (info["backend"], info["precision"]) == ("openvino", "fp32")
+    assert answer.status_code == 200 and predictor.openvino.runs == runs + 1
+    expected = load_model("lite", backend="torch").predict(left, right, iters=(1, 1, 1))
+    assert_same_maps(decode_array(answer.json()["disparity"]), expected.disparity)
 
 
 async def test_the_untrained_full_model_says_so_in_its_listing_and_on_every_answer():
