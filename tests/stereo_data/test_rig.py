@@ -1,0 +1,156 @@
+"""Spec of stereo_data.rig: a raw pair from a calibrated camera, rectified so that matches lie on
+one row at the disparity its geometry predicts, maps brought back to the original left pixels,
+and every unusable calibration refused with the field named."""
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from stereo_data.rig import Rectifier, RigError, parse_rig, read_rig
+
+WIDTH, HEIGHT = 320, 240
+K1 = np.array([[400.0, 0, 158], [0, 402.0, 121], [0, 0, 1]])
+K2 = np.array([[405.0, 0, 163], [0, 404.0, 118], [0, 0, 1]])
+D1 = np.array([-0.12, 0.05, 0.001, -0.001, 0.0])
+D2 = np.array([-0.10, 0.04, 0.0, 0.001, 0.0])
+R = cv2.Rodrigues(np.array([0.004, -0.02, 0.006]))[0]  # the right camera slightly turned
+T = np.array([-0.12, 0.003, 0.002])  # metres: the right camera 12 cm to the right
+PLANE_Z = 1.6  # metres in front of the left camera
+
+
+def opencv_file(path: Path, **entries: object) -> Path:
+    """A calibration as cv2.FileStorage writes it (YAML or JSON by the suffix)."""
+    values = {"K1": K1, "D1": D1, "K2": K2, "D2": D2, "R": R, "T": T, "image_width": WIDTH, "image_height": HEIGHT}
+    values.update(entries)
+    storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    for key, value in values.items():
+        if value is not None:
+            storage.write(key, value)
+    storage.release()
+    return path
+
+
+def texture(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Grey levels of the plane at metric coordinates (x, y): smooth, with detail at many scales."""
+    value = sum(np.sin(f * x + 1.3 * k) * np.cos(0.8 * f * y + k) / (k + 1) for k, f in enumerate((9, 23, 41, 67)))
+    return (128 + 60 * value).astype(np.float32)
+
+
+def raw_view(k: np.ndarray, d: np.ndarray, rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
+    """The plane Z = PLANE_Z (left camera frame) seen by a distorted camera whose frame is
+    X_cam = rotation @ X_left + translation."""
+    pixels = np.stack(np.meshgrid(np.arange(WIDTH), np.arange(HEIGHT)), -1).reshape(-1, 1, 2).astype(np.float64)
+    rays = cv2.undistortPoints(pixels, k, d, criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-9))
+    rays = np.concatenate([rays.reshape(-1, 2), np.ones((WIDTH * HEIGHT, 1))], axis=1)  # camera frame
+    to_left = rotation.T
+    origin = -to_left @ translation  # the camera centre in the left frame
+    directions = rays @ to_left.T
+    s = (PLANE_Z - origin[2]) / directions[:, 2]
+    points = origin + s[:, None] * directions
+    return texture(points[:, 0], points[:, 1]).reshape(HEIGHT, WIDTH)
+
+
+def test_a_raw_pair_is_rectified_onto_rows_at_the_disparity_its_geometry_gives(tmp_path):
+    rig = read_rig(opencv_file(tmp_path / "stereo.yaml"))
+    left_raw, right_raw = raw_view(K1, D1, np.eye(3), np.zeros(3)), raw_view(K2, D2, R, T)
+    rectifier = Rectifier(rig)
+    left, right = rectifier.rectify(left_raw, right_raw)
+    # The plane's disparity at each rectified left pixel: depth in the rectified frame, f * B / Z.
+    xs, ys = np.meshgrid(np.arange(WIDTH), np.arange(HEIGHT))
+    p1 = rig.p1
+    rays = np.stack([(xs - p1[0, 2]) / p1[0, 0], (ys - p1[1, 2]) / p1[1, 1], np.ones_like(xs, float)], -1)
+    in_left = rays @ rig.r1  # R1.T @ ray, per pixel: the ray in the unrectified left frame
+    depth = PLANE_Z / in_left[..., 2]  # rectified-frame depth of the plane point (R1 keeps lengths)
+    disparity = (rig.focal_px * rig.baseline / depth).astype(np.float32)
+    assert rig.baseline == pytest.approx(np.linalg.norm(T))
+
+    def matched(shift_rows: float) -> float:
+        """Mean |left - right at (x - d, y + shift_rows)| over the middle of the image."""
+        warped = cv2.remap(
+            right, (xs - disparity).astype(np.float32), (ys + shift_rows).astype(np.float32), cv2.INTER_LINEAR
+        )
+        middle = (slice(40, HEIGHT - 40), slice(80, WIDTH - 40))
+        return float(np.abs(warped - left)[middle].mean())
+
+    assert matched(0) < 1.5  # grey levels: interpolation only
+    assert matched(2) > 5 * matched(0) and matched(-2) > 5 * matched(0)  # off the row, no match
+    raw_error = np.abs(
+        cv2.remap(right_raw, (xs - disparity).astype(np.float32), ys.astype(np.float32), cv2.INTER_LINEAR) - left_raw
+    )
+    assert raw_error[40:-40, 80:-40].mean() > 5 * matched(0)  # the raw pair does not line up
+
+
+def test_maps_come_back_to_the_original_left_pixels_and_nan_where_there_is_no_counterpart(tmp_path):
+    rectifier = Rectifier(read_rig(opencv_file(tmp_path / "stereo.json")))
+    xs = np.tile(np.arange(WIDTH, dtype=np.float32), (HEIGHT, 1))  # a map whose value is its rectified x
+    back = rectifier.to_original(xs)
+    map_x, map_y = rectifier._maps[0]  # rectified pixel -> where it comes from in the original left image
+    rows, columns = np.mgrid[20 : HEIGHT - 20 : 7, 20 : WIDTH - 20 : 7]
+    original_x, original_y = map_x[rows, columns], map_y[rows, columns]
+    inside = (original_x >= 0) & (original_x < WIDTH - 1) & (original_y >= 0) & (original_y < HEIGHT - 1)
+    found = back[np.round(original_y[inside]).astype(int), np.round(original_x[inside]).astype(int)]
+    assert np.abs(found - columns[inside]).max() < 1.0  # rounding to the pixel grid: under 1 px
+    assert np.isnan(back).any() and np.isfinite(back).mean() > 0.8
+
+
+def test_the_rectified_camera_gives_the_metric_depth_calibration(tmp_path):
+    rectifier = Rectifier(read_rig(opencv_file(tmp_path / "stereo.yaml")))
+    calibration = rectifier.depth_calibration
+    assert calibration.baseline_m == pytest.approx(0.12, abs=1e-3) and 380 < calibration.focal_px < 440
+    assert 0 < calibration.cx < WIDTH and 0 < calibration.cy < HEIGHT
+
+
+ROS_LEFT = """image_width: 320
+image_height: 240
+camera_name: left
+camera_matrix: {rows: 3, cols: 3, data: [400, 0, 160, 0, 400, 120, 0, 0, 1]}
+distortion_model: plumb_bob
+distortion_coefficients: {rows: 1, cols: 5, data: [-0.1, 0.04, 0, 0, 0]}
+rectification_matrix: {rows: 3, cols: 3, data: [1, 0, 0, 0, 1, 0, 0, 0, 1]}
+projection_matrix: {rows: 3, cols: 4, data: [390, 0, 160, 0, 0, 390, 120, 0, 0, 0, 1, 0]}
+"""
+
+
+def test_a_pair_of_ros_camera_info_files_is_used_with_its_own_rectification(tmp_path):
+    right = ROS_LEFT.replace("camera_name: left", "camera_name: right").replace(
+        "data: [390, 0, 160, 0,", "data: [390, 0, 160, -46.8,"
+    )
+    (tmp_path / "left.yaml").write_text(ROS_LEFT)
+    (tmp_path / "right.yaml").write_text(right)
+    rig = read_rig([tmp_path / "left.yaml", tmp_path / "right.yaml"])
+    assert (rig.image_size, rig.focal_px, rig.baseline) == ((320, 240), 390.0, pytest.approx(0.12))
+    with pytest.raises(RigError) as refused:
+        parse_rig(ROS_LEFT, ROS_LEFT)  # two left cameras: no baseline
+    assert refused.value.field == "right.projection_matrix"
+
+
+@pytest.mark.parametrize(
+    ("entries", "field"),
+    [
+        ({"K1": None}, "K1"),
+        ({"D2": np.zeros(3)}, "D2"),
+        ({"R": np.eye(2)}, "R"),
+        ({"R": 2 * np.eye(3)}, "R"),
+        ({"T": np.array([-0.1, np.nan, 0.0])}, "T"),
+        ({"T": np.zeros(3)}, "T"),
+        ({"T": np.array([0.0, -0.12, 0.0])}, "T"),  # one camera above the other
+        ({"T": np.array([0.12, 0.0, 0.0])}, "T"),  # left and right swapped
+        ({"K2": np.zeros((3, 3))}, "K2"),
+        ({"image_width": None}, "image_size"),
+        ({"image_width": -5}, "image_size"),
+    ],
+)
+def test_an_unusable_calibration_is_refused_naming_the_field(tmp_path, entries, field):
+    with pytest.raises(RigError) as refused:
+        read_rig(opencv_file(tmp_path / "stereo.yaml", **entries))
+    assert refused.value.field == field and str(refused.value).startswith(f"{field}: ")
+
+
+def test_a_pair_of_another_size_or_a_file_that_is_not_a_calibration_is_refused(tmp_path):
+    rectifier = Rectifier(read_rig(opencv_file(tmp_path / "stereo.yaml")))
+    with pytest.raises(RigError, match="for 320x240 images, the left image is 640x480"):
+        rectifier.rectify(np.zeros((480, 640, 3), np.uint8), np.zeros((480, 640, 3), np.uint8))
+    with pytest.raises(RigError, match="calibration: not a YAML or JSON file"):
+        parse_rig("\x00\x01 not yaml {[")
