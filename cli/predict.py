@@ -8,6 +8,7 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 from tqdm import tqdm
 
 from stereo_data.formats import encode_png, read_image, write_depth, write_disparity, write_uncertainty
@@ -21,6 +22,7 @@ from stereo_data.pointcloud import (
     metric_depth,
     point_cloud,
 )
+from stereo_data.rig import Rectifier, read_rig
 from stereo_data.visualize import disparity_picture, scale_range
 
 from .options import add_model_options, inference_options, load_predictor
@@ -41,7 +43,7 @@ class PairPaths:
 def add_parser(commands: argparse._SubParsersAction) -> None:
     parser = commands.add_parser(
         "predict",
-        help="disparity of one rectified pair, or of two folders / globs of pairs",
+        help="disparity of one rectified pair (or a raw one with --calibration), or of folders / globs of pairs",
         description=(
             "LEFT and RIGHT are two image files (OUT is a file: .pfm float with +inf invalid, "
             ".png KITTI 16-bit x256, or .npy float32), two folders (pairs share file names) or two "
@@ -86,6 +88,22 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         metavar="D_OUT",
         help="metric depth in metres (needs --focal-px and --baseline-m): .pfm/.npy float with +inf where there is "
         "none, .png KITTI 16-bit x256 with 0 (folder mode: a folder of .pfm)",
+    )
+    parser.add_argument(
+        "--calibration",
+        type=Path,
+        nargs="+",
+        metavar="FILE",
+        help="the pair is raw, from this calibrated camera: one OpenCV file (K1, D1, K2, D2, R, T, image size; "
+        "YAML or JSON) or two ROS camera_info files (left, right). The pair is rectified first; depth and "
+        "metric points then need no --focal-px/--baseline-m",
+    )
+    parser.add_argument(
+        "--frame",
+        choices=["rectified", "original"],
+        default="rectified",
+        help="with --calibration: maps in the rectified left image, or resampled into the original left image's "
+        "pixels (+inf disparity and depth, uncertainty 1, where a pixel has no rectified counterpart) [rectified]",
     )
     parser.add_argument("--focal-px", type=float, help="focal length in px (with --baseline-m: depth, metric points)")
     parser.add_argument("--baseline-m", type=float, help="stereo baseline in metres")
@@ -190,8 +208,13 @@ def check_outputs(targets: list[Output], single: bool, mkdir: bool) -> None:
 def run(args: argparse.Namespace) -> int:
     if (args.focal_px is None) != (args.baseline_m is None):
         raise ValueError("give both --focal-px and --baseline-m, or neither")
-    if args.depth is not None and args.focal_px is None:
-        raise ValueError("--depth needs --focal-px and --baseline-m")
+    if args.calibration is not None and args.focal_px is not None:
+        raise ValueError("--calibration gives the focal length and baseline: leave out --focal-px and --baseline-m")
+    if args.frame == "original" and args.calibration is None:
+        raise ValueError("--frame original needs --calibration (a rectified pair has no other frame)")
+    if args.depth is not None and args.focal_px is None and args.calibration is None:
+        raise ValueError("--depth needs --calibration, or --focal-px and --baseline-m")
+    rectifier = None if args.calibration is None else Rectifier(read_rig(args.calibration))
     limits = DepthRange(args.min_disparity, args.max_depth_m)
     pairs = find_pairs(args.left, args.right)
     single = is_single_pair(args.left, args.right)
@@ -199,7 +222,13 @@ def run(args: argparse.Namespace) -> int:
     check_outputs(targets, single, args.mkdir)
     predictor = load_predictor(args)
     options = inference_options(args)
-    calibration = None if args.focal_px is None else Calibration(args.focal_px, args.baseline_m, args.cx, args.cy)
+    calibration = (
+        rectifier.depth_calibration
+        if rectifier is not None
+        else None
+        if args.focal_px is None
+        else Calibration(args.focal_px, args.baseline_m, args.cx, args.cy)
+    )
     for pair in tqdm(pairs, desc=f"predict {args.model}", unit="pair", disable=single):
         left, right = read_image(pair.left), read_image(pair.right)
         if left.shape != right.shape:
@@ -207,22 +236,31 @@ def run(args: argparse.Namespace) -> int:
                 f"{path} is {image.shape[1]}x{image.shape[0]}"
                 for path, image in ((pair.left, left), (pair.right, right))
             ]
-            raise ValueError(f"{sizes[0]} but {sizes[1]}: a rectified pair has two images of one size")
+            raise ValueError(f"{sizes[0]} but {sizes[1]}: a stereo pair has two images of one size")
+        if rectifier is not None:
+            left, right = rectifier.rectify(left, right)
         prediction = predictor.predict(left, right, **options.keywords())
+        disparity, uncertainty = prediction.disparity, prediction.uncertainty
+        depth = None if calibration is None else metric_depth(disparity, calibration, limits)
+        if rectifier is not None and args.frame == "original":
+            disparity = original_frame(rectifier, disparity, np.inf)
+            uncertainty = original_frame(rectifier, uncertainty, 1.0)
+            depth = None if depth is None else original_frame(rectifier, depth, np.inf)
         for output in targets:
             path = output.file(pair, single)
             path.parent.mkdir(parents=True, exist_ok=True)
             if output.flag == "--output":
-                write_disparity(path, prediction.disparity)
+                write_disparity(path, disparity)
             elif output.flag == "--uncertainty":
-                write_uncertainty(path, prediction.uncertainty)
+                write_uncertainty(path, uncertainty)
             elif output.flag == "--depth":
-                assert calibration is not None  # checked above
-                write_depth(path, metric_depth(prediction.disparity, calibration, limits))
+                assert depth is not None  # checked above
+                write_depth(path, depth)
             elif output.flag == "--color":
-                scale = scale_range(prediction.disparity, args.color_min, args.color_max)
-                path.write_bytes(encode_png(disparity_picture(prediction.disparity, scale)))
-            else:
+                shown = np.where(np.isfinite(disparity), disparity, 0.0)
+                scale = scale_range(shown, args.color_min, args.color_max)
+                path.write_bytes(encode_png(disparity_picture(shown, scale)))
+            else:  # points in the (rectified) left camera's frame, coloured by the image the network saw
                 points, colours = point_cloud(
                     prediction.disparity, left, prediction.uncertainty, calibration, args.max_uncertainty, limits
                 )
@@ -233,3 +271,9 @@ def run(args: argparse.Namespace) -> int:
         for output in targets:
             print(f"wrote {len(pairs)} {output.what} files to {output.path}")
     return 0
+
+
+def original_frame(rectifier: Rectifier, values: np.ndarray, missing: float) -> np.ndarray:
+    """A rectified-frame map in the original left image's pixels, `missing` where it has none."""
+    resampled = rectifier.to_original(values)
+    return np.where(np.isnan(resampled), missing, resampled).astype(np.float32)

@@ -7,6 +7,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from raw_camera import D1, D2, HEIGHT, K1, K2, PLANE_Z, WIDTH, R, T, opencv_file, raw_view
 
 from cli.main import main
 from cli.predict import find_pairs
@@ -253,3 +254,30 @@ def test_a_pair_of_two_sizes_is_named_in_image_terms(pairs_dir, tmp_path, capsys
     ]
     assert main([*argv, "--device", "cpu"]) == 2
     assert "is 96x64 but" in (err := capsys.readouterr().err) and "narrow.png is 80x64" in err
+
+
+def test_a_raw_pair_with_its_calibration_gives_metric_depth_in_the_rectified_or_the_original_frame(tmp_path, capsys):
+    left, right = raw_view(K1, D1, np.eye(3), np.zeros(3)), raw_view(K2, D2, R, T)
+    for name, image in (("left.png", left), ("right.png", right)):
+        cv2.imwrite(str(tmp_path / name), np.clip(image, 0, 255).astype(np.uint8))
+    calibration = opencv_file(tmp_path / "stereo.yaml")
+    inputs = [str(tmp_path / "left.png"), str(tmp_path / "right.png"), "--calibration", str(calibration)]
+    assert main(["predict", *inputs, "-o", str(tmp_path / "d.pfm"), "--depth", str(tmp_path / "z.pfm")]) == 0
+    depth = read_pfm(tmp_path / "z.pfm")
+    assert depth.shape == (HEIGHT, WIDTH)
+    middle = depth[60:-60, 100:-60]  # the plane, away from the borders the rectification leaves black
+    assert np.median(middle) == pytest.approx(PLANE_Z, rel=0.08)  # metres, from the calibration alone
+
+    original = ["-o", str(tmp_path / "d0.pfm"), "--depth", str(tmp_path / "z0.pfm"), "--frame", "original"]
+    assert main(["predict", *inputs, *original]) == 0
+    depth_original = read_pfm(tmp_path / "z0.pfm")
+    assert depth_original.shape == (HEIGHT, WIDTH)
+    assert np.median(depth_original[60:-60, 100:-60]) == pytest.approx(PLANE_Z, rel=0.08)
+    assert np.isinf(depth_original).any()  # the corners the rectified image does not cover
+    assert "wrote depth" in capsys.readouterr().out
+
+    assert main(["predict", *inputs, "-o", str(tmp_path / "x.pfm"), "--focal-px", "400", "--baseline-m", "0.1"]) == 2
+    assert "leave out --focal-px" in capsys.readouterr().err
+    bad = opencv_file(tmp_path / "bad.yaml", T=np.zeros(3))
+    assert main(["predict", *inputs[:2], "--calibration", str(bad), "-o", str(tmp_path / "y.pfm")]) == 2
+    assert "T: the baseline is zero" in capsys.readouterr().err
