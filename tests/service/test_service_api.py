@@ -237,6 +237,7 @@ async def test_the_untrained_full_model_says_so_in_its_listing_and_on_every_answ
         full = await h.client.post("/disparity", params={"model": "full"}, files=pair_files(left, right))
         lite = await h.client.post("/disparity", params={"model": "lite"}, files=pair_files(left, right))
     assert listing["full"]["status"] == "untrained" and listing["lite"]["status"] == "trained"
+    assert listing["full"]["training"]["dev_metrics"]["bad2"] > 50  # measured on real pairs, and shown
     assert full.status_code == 200 and full.headers["X-Model-Status"] == "untrained"
     assert lite.headers["X-Model-Status"] == "trained"
 
