@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from model import load_model, parse_iterations
+from model.onnx_export import export_onnx
 from model.weights import read_weights
 from training.export import export_weights
 
@@ -17,7 +18,7 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         description=(
             "Write {model, config, training metadata} from a checkpoint, without optimiser state; "
             "with --onnx, an ONNX model of a fixed input size instead (network, padding and "
-            "uncertainty calibration in one graph; needs `pip install crestereo-pp[onnx]`)."
+            "uncertainty calibration in one graph)."
         ),
     )
     parser.add_argument("checkpoint", type=Path, help="checkpoint.pt written by `crestereo-pp train`, or weights")
@@ -54,14 +55,6 @@ def run_onnx(args: argparse.Namespace) -> int:
         raise SystemExit("crestereo-pp export: --onnx needs --height and --width (the model's fixed input size)")
     if args.fp16:
         raise SystemExit("crestereo-pp export: --fp16 applies to weights files, not to --onnx")
-    try:
-        import onnxscript  # noqa: F401  (the exporter needs it; say so plainly when it is missing)
-
-        from model.onnx_export import export_onnx
-    except ImportError as error:
-        raise SystemExit(
-            f"crestereo-pp export: --onnx needs the onnx extra (pip install 'crestereo-pp[onnx]'): {error}"
-        ) from error
     name = str(read_weights(args.checkpoint).get("model_name") or "lite")
     predictor = load_model(name, args.checkpoint, "cpu")
     try:

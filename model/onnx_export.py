@@ -1,5 +1,5 @@
 """ONNX export of a predictor: the network, its padding and its uncertainty calibration in one
-graph of a fixed input size, for ONNX Runtime or OpenVINO (needs the `onnx` extra)."""
+graph of a fixed input size, for ONNX Runtime or other ONNX runtimes."""
 
 from __future__ import annotations
 

@@ -1,7 +1,7 @@
 """The OpenVINO backend: the network compiled for the CPU, behind the same forward as torch.
 
 The network is exported once per iteration counts and start (cold, or warm from a given
-disparity) with symbolic batch, height and width (``torch.export``, converted by
+disparity) with symbolic batch, height and width (torch's ONNX exporter, then
 ``openvino.convert_model``), and the graph is saved to a disk cache (OpenVINO IR, keyed by the
 weights' hash and the library versions). Each padded input shape then gets its own compiled
 model (a static shape runs about 10 % faster than the symbolic one), kept in a bounded in-memory
@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import logging
 import os
+import tempfile
 import threading
 import warnings
 from collections import OrderedDict
@@ -35,7 +36,7 @@ from .network import INPUT_MULTIPLE
 
 logger = logging.getLogger(__name__)
 
-EXPORT_VERSION = 1
+EXPORT_VERSION = 2
 """Bumped whenever the exported graph changes for the same weights (part of the cache key)."""
 
 MAX_BATCH = 64
@@ -84,6 +85,15 @@ class GraphKind:
         return f"iters{n16}-{n8}-{n4}-{'warm' if self.warm_start else 'cold'}"
 
 
+@dataclass(frozen=True)
+class _Compiled:
+    """A model compiled for one input shape and precision, with the one request that runs it."""
+
+    model: Any
+    request: Any
+    lock: threading.Lock
+
+
 class _Graph(nn.Module):
     """The module that is exported: the network at fixed iterations, maps in float32."""
 
@@ -100,7 +110,10 @@ class _Graph(nn.Module):
 def export_graph(network: nn.Module, kind: GraphKind) -> Any:
     """The network as an ``openvino.Model`` with symbolic batch, height and width (multiples of
     INPUT_MULTIPLE): inputs left, right (B, 3, H, W) float32 in [0, 255] and, warm, init
-    (B, 1, H, W) px; outputs disparity and uncertainty (B, 1, H, W) float32."""
+    (B, 1, H, W) px; outputs disparity and uncertainty (B, 1, H, W) float32.
+
+    Through ONNX (torch's dynamo exporter, which also simplifies the graph): the graph OpenVINO
+    builds from it ran 15-20 % faster than one converted from ``torch.export`` directly."""
     import openvino as ov
 
     batch = torch.export.Dim("batch", min=1, max=MAX_BATCH)
@@ -110,14 +123,33 @@ def export_graph(network: nn.Module, kind: GraphKind) -> Any:
     # Batch 2 and distinct tensors: an example of size 1, or one tensor passed twice, would be specialised.
     left = torch.full((2, 3, 2 * INPUT_MULTIPLE, 4 * INPUT_MULTIPLE), 128.0)
     inputs: tuple[Tensor, ...] = (left, left + 1.0)
+    names = ["left", "right"]
     if kind.warm_start:
         inputs = (*inputs, torch.full((2, 1, *left.shape[-2:]), 4.0))
-    with torch.no_grad(), warnings.catch_warnings():
-        warnings.simplefilter("ignore", FutureWarning)  # the exporter's own deprecation notices, not ours
-        program = torch.export.export(
-            _Graph(network, kind.iters).eval(), inputs, dynamic_shapes=tuple(sizes for _ in inputs), strict=False
-        )
-    return ov.convert_model(program)
+        names.append("init")
+    quiet = logging.getLogger("torch.onnx")  # notes about torchvision operators this network does not use
+    level = quiet.level
+    quiet.setLevel(logging.ERROR)
+    try:
+        with torch.no_grad(), warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # the exporter's own deprecation notices, not ours
+            program = torch.onnx.export(
+                _Graph(network, kind.iters).eval(),
+                inputs,
+                dynamo=True,
+                opset_version=18,
+                input_names=names,
+                output_names=["disparity", "uncertainty"],
+                dynamic_shapes=tuple(sizes for _ in inputs),
+                verbose=False,
+            )
+    finally:
+        quiet.setLevel(level)
+    assert program is not None  # dynamo=True always returns the program
+    with tempfile.TemporaryDirectory() as folder:
+        path = Path(folder) / "graph.onnx"
+        program.save(str(path))
+        return ov.convert_model(path)
 
 
 class OpenVINOForward:
@@ -153,7 +185,7 @@ class OpenVINOForward:
         if cache_key is not None and _writable(compiled_dir):
             self.core.set_property({"CACHE_DIR": str(compiled_dir)})
         self.graphs: dict[GraphKind, Any] = {}
-        self.compiled: OrderedDict[tuple[GraphKind, tuple[int, ...], bool], Any] = OrderedDict()
+        self.compiled: OrderedDict[tuple[GraphKind, tuple[int, ...], bool], _Compiled] = OrderedDict()
         self.failed: set[GraphKind] = set()
         self.exports = self.compiles = self.runs = self.fallback_runs = 0
         self._pending: dict[GraphKind, threading.Event] = {}  # set when the export has ended
@@ -170,11 +202,12 @@ class OpenVINOForward:
         compiled = self._compiled(kind, graph, tuple(left.shape), bf16)
         given = (left, right) if init is None else (left, right, init)
         inputs = [np.ascontiguousarray(t.detach().cpu().numpy(), dtype=np.float32) for t in given]
-        request = compiled.create_infer_request()
-        request.infer(inputs)
+        with compiled.lock:  # one request per compiled shape, reused: a new one allocates every buffer again
+            compiled.request.infer(inputs)
+            outputs = [compiled.request.get_output_tensor(i).data.copy() for i in (0, 1)]
+        disparity, uncertainty = (torch.from_numpy(output) for output in outputs)
         with self._lock:
             self.runs += 1
-        disparity, uncertainty = (torch.from_numpy(request.get_output_tensor(i).data.copy()) for i in (0, 1))
         return disparity.to(left.device), uncertainty.to(left.device)
 
     def ready(self, iters: Iters, warm_start: bool = False) -> bool:
@@ -257,7 +290,7 @@ class OpenVINOForward:
         except (OSError, RuntimeError) as error:  # a read-only cache: the graph serves from memory
             logger.warning("openvino: the graph is not cached on disk (%s); a restart exports it again", error)
 
-    def _compiled(self, kind: GraphKind, graph: Any, shape: tuple[int, ...], bf16: bool) -> Any:
+    def _compiled(self, kind: GraphKind, graph: Any, shape: tuple[int, ...], bf16: bool) -> _Compiled:
         key = (kind, shape, bf16)
         with self._lock:
             if key in self.compiled:
@@ -267,7 +300,7 @@ class OpenVINOForward:
             batch, _, height, width = shape
             images, init = [batch, 3, height, width], [batch, 1, height, width]
             static.reshape({port: images if i < 2 else init for i, port in enumerate(static.inputs)})
-            compiled = self.core.compile_model(
+            model = self.core.compile_model(
                 static,
                 "CPU",
                 {
@@ -276,6 +309,7 @@ class OpenVINOForward:
                     "PERFORMANCE_HINT": "LATENCY",
                 },
             )
+            compiled = _Compiled(model, model.create_infer_request(), threading.Lock())
             self.compiles += 1
             put_bounded(self.compiled, key, compiled, self.max_shapes)
             return compiled
