@@ -10,18 +10,22 @@ compiles again. Precision is OpenVINO's inference precision hint: ``f32``, or ``
 CPU computes bf16 natively (AVX512-BF16, AMX).
 
 An export takes about a minute of CPU. It never blocks a caller that did not ask to wait: a graph
-that is not ready yet is exported in a background thread while its calls run on torch (logged
-once); a graph whose export fails runs on torch from then on (logged once).
+that is not ready yet is exported in a child process (watched by a background thread) while its
+calls run on torch in fp32 (logged once); a graph whose export fails runs on torch from then on
+(logged once).
 """
 
 from __future__ import annotations
 
 import logging
 import os
+import subprocess
+import sys
 import tempfile
 import threading
 import warnings
 from collections import OrderedDict
+from collections.abc import Sequence
 from dataclasses import dataclass
 from importlib.util import find_spec
 from pathlib import Path
@@ -198,7 +202,7 @@ class OpenVINOForward:
         if graph is None:
             with self._lock:
                 self.fallback_runs += 1
-            return self.fallback(left, right, init, iters, bf16)
+            return self.fallback(left, right, init, iters, False)  # the torch reference, in fp32
         compiled = self._compiled(kind, graph, tuple(left.shape), bf16)
         given = (left, right) if init is None else (left, right, init)
         inputs = [np.ascontiguousarray(t.detach().cpu().numpy(), dtype=np.float32) for t in given]
@@ -270,7 +274,7 @@ class OpenVINOForward:
         import openvino as ov
 
         try:
-            graph = export_graph(self.network, kind)
+            graph = _export_in_child(self.network, kind)
         except Exception:
             logger.exception("openvino: export failed for iterations %s; they run on torch", kind.iters)
             with self._lock:
@@ -315,6 +319,37 @@ class OpenVINOForward:
             return compiled
 
 
+def _export_in_child(network: nn.Module, kind: GraphKind) -> Any:
+    """`export_graph` in a child process (``python -m model.openvino_backend``), read back here.
+
+    Not in a thread of this process: the exporter traces the network under torch's dispatch modes
+    (fake tensors, functionalisation), which other threads running the network would meet too."""
+    import openvino as ov
+
+    with tempfile.TemporaryDirectory(prefix="crestereo-export-") as folder:
+        network_file, graph_file = Path(folder) / "network.pt", Path(folder) / "graph.xml"
+        torch.save(network, network_file)
+        n16, n8, n4 = kind.iters
+        command = [sys.executable, "-m", "model.openvino_backend", str(network_file), str(n16), str(n8), str(n4)]
+        command += ["warm" if kind.warm_start else "cold", str(graph_file)]
+        done = subprocess.run(command, capture_output=True, text=True, check=False)
+        if done.returncode != 0:
+            raise RuntimeError(f"the export process failed ({done.returncode}): {done.stderr[-2000:]}")
+        graph = ov.Core().read_model(graph_file)
+        graph.get_ops()  # read everything now: the folder goes away
+        return graph.clone()
+
+
+def _export_main(arguments: Sequence[str]) -> None:
+    """The export process: NETWORK_FILE N16 N8 N4 cold|warm GRAPH_XML."""
+    import openvino as ov
+
+    network_file, n16, n8, n4, start, graph_file = arguments
+    network = torch.load(network_file, weights_only=False)  # written by the parent process just now
+    graph = export_graph(network, GraphKind((int(n16), int(n8), int(n4)), start == "warm"))
+    ov.save_model(graph, graph_file, compress_to_fp16=False)
+
+
 def _writable(directory: Path) -> bool:
     """Whether `directory` exists or can be made, and files can be written in it."""
     try:
@@ -322,3 +357,7 @@ def _writable(directory: Path) -> bool:
     except OSError:
         return False
     return os.access(directory, os.W_OK)
+
+
+if __name__ == "__main__":
+    _export_main(sys.argv[1:])

@@ -79,7 +79,9 @@ def calibrate_weights_file(path: Path, scenes: int = 24) -> UncertaintyCalibrati
     """Fit the calibration of the weights (or checkpoint) at `path` and store it in the file
     under "calibration", replacing any earlier one."""
     payload = read_weights(path)
-    calibration = calibrate(load_model(str(payload.get("model_name") or "lite"), path), scenes)
+    # Fitted on the torch reference in fp32: every backend serves the maps it gives, up to rounding.
+    predictor = load_model(str(payload.get("model_name") or "lite"), path, backend="torch", precision="fp32")
+    calibration = calibrate(predictor, scenes)
     payload["calibration"] = calibration.to_dict()
     write_weights(payload, path)
     return calibration
