@@ -7,7 +7,7 @@ import torch
 
 from evaluation.evaluate import evaluate
 from fake_accelerator import DEVICE, DeviceTransfers, replay_eagerly
-from model import CREStereoPP, ModelConfig, StereoPredictor
+from model import CREStereoPP, InferenceOptions, ModelConfig, StereoPredictor
 from model.cuda_graphs import GraphedForward
 from stereo_data.readers import StereoSample
 from training.config import TrainConfig
@@ -78,9 +78,10 @@ def test_evaluation_copies_each_prediction_to_the_host_once(predictor):
         disparity = np.full((40, 60), 3.0, np.float32)
         samples.append(StereoSample(f"pair{index}", left, right, disparity, np.ones((40, 60), bool), None))
     with DeviceTransfers() as transfers:
-        report = evaluate(samples, predictor, dataset_name="meta", iters=ITERS, progress=False)
+        options = InferenceOptions(iters=ITERS)
+        report = evaluate(samples, predictor, dataset_name="meta", options=options, progress=False)
     assert len(report.pairs) == 2
-    assert transfers.downloads == 3  # a warm-up prediction, then one per pair
+    assert transfers.downloads == 3  # a warm-up prediction (one image size), then one per pair
     assert transfers.scalar_reads == 0
 
 
