@@ -33,6 +33,17 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
             or path.parent.name in SLOW_FOLDERS
         ):
             item.add_marker(pytest.mark.slow)
+    items.sort(key=run_order)
+
+
+def run_order(item: pytest.Item) -> int:
+    """Tests that run OpenVINO in this process go after the others (its thread pool does not
+    survive a fork, and tests that fork data-loader workers come later in the alphabet; a run once
+    crashed there), and the web tests last of all (Playwright's sync API after the async tests).
+    The sort is stable: within each group the usual order holds."""
+    if item.path.parent.name == "web":
+        return 2
+    return 1 if "openvino_cache" in getattr(item, "fixturenames", ()) else 0
 
 
 @pytest.fixture(scope="session")
