@@ -163,7 +163,8 @@ class OpenVINOForward:
     cache_key: names these weights in the disk cache (their hash); None keeps graphs in memory
     only. cache_dir: the cache's root (``default_cache_dir()``); graphs and blobs go to its
     ``openvino/`` folder. max_shapes: compiled shapes kept in memory (least recently used dropped first).
-    Thread-safe: calls may come from several threads; one export runs at a time, in a daemon thread.
+    Thread-safe: calls may come from several threads; one export runs at a time, in a child
+    process that a daemon thread waits for.
     """
 
     def __init__(
@@ -271,10 +272,8 @@ class OpenVINOForward:
             self._pending.pop(kind).set()
 
     def _export_one(self, kind: GraphKind, path: Path | None) -> None:
-        import openvino as ov
-
         try:
-            graph = _export_in_child(self.network, kind)
+            graph = self._exported(kind, path)
         except Exception:
             logger.exception("openvino: export failed for iterations %s; they run on torch", kind.iters)
             with self._lock:
@@ -283,16 +282,24 @@ class OpenVINOForward:
         with self._lock:
             self.graphs[kind] = graph
             self.exports += 1
-        if path is None:
-            return
-        try:
-            path.parent.mkdir(parents=True, exist_ok=True)
+
+    def _exported(self, kind: GraphKind, path: Path | None) -> Any:
+        """The kind's graph, exported by a child process straight into the disk cache where it can
+        be written (then read from there), else into a temporary folder (kept in memory only)."""
+        if path is not None and _writable(path.parent):
             partial = path.with_name(f".{os.getpid()}-{path.name}")
-            ov.save_model(graph, partial, compress_to_fp16=False)
+            _export_in_child(self.network, kind, partial)
             partial.with_suffix(".bin").replace(path.with_suffix(".bin"))
             partial.replace(path)  # the .xml last: a graph on disk is complete
-        except (OSError, RuntimeError) as error:  # a read-only cache: the graph serves from memory
-            logger.warning("openvino: the graph is not cached on disk (%s); a restart exports it again", error)
+            return self.core.read_model(path)
+        if path is not None:
+            logger.warning("openvino: %s cannot be written; the graph lives in memory only", path.parent)
+        with tempfile.TemporaryDirectory(prefix="crestereo-graph-") as folder:
+            graph_file = Path(folder) / "graph.xml"
+            _export_in_child(self.network, kind, graph_file)
+            graph = self.core.read_model(graph_file)
+            graph.get_ops()  # read everything now: the folder goes away
+            return graph.clone()
 
     def _compiled(self, kind: GraphKind, graph: Any, shape: tuple[int, ...], bf16: bool) -> _Compiled:
         key = (kind, shape, bf16)
@@ -319,25 +326,21 @@ class OpenVINOForward:
             return compiled
 
 
-def _export_in_child(network: nn.Module, kind: GraphKind) -> Any:
-    """`export_graph` in a child process (``python -m model.openvino_backend``), read back here.
+def _export_in_child(network: nn.Module, kind: GraphKind, graph_file: Path) -> None:
+    """`export_graph` in a child process (``python -m model.openvino_backend``), saved as
+    OpenVINO IR at `graph_file` (.xml, with its .bin beside it).
 
     Not in a thread of this process: the exporter traces the network under torch's dispatch modes
     (fake tensors, functionalisation), which other threads running the network would meet too."""
-    import openvino as ov
-
     with tempfile.TemporaryDirectory(prefix="crestereo-export-") as folder:
-        network_file, graph_file = Path(folder) / "network.pt", Path(folder) / "graph.xml"
+        network_file = Path(folder) / "network.pt"
         torch.save(network, network_file)
         n16, n8, n4 = kind.iters
         command = [sys.executable, "-m", "model.openvino_backend", str(network_file), str(n16), str(n8), str(n4)]
         command += ["warm" if kind.warm_start else "cold", str(graph_file)]
         done = subprocess.run(command, capture_output=True, text=True, check=False)
-        if done.returncode != 0:
-            raise RuntimeError(f"the export process failed ({done.returncode}): {done.stderr[-2000:]}")
-        graph = ov.Core().read_model(graph_file)
-        graph.get_ops()  # read everything now: the folder goes away
-        return graph.clone()
+    if done.returncode != 0:
+        raise RuntimeError(f"the export process failed ({done.returncode}): {done.stderr[-2000:]}")
 
 
 def _export_main(arguments: Sequence[str]) -> None:

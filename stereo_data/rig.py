@@ -163,10 +163,15 @@ def _matrix(storage: cv2.FileStorage, key: str, shapes: Sequence[tuple[int, ...]
     node = storage.getNode(key)
     if node.empty():
         raise RigError(key, "missing")
-    value = np.array([node.at(i).real() for i in range(node.size())]) if node.isSeq() else node.mat()
+    value = _numbers(node) if node.isSeq() else node.mat()
     if value is None:
         raise RigError(key, "expected a matrix or a list of numbers")
     return _shaped(key, np.asarray(value, np.float64), shapes)
+
+
+def _numbers(sequence: cv2.FileNode) -> np.ndarray:
+    """A YAML/JSON list of numbers as float64."""
+    return np.array([sequence.at(i).real() for i in range(sequence.size())], np.float64)
 
 
 def _shaped(key: str, value: np.ndarray, shapes: Sequence[tuple[int, ...]]) -> np.ndarray:
@@ -239,8 +244,7 @@ def _ros_camera(storage: cv2.FileStorage, side: str) -> RosCamera:
         data = node.getNode("data") if not node.empty() and node.isMap() else node
         if node.empty() or data.empty() or not data.isSeq():
             raise RigError(f"{side}.{key}", "missing (a ROS camera_info entry with data: [...])")
-        values = np.array([data.at(i).real() for i in range(data.size())], np.float64)
-        return _shaped(f"{side}.{key}", values, shapes)
+        return _shaped(f"{side}.{key}", _numbers(data), shapes)
 
     size = _image_size(storage)
     k = entry("camera_matrix", [(3, 3)])
