@@ -1,13 +1,15 @@
 """Procedural rectified stereo scenes with exact ground truth, rendered with torch on any device.
 
-A scene is a background plane plus many foreground surfaces. Each surface is a planar patch of
-disparity ``d(x, y) = a*x + b*y + c`` (slanted or fronto-parallel), cut to a random shape (star
-polygon: triangles to 8-gons and stars, near-ellipses, thin bars; optionally with an elliptic hole)
-and painted with a texture attached to the surface. Both views are rendered exactly: in each view,
-every pixel shows the surface with the largest disparity there (z-buffer). A right pixel ``x_r``
-sees surface S at the left coordinate ``x_l`` solving ``x_l - d_S(x_l, y) = x_r``, i.e.
-``x_l = (x_r + b*y + c) / (1 - a)``, and shows S's texture at ``(x_l, y)``; so warping the right view
-by the left ground truth reproduces the left view wherever the match is visible.
+A scene is a background plane plus many foreground surfaces. Each surface is a patch of disparity
+``d(x, y) = a*x + b*y + c`` (slanted or fronto-parallel), optionally curved by a quadratic term
+(``curve_probability``: domes, bowls, saddles, cylinders), cut to a random shape (star polygon:
+triangles to 8-gons and stars, near-ellipses, thin bars; optionally with an elliptic hole) and
+painted with a texture attached to the surface. Both views are rendered exactly: in each view, every
+pixel shows the surface with the largest disparity there (z-buffer). A right pixel ``x_r`` sees
+surface S at the left coordinate ``x_l`` solving ``x_l - d_S(x_l, y) = x_r`` (for a plane
+``x_l = (x_r + b*y + c) / (1 - a)``; for a curved surface the root of a quadratic), and shows S's
+texture at ``(x_l, y)``; so warping the right view by the left ground truth reproduces the left view
+wherever the match is visible.
 
 Coordinates: x to the right, y down, in pixels of the output images, pixel centres at integers.
 Disparity is positive, in pixels of the LEFT view: left pixel (x, y) matches right pixel (x - d, y).
@@ -59,6 +61,13 @@ class SceneConfig:
     partial-coverage pixels and texels finer than a pixel are averaged, not aliased. The ground truth
     (disparity, occlusion) stays the point value at the pixel centre.
 
+    Curved surfaces: with ``curve_probability`` a foreground surface's disparity gets a quadratic
+    term about its centre, ``delta * (l1 * p1**2 + l2 * p2**2) / R**2`` with p1, p2 the point's
+    coordinates along two random perpendicular axes, R the shape's extent, l1, l2 in [-1, 1] (same
+    signs: a dome or a bowl; opposite: a saddle; one near zero: a cylinder) and delta px the bulge.
+    The plane's slope and span are shrunk so that the surface still keeps |grad d| <= max_slope and
+    its disparity range within the shape.
+
     Road scenes: with ``road_probability`` a scene is laid out as driving scenes are: a ground plane
     receding to a horizon (a strong vertical disparity gradient), a far and weakly textured sky
     above it, and the foreground surfaces standing on the ground (each at least as near as the
@@ -93,6 +102,7 @@ class SceneConfig:
     contrast: tuple[float, float] = (6.0, 100.0)  # grey-level std of a surface's texture, log-uniform
     shading: float = 60.0  # at most this many grey levels of linear ramp across a surface
     log2_scale: tuple[float, float] = (-0.2, 0.4)
+    curve_probability: float = 0.0  # foreground surfaces that are curved (quadric disparity); the others planar
     road_probability: float = 0.0  # scenes laid out as a road under a sky (see `_Road`); the others as before
     supersample: int = 1  # anti-aliasing: images are the mean of supersample x supersample samples per pixel
     photometric: PhotometricConfig | None = field(default_factory=PhotometricConfig)
@@ -112,8 +122,9 @@ class SceneConfig:
             raise ValueError("ranges must be (low, high)")
         if self.texture_count < 1:
             raise ValueError("need at least one texture")
-        if not 0.0 <= self.road_probability <= 1.0:
-            raise ValueError(f"road_probability must be in [0, 1], got {self.road_probability}")
+        for name in ("road_probability", "curve_probability"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)}")
         if self.supersample < 1:
             raise ValueError(f"supersample must be a positive integer, got {self.supersample}")
         if 2 ** self.log2_scale[0] * self.texel_size[0] * self.supersample < 1:
@@ -133,7 +144,11 @@ class Scene:
     angle ``phase + 2*pi*j/sides`` and distance ``radii[j]`` from (0, 0). A surface with a zero
     ``to_shape`` covers the whole plane (the background, surface 0 in generated scenes).
 
-    plane: (B, S, 3) float, (a, b, c): the surface's disparity is a*x + b*y + c px (a < 1).
+    plane: (B, S, 3) float, (a, b, c): the surface's disparity is a*x + b*y + c px (a < 1), plus
+        the quadratic term of ``curvature`` (see `surface_disparity`).
+    curvature: (B, S, 3) float, (kxx, kxy, kyy) px of disparity per px^2: the term
+        kxx*u^2 + kxy*u*v + kyy*v^2 with (u, v) = (x, y) - apex; zero for planar surfaces.
+    apex: (B, S, 2) float, (x, y) px, the origin of the quadratic term.
     to_shape: (B, S, 2, 3) float, affine map from (x, y) px to the shape frame.
     sides: (B, S) int64 in [3, MAX_SIDES].
     phase: (B, S) float, radians.
@@ -155,6 +170,8 @@ class Scene:
     """
 
     plane: torch.Tensor
+    curvature: torch.Tensor
+    apex: torch.Tensor
     to_shape: torch.Tensor
     sides: torch.Tensor
     phase: torch.Tensor
@@ -344,6 +361,7 @@ class SceneGenerator:
         gradient = torch.where(draw.chance(shape, cfg.slant_probability), draw.uniform(shape, 0, cfg.max_slope), 0.0)
         gradient_angle = draw.uniform(shape, 0, 2 * math.pi)
         position = draw.uniform(shape, 0, 1)
+        curve = _Curve.draw(shape, cfg, draw) if cfg.curve_probability > 0 else None
         background_low = torch.zeros(batch_size, 1, device=self.device)
         background_gradient, background_disparity = _fit_plane(
             gradient[:, :1],
@@ -356,12 +374,19 @@ class SceneGenerator:
         if road is not None:  # the sky is far; things stand on the ground: nearer than it at their centre row
             on_ground = road.disparity(centre_x[:, 1:], centre_y[:, 1:]).clamp(0, 0.9 * max_disparity)
             foreground_low = torch.where(road.present[:, None], on_ground, foreground_low)
+        foreground_high = torch.full_like(foreground_low, max_disparity)
+        bulge = torch.zeros_like(gradient[:, 1:])  # px: the curved term's reach within the shape
+        if curve is not None:  # room for the bulge: less slope for the plane, a narrower span
+            if road is not None:
+                curve.present[:, 1] &= ~road.present  # the ground stays a plane
+            bulge = curve.bulge(extent[:, 1:], foreground_high - foreground_low, cfg.max_slope)
+            gradient[:, 1:] = torch.minimum(gradient[:, 1:], cfg.max_slope - 2 * bulge / extent[:, 1:])
         foreground_gradient, foreground_disparity = _fit_plane(
             gradient[:, 1:],
             extent[:, 1:],
             position[:, 1:],
-            foreground_low,
-            torch.full_like(foreground_low, max_disparity),
+            foreground_low + bulge,
+            foreground_high - bulge,
         )
         gradient = torch.cat([background_gradient, foreground_gradient], dim=1)
         centre_disparity = torch.cat([background_disparity, foreground_disparity], dim=1)
@@ -369,6 +394,9 @@ class SceneGenerator:
         plane = torch.stack([slope_x, slope_y, centre_disparity - slope_x * centre_x - slope_y * centre_y], dim=-1)
         if road is not None:
             plane[:, :2] = torch.where(road.present[:, None, None], road.planes, plane[:, :2])
+        curvature = torch.zeros((*shape, 3), device=self.device)
+        if curve is not None:
+            curvature[:, 1:] = curve.curvature(bulge, extent[:, 1:])
 
         # Appearance.
         texel = scale * draw.log_uniform(shape, *cfg.texel_size)  # output px per texel
@@ -398,6 +426,8 @@ class SceneGenerator:
 
         return Scene(
             plane=plane,
+            curvature=curvature,
+            apex=torch.stack([centre_x, centre_y], dim=-1),
             to_shape=to_shape,
             sides=sides,
             phase=phase,
@@ -413,6 +443,50 @@ class SceneGenerator:
             contrast=contrast,
             ramp=ramp,
             textures=_texture_bank(batch_size, cfg, draw, self._photos),
+        )
+
+
+@dataclass
+class _Curve:
+    """The quadratic terms of curved surfaces (see `SceneConfig`), drawn for every slot (B, S); the
+    background (slot 0) stays planar.
+
+    present: (B, S) bool, which surfaces are curved.
+    fraction: (B, S) in [0, 1], the share of the available room the bulge takes.
+    principal: (B, S, 2) in [-1, 1], (l1, l2), the relative curvatures along the two axes.
+    axis: (B, S) radians, the direction of the first axis.
+    """
+
+    present: torch.Tensor
+    fraction: torch.Tensor
+    principal: torch.Tensor
+    axis: torch.Tensor
+
+    @staticmethod
+    def draw(shape: tuple[int, int], cfg: SceneConfig, draw: _Draw) -> _Curve:
+        present = draw.chance(shape, cfg.curve_probability)
+        present[:, 0] = False
+        return _Curve(
+            present=present,
+            fraction=draw.uniform(shape, 0, 1),
+            principal=draw.uniform((*shape, 2), -1, 1),
+            axis=draw.uniform(shape, 0, math.pi),
+        )
+
+    def bulge(self, extent: torch.Tensor, span: torch.Tensor, max_slope: float) -> torch.Tensor:
+        """(B, S - 1) px, the foreground's bulges delta: |the quadratic term| <= delta and its slope
+        <= 2 * delta / extent within the shape; delta takes at most all the slope budget and a
+        quarter of the disparity span (B, S - 1) px, so that a plane still fits beside it."""
+        room = torch.minimum(max_slope * extent / 2, span / 4)
+        return torch.where(self.present[:, 1:], self.fraction[:, 1:] * room, 0.0)
+
+    def curvature(self, bulge: torch.Tensor, extent: torch.Tensor) -> torch.Tensor:
+        """(B, S - 1, 3) (kxx, kxy, kyy) px^-1 of the foreground: delta * (l1*p1^2 + l2*p2^2) / R^2."""
+        l1, l2 = (part[:, 1:] for part in self.principal.unbind(-1))
+        cos, sin = torch.cos(self.axis[:, 1:]), torch.sin(self.axis[:, 1:])
+        scale = bulge / extent.square()
+        return scale[..., None] * torch.stack(
+            [l1 * cos * cos + l2 * sin * sin, 2 * (l1 - l2) * cos * sin, l1 * sin * sin + l2 * cos * cos], dim=-1
         )
 
 
@@ -516,11 +590,40 @@ def _apply(affine: torch.Tensor, x: torch.Tensor, y: torch.Tensor) -> tuple[torc
     return u, v
 
 
+def _surface_disparity(
+    plane: torch.Tensor, curvature: torch.Tensor, apex: torch.Tensor, x: torch.Tensor, y: torch.Tensor
+) -> torch.Tensor:
+    """Disparity (px) of surfaces at left-view points (x, y) px: a*x + b*y + c plus the quadratic
+    term kxx*u^2 + kxy*u*v + kyy*v^2, (u, v) = (x, y) - apex. plane and curvature (..., 3), apex
+    (..., 2): per-surface parameters (see `Scene`) whose leading dimensions broadcast with x and y."""
+    a, b, c = plane.unbind(-1)
+    disparity = a * x + (b * y + c)
+    if not curvature.any():
+        return disparity
+    kxx, kxy, kyy = curvature.unbind(-1)
+    u, v = x - apex[..., 0], y - apex[..., 1]
+    return disparity + (kxx * u + kxy * v) * u + kyy * v * v
+
+
 def _seen_from_right(scene: Scene, x_right: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
     """(B, S, H, W): for each surface, the left-view x of its point seen at right-view x_right,
-    i.e. x_l solving x_l - (a*x_l + b*y + c) = x_right. x_right broadcastable to (B, 1, H, W) px."""
+    i.e. x_l solving x_l - d(x_l, y) = x_right. x_right broadcastable to (B, 1, H, W) px.
+
+    For a curved surface, with x_l = x0 + u, that is the quadratic A*u^2 + B*u + C = 0 where
+    A = kxx, B = a + kxy*v - 1 and C = a*x0 + b*y + c + kyy*v^2 - x0 + x_right: its root on the branch
+    where d grows slower than x (d_x < 1, which holds within every shape) is
+    u = -2C / (B - sqrt(B^2 - 4AC)), the plane's root when A = 0. Points with no root on that branch
+    get a point outside the shape (where the quadratic folds back)."""
     a, b, c = (part[..., None, None] for part in scene.plane.unbind(-1))
-    return (x_right + (b * y + c)) / (1 - a)
+    if not scene.curvature.any():
+        return (x_right + (b * y + c)) / (1 - a)
+    kxx, kxy, kyy = (part[..., None, None] for part in scene.curvature.unbind(-1))
+    x0, y0 = (part[..., None, None] for part in scene.apex.unbind(-1))
+    v = y - y0
+    linear = a + kxy * v - 1
+    constant = a * x0 + (b * y + c) + kyy * v * v - x0 + x_right
+    root = torch.sqrt((linear * linear - 4 * kxx * constant).clamp_min(0))
+    return x0 - 2 * constant / (linear - root).clamp_max(-1e-6)
 
 
 def _nearest_surface(
@@ -540,8 +643,9 @@ def _nearest_surface(
     for first in range(0, surfaces, chunk):
         part = scene.surfaces(slice(first, first + chunk))
         x_left = x if view == "left" else _seen_from_right(part, x, y)
-        a, b, c = (value[..., None, None] for value in part.plane.unbind(-1))
-        disparity = torch.where(_covers(part, x_left, y), a * x_left + (b * y + c), -math.inf)
+        plane, curvature, apex = (value[:, :, None, None] for value in (part.plane, part.curvature, part.apex))
+        disparity = _surface_disparity(plane, curvature, apex, x_left, y)
+        disparity = torch.where(_covers(part, x_left, y), disparity, -math.inf)
         part_nearest, part_index = disparity.max(dim=1, keepdim=True)
         part_x = torch.gather(x_left.expand_as(disparity), 1, part_index)
         if best is None:
@@ -604,13 +708,14 @@ def _shade(scene: Scene, surface: torch.Tensor, x_left: torch.Tensor, y: torch.T
         """(B, S, ...) per-surface values -> (N, ...) values of each pixel's surface, N = B*H*W."""
         return values.flatten(0, 1).index_select(0, flat_surface)
 
-    x = x_left.flatten()
-    point = torch.stack([x, y.expand_as(x_left).flatten(), torch.ones_like(x)], dim=-1)  # (N, 3)
+    x, y = x_left.flatten(), y.expand_as(x_left).flatten()
+    point = torch.stack([x, y, torch.ones_like(x)], dim=-1)  # (N, 3)
     texel_u, texel_v = (at_pixels(scene.to_texture) * point[:, None, :]).sum(-1).unbind(-1)
     contrast = at_pixels(scene.contrast)
     if scene.projective.any():
         projective = at_pixels(scene.projective)
-        disparity = (at_pixels(scene.plane) * point).sum(-1)
+        plane, curvature, apex = (at_pixels(value) for value in (scene.plane, scene.curvature, scene.apex))
+        disparity = _surface_disparity(plane, curvature, apex, x, y)
         fade = at_pixels(scene.fade_disparity).clamp_min(1e-6)
         depth = torch.where(projective, 1 / torch.maximum(disparity, fade), 1.0)
         texel_u, texel_v = texel_u * depth, texel_v * depth

@@ -81,6 +81,11 @@ class TrainConfig:
         "rendering); allows texels down to 1/N px",
         metavar="N",
     )
+    curve_probability: float = _knob(
+        0.0,
+        "procedural scenes: fraction of foreground surfaces that are curved (domes, bowls, saddles, cylinders) "
+        "instead of planar",
+    )
     road_probability: float = _knob(
         0.0,
         "procedural scenes: fraction laid out as a road scene (a ground plane receding to a horizon under a far, "
@@ -163,6 +168,7 @@ class TrainConfig:
             texel_size=self.texel_size,
             supersample=self.supersample,
             road_probability=self.road_probability,
+            curve_probability=self.curve_probability,
         )
 
     @property

@@ -61,6 +61,7 @@ def test_default_max_disparity_is_192_at_512_px_and_scales_with_width() -> None:
         {"supersample": 0},
         {"texel_size": (0.6, 2.0)},  # under a pixel: needs supersample 2
         {"road_probability": 1.5},
+        {"curve_probability": -0.1},
     ],
 )
 def test_config_rejects_settings_the_generator_cannot_honour(bad: dict) -> None:
@@ -97,9 +98,10 @@ def test_anti_aliased_scenes_keep_the_point_ground_truth_and_blend_only_edge_pix
         assert (span[mixed] > 1e-3).float().mean() > 0.95  # ...and only edges blend
 
 
+@pytest.mark.parametrize("curve_probability", [0.0, 1.0])
 @pytest.mark.parametrize("max_disparity", [None, 12.0])
-def test_disparity_stays_within_zero_and_max_disparity(max_disparity: float | None) -> None:
-    config = replace(SMALL, max_disparity=max_disparity)
+def test_disparity_stays_within_zero_and_max_disparity(max_disparity: float | None, curve_probability: float) -> None:
+    config = replace(SMALL, max_disparity=max_disparity, curve_probability=curve_probability)
     batch = SceneGenerator(config).generate(batch_size=8, seed=1)
     assert batch.disparity.min() >= 0
     assert batch.disparity.max() <= config.max_disparity
@@ -121,9 +123,9 @@ def test_different_seeds_give_different_scenes() -> None:
     assert (first.left - second.left).abs().mean() > 10
 
 
-@pytest.mark.parametrize("road_probability", [0.0, 1.0])
-def test_right_view_warped_by_ground_truth_reproduces_left_where_not_occluded(road_probability: float) -> None:
-    config = replace(CLEAN, height=96, width=192, road_probability=road_probability)
+@pytest.mark.parametrize("layout", [{}, {"road_probability": 1.0}, {"curve_probability": 1.0}])
+def test_right_view_warped_by_ground_truth_reproduces_left_where_not_occluded(layout: dict) -> None:
+    config = replace(CLEAN, height=96, width=192, **layout)
     batch = SceneGenerator(config).generate(batch_size=4, seed=3)
     visible = (~batch.occluded).expand_as(batch.left)
     error = (warp_right_to_left(batch.right, batch.disparity) - batch.left).abs()[visible]
@@ -179,6 +181,41 @@ def test_slanted_surfaces_appear_and_fronto_parallel_scenes_have_none() -> None:
     assert (slanted > 0.01).float().mean() > 0.2
     fronto_parallel = smooth_gradients(replace(CLEAN, slant_probability=0.0))
     assert (fronto_parallel > 1e-3).float().mean() < 0.002
+
+
+def smooth_derivatives(disparity: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Central first and second differences of disparity (B, 1, H, W) along x and y, px per px, at
+    pixels whose three-pixel windows lie on one smooth surface (|second difference| < 0.05 px: an
+    edge between surfaces breaks that unless their disparities nearly meet)."""
+    firsts, seconds = [], []
+    for dim in (-1, -2):
+        before, centre, after = (disparity.narrow(dim, start, disparity.shape[dim] - 2) for start in range(3))
+        first, second = (after - before) / 2, after - 2 * centre + before
+        smooth = second.abs() < 0.05
+        firsts.append(first[smooth])
+        seconds.append(second[smooth])
+    return torch.cat(firsts), torch.cat(seconds)
+
+
+def test_curved_surfaces_bend_and_keep_the_slope_bound() -> None:
+    config = replace(CLEAN, height=96, width=192, curve_probability=1.0)
+    first, second = smooth_derivatives(SceneGenerator(config).generate(batch_size=4, seed=6).disparity)
+    assert first.abs().max() <= config.max_slope + 0.03
+    assert (second.abs() > 2e-3).float().mean() > 0.05  # bent over a good part of the frame (the background is planar)
+    planar = SceneGenerator(replace(config, curve_probability=0.0)).generate(batch_size=4, seed=6)
+    _, planar_second = smooth_derivatives(planar.disparity)
+    assert (planar_second.abs() > 2e-3).float().mean() < 0.01
+
+
+def test_curved_scenes_mix_domes_bowls_and_saddles_and_keep_the_background_planar() -> None:
+    scene = SceneGenerator(replace(CLEAN, surfaces=24, curve_probability=0.5)).sample_scene(batch_size=8, seed=4)
+    assert (scene.curvature[:, 0] == 0).all()
+    kxx, kxy, kyy = scene.curvature[:, 1:][scene.present[:, 1:]].unbind(-1)
+    determinant = kxx * kyy - kxy.square() / 4  # of the quadratic form: > 0 dome or bowl, < 0 saddle
+    planar = (kxx == 0) & (kxy == 0) & (kyy == 0)
+    assert 0.3 < planar.float().mean() < 0.7
+    assert ((determinant > 0) & (kxx > 0)).any() and ((determinant > 0) & (kxx < 0)).any()
+    assert (determinant < 0).any()
 
 
 def test_scenes_mix_polygons_ellipses_thin_bars_and_holes() -> None:
@@ -277,6 +314,8 @@ def one_square_scene() -> Scene:
     no_texture = pair([0.0] * 6, [0.0] * 6).view(1, 2, 2, 3)
     return Scene(
         plane=pair([0, 0, 10], [0, 0, 30]),
+        curvature=torch.zeros(1, 2, 3),
+        apex=torch.zeros(1, 2, 2),
         # Background: everywhere. Square: u = (x - 129.5) / 30, v = (y - 39.5) / 20.
         to_shape=torch.tensor([[[[0.0, 0, 0], [0, 0, 0]], [[1 / 30, 0, -129.5 / 30], [0, 1 / 20, -39.5 / 20]]]]),
         sides=torch.tensor([[4, 4]]),
