@@ -243,9 +243,9 @@ def run(args: argparse.Namespace) -> int:
         disparity, uncertainty = prediction.disparity, prediction.uncertainty
         depth = None if calibration is None else metric_depth(disparity, calibration, limits)
         if rectifier is not None and args.frame == "original":
-            disparity = original_frame(rectifier, disparity, np.inf)
-            uncertainty = original_frame(rectifier, uncertainty, 1.0)
-            depth = None if depth is None else original_frame(rectifier, depth, np.inf)
+            disparity = rectifier.to_original(disparity, np.inf)
+            uncertainty = rectifier.to_original(uncertainty, 1.0)
+            depth = None if depth is None else rectifier.to_original(depth, np.inf)
         for output in targets:
             path = output.file(pair, single)
             path.parent.mkdir(parents=True, exist_ok=True)
@@ -271,9 +271,3 @@ def run(args: argparse.Namespace) -> int:
         for output in targets:
             print(f"wrote {len(pairs)} {output.what} files to {output.path}")
     return 0
-
-
-def original_frame(rectifier: Rectifier, values: np.ndarray, missing: float) -> np.ndarray:
-    """A rectified-frame map in the original left image's pixels, `missing` where it has none."""
-    resampled = rectifier.to_original(values)
-    return np.where(np.isnan(resampled), missing, resampled).astype(np.float32)

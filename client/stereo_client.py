@@ -6,6 +6,7 @@ import asyncio
 import io
 import os
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -16,6 +17,13 @@ import numpy as np
 
 Image = np.ndarray | bytes | str | os.PathLike[str]
 """An image: HxW or HxWx3 RGB array (uint8 or uint16), encoded file bytes, or a file path."""
+
+CalibrationFile = bytes | str | os.PathLike[str]
+"""A calibration file: its bytes, or its path."""
+
+Calibration = CalibrationFile | Sequence[CalibrationFile]
+"""One OpenCV calibration file (K1, D1, K2, D2, R, T and the image size), or two ROS camera_info
+files (left, right)."""
 
 RETRIED_CODES = frozenset({"queue_full", "loading"})
 """503 codes worth retrying after `Retry-After`; others (draining, deadline_exceeded, ...) are not."""
@@ -33,7 +41,10 @@ class ServiceError(Exception):
 @dataclass(frozen=True)
 class DisparityResult:
     """The maps (float32 HxW: disparity in px of the left image, uncertainty, depth in m when
-    calibration was given) and the facts the service reports about the computation."""
+    a calibration or focal length and baseline were given) and the facts the service reports
+    about the computation. A raw pair's maps are in the rectified left image, or with
+    `frame="original"` in the original left image's pixels (+inf disparity and depth,
+    uncertainty 1, where a pixel has no rectified counterpart)."""
 
     disparity: np.ndarray
     uncertainty: np.ndarray
@@ -75,9 +86,14 @@ def _encode(image: Image) -> bytes:
     return encoded.tobytes()
 
 
-def _request(left: Image, right: Image, options: dict[str, Any]) -> dict[str, Any]:
+def _request(left: Image, right: Image, calibration: Calibration | None, options: dict[str, Any]) -> dict[str, Any]:
     params = {"format": "npz", **{k: _query_value(v) for k, v in options.items() if v is not None and v is not False}}
-    files = {"left": ("left.png", _encode(left)), "right": ("right.png", _encode(right))}
+    files = [("left", ("left.png", _encode(left))), ("right", ("right.png", _encode(right)))]
+    if calibration is not None:
+        parts = [calibration] if isinstance(calibration, bytes | str | os.PathLike) else list(calibration)
+        for part in parts:
+            data = part if isinstance(part, bytes) else Path(part).read_bytes()
+            files.append(("calibration", ("calibration.yaml", data)))
     return {"params": params, "files": files}
 
 
@@ -151,11 +167,15 @@ class StereoClient:
         raw_uncertainty: bool = False,
         focal_px: float | None = None,
         baseline_m: float | None = None,
+        calibration: Calibration | None = None,
+        frame: str = "rectified",
     ) -> DisparityResult:
-        """Disparity and uncertainty of a rectified pair (raises `ServiceError` on an error answer)."""
+        """Disparity and uncertainty of a rectified pair, or of a raw pair with its `calibration`
+        (raises `ServiceError` on an error answer)."""
         request = _request(
             left,
             right,
+            calibration,
             dict(
                 model=model,
                 iters=iters,
@@ -164,6 +184,7 @@ class StereoClient:
                 raw_uncertainty=raw_uncertainty,
                 focal_px=focal_px,
                 baseline_m=baseline_m,
+                frame=None if frame == "rectified" else frame,
             ),
         )
         for attempt in range(self._retries.max_retries + 1):
@@ -222,10 +243,13 @@ class AsyncStereoClient:
         raw_uncertainty: bool = False,
         focal_px: float | None = None,
         baseline_m: float | None = None,
+        calibration: Calibration | None = None,
+        frame: str = "rectified",
     ) -> DisparityResult:
         request = _request(
             left,
             right,
+            calibration,
             dict(
                 model=model,
                 iters=iters,
@@ -234,6 +258,7 @@ class AsyncStereoClient:
                 raw_uncertainty=raw_uncertainty,
                 focal_px=focal_px,
                 baseline_m=baseline_m,
+                frame=None if frame == "rectified" else frame,
             ),
         )
         for attempt in range(self._retries.max_retries + 1):

@@ -36,7 +36,7 @@ from typing import Any, BinaryIO
 import numpy as np
 
 from service.images import ImageHeader
-from service.uploads import ImageLimits, UploadError, decode_pair, read_pair
+from service.uploads import ImageLimits, Upload, UploadError, decode_pair, read_pair
 
 logger = logging.getLogger(__name__)
 
@@ -89,17 +89,16 @@ class DecoderPool:
         for process in list(self._processes):
             await self._kill(process)
 
-    async def read_pair(
-        self, body: bytes, content_type: str, limits: ImageLimits, stop: Stop
-    ) -> tuple[bytes, bytes, ImageHeader]:
+    async def read_pair(self, body: bytes, content_type: str, limits: ImageLimits, stop: Stop) -> Upload:
         """`service.uploads.read_pair` in a decoder process."""
         meta, buffers = await self._call(
             {"job": "read_pair", "content_type": content_type, "limits": asdict(limits)}, [body], stop
         )
-        header = meta["header"]
-        if len(buffers) != 2 or not isinstance(header, dict):
+        header, rig = meta["header"], meta.get("rig")
+        if len(buffers) != 2 or not isinstance(header, dict) or not isinstance(rig, str | None):
             raise RuntimeError("decoder process answered read_pair with a malformed frame")
-        return buffers[0], buffers[1], ImageHeader(str(header["format"]), int(header["width"]), int(header["height"]))
+        size = ImageHeader(str(header["format"]), int(header["width"]), int(header["height"]))
+        return Upload(buffers[0], buffers[1], size, rig)
 
     async def decode_pair(
         self, left: bytes, right: bytes, header: ImageHeader, stop: Stop
@@ -249,8 +248,8 @@ def _read_frame(stream: BinaryIO) -> tuple[dict[str, Any], list[bytes]] | None:
 
 def _run_job(meta: dict[str, Any], buffers: list[bytes]) -> tuple[dict[str, Any], list[bytes]]:
     if meta["job"] == "read_pair":
-        left, right, header = read_pair(buffers[0], meta["content_type"], ImageLimits(**meta["limits"]))
-        return {"ok": True, "header": asdict(header)}, [left, right]
+        upload = read_pair(buffers[0], meta["content_type"], ImageLimits(**meta["limits"]))
+        return {"ok": True, "header": asdict(upload.header), "rig": upload.rig}, [upload.left, upload.right]
     if meta["job"] == "decode_pair":
         images = decode_pair(buffers[0], buffers[1])
         return {"ok": True}, [np.ascontiguousarray(image).tobytes() for image in images]

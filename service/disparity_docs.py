@@ -6,7 +6,7 @@ from __future__ import annotations
 from typing import Any
 
 from service.schemas import ErrorResponse
-from service.uploads import IMAGE_FIELDS
+from service.uploads import CALIBRATION_FIELD, IMAGE_FIELDS
 
 
 def _binary(media_type: str) -> dict[str, Any]:
@@ -70,6 +70,7 @@ RESPONSES: dict[int | str, dict[str, Any]] = {
             "image_too_large": "left image has 8294400 pixels; the limit for model `lite` is 4194304",
             "decode_too_large": "reading these images needs more than the 768 MiB the server allows per upload; "
             "send smaller or plainer images",
+            "calibration_too_large": "a calibration part may have 256 KiB at most",
         },
     ),
     414: _error_doc(
@@ -81,7 +82,7 @@ RESPONSES: dict[int | str, dict[str, Any]] = {
         {"unsupported_media_type": "left: not a PNG, JPEG, BMP or TIFF file"},
     ),
     422: _error_doc(
-        "Invalid options, fields or images.",
+        "Invalid options, fields, images or calibration.",
         {
             "invalid_request": "query.format: Input should be 'json', 'npz', 'png', ...",
             "missing_field": "multipart field `right` is missing",
@@ -93,6 +94,7 @@ RESPONSES: dict[int | str, dict[str, Any]] = {
             "decode_too_costly": "reading these images took more than 5 s of CPU; re-encode them plainly "
             "(baseline JPEG, PNG) and try again",
             "model_not_loaded": "model `full` is not loaded by this server (loaded: lite)",
+            "invalid_calibration": "calibration `T`: the baseline is zero: the two cameras are at one place",
         },
     ),
     500: _error_doc(
@@ -122,14 +124,27 @@ UPLOAD_BODY = {
                 "required": list(IMAGE_FIELDS),
                 "additionalProperties": False,
                 "properties": {
-                    name: {
-                        "type": "string",
-                        "format": "binary",
-                        "description": f"{name.capitalize()} image of the rectified pair: PNG, JPEG, BMP or "
-                        "TIFF, 8- or 16-bit, grayscale or colour; both images of equal size, at least "
-                        "32 px a side and at most 4,194,304 pixels (the server's defaults).",
-                    }
-                    for name in IMAGE_FIELDS
+                    **{
+                        name: {
+                            "type": "string",
+                            "format": "binary",
+                            "description": f"{name.capitalize()} image of the pair: PNG, JPEG, BMP or "
+                            "TIFF, 8- or 16-bit, grayscale or colour; both images of equal size, at least "
+                            "32 px a side and at most 4,194,304 pixels (the server's defaults).",
+                        }
+                        for name in IMAGE_FIELDS
+                    },
+                    CALIBRATION_FIELD: {
+                        "type": "array",
+                        "minItems": 1,
+                        "maxItems": 2,
+                        "items": {"type": "string", "format": "binary"},
+                        "description": "Only for a raw (unrectified) pair: its camera's calibration, one OpenCV "
+                        "file (YAML or JSON as cv2.FileStorage writes it: K1, D1, K2, D2, R, T and image_size, "
+                        "or image_width and image_height; T in metres) or two ROS camera_info YAML files "
+                        "(left, then right), at most 256 KiB each. The service rectifies the pair, and depth "
+                        "and metric point clouds need no focal_px or baseline_m; see `frame`.",
+                    },
                 },
             }
         }

@@ -13,28 +13,41 @@ from service.schemas import (
     DisparityOptions,
     DisparityResponse,
     EncodedArray,
+    Frame,
     ImageSize,
     OutputFormat,
+    RectifiedCamera,
     Timings,
 )
 from stereo_data.formats import KITTI_SCALE, UNCERTAINTY_SCALE, encode_png, encode_png16
 from stereo_data.pointcloud import IMAGE_FRAME, METRIC_FRAME, DepthRange, encode_ply, metric_depth, point_cloud
+from stereo_data.rig import Rectifier
 from stereo_data.visualize import preview, scale_range
 
 
 def render(
-    options: DisparityOptions, result: JobResult, left: np.ndarray, weights: str, size: ImageHeader
+    options: DisparityOptions,
+    result: JobResult,
+    left: np.ndarray,
+    weights: str,
+    size: ImageHeader,
+    rectifier: Rectifier | None = None,
 ) -> tuple[bytes, str]:
     """The body of the answer in `options.format`, and its media type.
 
-    result: the request's maps (float32 HxW: disparity in px of the left image, uncertainty in
-    [0, 1]) and timings; left: the decoded left image, uint8 HxWx3 RGB (colours of the point
+    result: the request's maps (float32 HxW: disparity in px of the left image the network saw,
+    uncertainty in [0, 1]) and timings; left: that left image, uint8 HxWx3 RGB (colours of the point
     cloud); weights: the weights' identity (`service.runtime.weights_identity`); size: the input
-    images' size.
+    images' size; rectifier: a raw pair's (it gives the depth calibration, and with
+    `frame=original` the maps are resampled into the original left image's pixels).
     """
-    calibration = options.calibration
+    calibration = options.calibration if rectifier is None else rectifier.depth_calibration
     limits = DepthRange(options.min_disparity, options.max_depth_m)
-    depth = None if calibration is None else metric_depth(result.disparity, calibration, limits)
+    disparity, uncertainty = result.disparity, result.uncertainty
+    depth = None if calibration is None else metric_depth(disparity, calibration, limits)
+    if rectifier is not None and options.frame is Frame.original:
+        disparity, uncertainty = rectifier.to_original(disparity, np.inf), rectifier.to_original(uncertainty, 1.0)
+        depth = None if depth is None else rectifier.to_original(depth, np.inf)
     match options.format:
         case OutputFormat.json:
             body = DisparityResponse(
@@ -45,32 +58,44 @@ def render(
                 timings=Timings(
                     queue_ms=round(result.queue_seconds * 1000, 2), compute_ms=round(result.compute_seconds * 1000, 2)
                 ),
-                disparity=encode_array(result.disparity),
-                uncertainty=encode_array(result.uncertainty),
+                disparity=encode_array(disparity),
+                uncertainty=encode_array(uncertainty),
                 depth=None if depth is None else encode_array(depth),
+                frame=options.frame if rectifier is not None else Frame.rectified,
+                camera=None if rectifier is None else rectified_camera(rectifier),
             )
             return body.model_dump_json().encode(), "application/json"
         case OutputFormat.npz:
-            maps = {"disparity": result.disparity, "uncertainty": result.uncertainty}
+            maps = {"disparity": disparity, "uncertainty": uncertainty}
             if depth is not None:
                 maps["depth"] = depth
             return encode_npz(maps), "application/x-npz"
         case OutputFormat.png:
-            disparity_range = scale_range(result.disparity, options.color_min, options.color_max)
-            return encode_preview(result.disparity, result.uncertainty, disparity_range), "image/png"
+            shown = np.where(np.isfinite(disparity), disparity, 0.0)  # no rectified counterpart: the scale's bottom
+            disparity_range = scale_range(shown, options.color_min, options.color_max)
+            return encode_preview(shown, uncertainty, disparity_range), "image/png"
         case OutputFormat.disparity_png16:
-            return encode_png16(result.disparity, KITTI_SCALE), "image/png"
+            return encode_png16(disparity, KITTI_SCALE), "image/png"
         case OutputFormat.depth_png16:
             assert depth is not None  # DisparityOptions requires the calibration for it
             return encode_png16(depth, KITTI_SCALE), "image/png"
         case OutputFormat.uncertainty_png16:
-            return encode_png16(result.uncertainty, UNCERTAINTY_SCALE), "image/png"
+            return encode_png16(uncertainty, UNCERTAINTY_SCALE), "image/png"
         case OutputFormat.ply:
             points, colours = point_cloud(
                 result.disparity, left, result.uncertainty, calibration, options.max_uncertainty, limits
             )
             frame = IMAGE_FRAME if calibration is None else METRIC_FRAME
             return encode_ply(points, colours, frame), "application/x-ply"
+
+
+def rectified_camera(rectifier: Rectifier) -> RectifiedCamera:
+    """The rectified left camera of a raw pair's rig."""
+    calibration = rectifier.depth_calibration
+    assert calibration.cx is not None and calibration.cy is not None  # a rig always has its principal point
+    return RectifiedCamera(
+        focal_px=calibration.focal_px, baseline_m=calibration.baseline_m, cx_px=calibration.cx, cy_px=calibration.cy
+    )
 
 
 def encode_array(values: np.ndarray) -> EncodedArray:

@@ -16,6 +16,7 @@ from service.batching import Batcher, Draining, Predictor
 from service.cpu import configure_torch_threads, usable_cpus
 from service.decoding import DecoderLimits, DecoderPool
 from service.metrics import Metrics
+from service.rigs import RectifierCache
 from service.schemas import BatchingConfig, HealthResponse, ModelStatus, ServiceState
 from service.settings import Settings
 from service.worker import DaemonWorker
@@ -45,6 +46,7 @@ class ServiceRuntime:
         self.decoders = DecoderPool(
             DecoderLimits(settings.decode_workers, settings.decode_memory_mb << 20, settings.decode_cpu_s)
         )
+        self.rectifiers = RectifierCache()  # raw pairs: one rectifier per recent calibration
         self.drain_over = asyncio.Event()  # set when the drain timeout has passed
         self._loader = loader
         self._executor: DaemonWorker | None = None

@@ -26,6 +26,13 @@ class OutputFormat(StrEnum):
     ply = "ply"
 
 
+class Frame(StrEnum):
+    """The pixel grid of the maps of a raw pair sent with its calibration."""
+
+    rectified = "rectified"
+    original = "original"
+
+
 FLOAT32_MAX = float(np.finfo(np.float32).max)
 _DECIMAL = re.compile(r"[+-]?([0-9]+\.?[0-9]*|\.[0-9]+)([eE][+-]?[0-9]+)?")
 
@@ -44,10 +51,11 @@ class DisparityOptions(BaseModel):
         "(inferno, 0 to 1), each with a colour bar printing its range. `disparity_png16`: KITTI "
         "16-bit PNG, value = round(disparity x 256), 0 = invalid, clipped at 65535. "
         "`depth_png16`: KITTI depth 16-bit PNG, value = round(metres x 256), 0 = invalid, needs "
-        "`focal_px` and `baseline_m`. `uncertainty_png16`: 16-bit PNG, value = "
+        "a `calibration` part, or `focal_px` and `baseline_m`. `uncertainty_png16`: 16-bit PNG, value = "
         "round(uncertainty x 65535). `ply`: binary PLY point cloud coloured by the left image: "
-        "metric (metres, left camera frame) with `focal_px` and `baseline_m` (principal point "
-        "`cx_px`, `cy_px`, default the image centre), else image-space (x px, y px, disparity px); "
+        "metric (metres, left camera frame) with a `calibration` part (the rectified left camera), or "
+        "with `focal_px` and `baseline_m` (principal point `cx_px`, `cy_px`, default the image centre), "
+        "else image-space (x px, y px, disparity px); "
         "pixels above `max_uncertainty` are dropped.",
     )
     two_pass: bool = Field(
@@ -85,6 +93,13 @@ class DisparityOptions(BaseModel):
     cy_px: FiniteFloat | None = Field(None, description="`format=ply`: principal point y in px [the image centre].")
     max_uncertainty: FiniteFloat | None = Field(
         None, ge=0, description="`format=ply`: drop points whose uncertainty is above this."
+    )
+    frame: Frame = Field(
+        Frame.rectified,
+        description="With a `calibration` part (a raw pair): the maps in the rectified left image "
+        "(`rectified`, what the network saw), or resampled into the original left image's pixels "
+        "(`original`, to overlay on the camera's image; disparity and depth +inf, uncertainty 1, where a "
+        "pixel has no rectified counterpart). Point clouds are always in the rectified left camera's frame.",
     )
     focal_px: FiniteFloat | None = Field(
         None,
@@ -137,16 +152,30 @@ class DisparityOptions(BaseModel):
         """The options that say how the pair is computed (`model.InferenceOptions`)."""
         return InferenceOptions(parse_iterations(self.iters), self.two_pass, self.scale, self.raw_uncertainty)
 
+    def calibration_problem(self, calibrated: bool) -> str | None:
+        """What is wrong with these options for a pair sent with (`calibrated`) or without a
+        `calibration` part (None: nothing). Checked once the form is read."""
+        if calibrated and (self.focal_px is not None or self.cx_px is not None or self.cy_px is not None):
+            return (
+                "the calibration part gives the focal length, baseline and principal point: "
+                "leave out focal_px, baseline_m, cx_px and cy_px"
+            )
+        if not calibrated and self.frame is Frame.original:
+            return "frame=original needs a `calibration` part (a rectified pair has no other frame)"
+        needs = "a `calibration` part, or focal_px and baseline_m"
+        if not calibrated and self.focal_px is None:
+            if self.format is OutputFormat.depth_png16:
+                return f"format=depth_png16 needs {needs}"
+            if self.max_depth_m is not None:
+                return f"max_depth_m needs {needs}"
+            if self.cx_px is not None or self.cy_px is not None:
+                return "cx_px and cy_px need focal_px and baseline_m"
+        return None
+
     @model_validator(mode="after")
-    def _depth_needs_calibration(self) -> DisparityOptions:
+    def _consistent(self) -> DisparityOptions:
         if (self.focal_px is None) != (self.baseline_m is None):
             raise ValueError("give both focal_px and baseline_m, or neither")
-        if self.format is OutputFormat.depth_png16 and self.focal_px is None:
-            raise ValueError("format=depth_png16 needs focal_px and baseline_m")
-        if (self.cx_px is not None or self.cy_px is not None) and self.focal_px is None:
-            raise ValueError("cx_px and cy_px need focal_px and baseline_m")
-        if self.max_depth_m is not None and self.focal_px is None:
-            raise ValueError("max_depth_m needs focal_px and baseline_m")
         if self.color_min is not None and self.color_max is not None and self.color_max <= self.color_min:
             raise ValueError("color_max must be above color_min")
         if (
@@ -177,6 +206,16 @@ class Timings(BaseModel):
 
     queue_ms: float = Field(description="From queueing (after decoding) until the batch started.")
     compute_ms: float = Field(description="Network time of the whole batch the request ran in.")
+
+
+class RectifiedCamera(BaseModel):
+    """The rectified left camera of a raw pair: depth = focal_px x baseline_m / disparity, and pixel
+    (x, y) of the rectified image looks along ((x - cx_px) / focal_px, (y - cy_px) / focal_px, 1)."""
+
+    focal_px: float
+    baseline_m: float
+    cx_px: float
+    cy_px: float
 
 
 class DisparityResponse(BaseModel):
@@ -218,7 +257,13 @@ class DisparityResponse(BaseModel):
         "calibration, the paper's U in [0, 1]."
     )
     depth: EncodedArray | None = Field(
-        None, description="Metres, +inf where disparity <= 0; only with focal_px and baseline_m."
+        None,
+        description="Metres, +inf where there is no depth (disparity <= min_disparity, or beyond max_depth_m); "
+        "only with a calibration part, or focal_px and baseline_m.",
+    )
+    frame: Frame = Field(Frame.rectified, description="The pixel grid of the maps (see the `frame` option).")
+    camera: RectifiedCamera | None = Field(
+        None, description="With a calibration part: the rectified left camera that disparity and depth refer to."
     )
 
 

@@ -1,6 +1,8 @@
 """The uploads of `POST /disparity`, from the raw body to RGB images: the multipart files `left`
 and `right` (`read_pair`), checked from their file headers (`service.images.read_header`) before
-any pixel is decoded, then decoded (`decode_pair`).
+any pixel is decoded, then decoded (`decode_pair`); and the camera's calibration where the pair is
+raw (the optional `calibration` part: one OpenCV file, or two ROS camera_info files), parsed and
+checked against the images' size.
 
 These functions take untrusted bytes and can be made to work hard: the service runs them in its
 decoder processes (`service.decoding`), never on the event loop. They raise `UploadError`.
@@ -16,8 +18,12 @@ from python_multipart.exceptions import MultipartParseError
 from python_multipart.multipart import MultipartParser, parse_options_header
 
 from service.images import ImageError, ImageHeader, decode_rgb, read_header
+from stereo_data.rig import RigError, parse_rig
 
 IMAGE_FIELDS = ("left", "right")
+CALIBRATION_FIELD = "calibration"
+MAX_CALIBRATION_BYTES = 256 << 10
+"""Largest calibration part (a calibration file is a few kilobytes)."""
 MAX_PARTS = 16
 """Most parts a form may have before it is refused (it needs two)."""
 MAX_BOUNDARY_PADDING = 64
@@ -56,14 +62,70 @@ def boundary_of(content_type: str) -> bytes:
     return boundary
 
 
-def read_pair(body: bytes, content_type: str, limits: ImageLimits) -> tuple[bytes, bytes, ImageHeader]:
-    """The files `left` and `right` of a multipart body (nothing else may be in the form) and the
-    left image's header, once both headers pass `limits` and agree in size."""
-    left, right = _form_files(body, boundary_of(content_type))
-    return left, right, check_headers(limits, left, right)
+@dataclass(frozen=True)
+class Upload:
+    """What a form holds: the two image files, the left image's header, and the camera's rig from
+    the `calibration` part(s) as `StereoRig.to_json` text (None for a rectified pair)."""
+
+    left: bytes
+    right: bytes
+    header: ImageHeader
+    rig: str | None
 
 
-def _form_files(body: bytes, boundary: bytes) -> tuple[bytes, bytes]:
+def read_pair(body: bytes, content_type: str, limits: ImageLimits) -> Upload:
+    """The files `left` and `right` of a multipart body and its optional `calibration` (nothing else
+    may be in the form), once both image headers pass `limits` and agree in size, and the
+    calibration is usable for images of that size."""
+    form = _form(body, boundary_of(content_type))
+    left, right = (_one_file(form, name) for name in IMAGE_FIELDS)
+    header = check_headers(limits, left, right)
+    return Upload(left, right, header, _rig(form.get(CALIBRATION_FIELD, []), header))
+
+
+def _one_file(form: dict[str, list[tuple[bytes, bool]]], name: str) -> bytes:
+    given = form.get(name, [])
+    if not given:
+        raise UploadError(422, "missing_field", f"multipart field `{name}` is missing")
+    if len(given) > 1 or not given[0][1]:
+        raise UploadError(422, "invalid_field", f"`{name}` must be exactly one file")
+    return given[0][0]
+
+
+def _rig(parts: list[tuple[bytes, bool]], header: ImageHeader) -> str | None:
+    """The rig of the calibration parts (files or plain values), as JSON; None without any."""
+    if not parts:
+        return None
+    if len(parts) > 2:
+        raise _calibration_error("calibration", f"give one OpenCV file or two ROS camera_info files, got {len(parts)}")
+    texts = []
+    for data, _ in parts:
+        if len(data) > MAX_CALIBRATION_BYTES:
+            raise UploadError(
+                413, "calibration_too_large", f"a calibration part may have {MAX_CALIBRATION_BYTES >> 10} KiB at most"
+            )
+        try:
+            texts.append(data.decode("utf-8"))
+        except UnicodeDecodeError:
+            raise _calibration_error("calibration", "not UTF-8 text (YAML or JSON)") from None
+    try:
+        rig = parse_rig(*texts)
+    except RigError as error:
+        raise _calibration_error(error.field, error.reason) from None
+    if rig.image_size != (header.width, header.height):
+        width, height = rig.image_size
+        raise _calibration_error(
+            "image_size", f"the calibration is for {width}x{height} images, the pair is {header.width}x{header.height}"
+        )
+    return rig.to_json()
+
+
+def _calibration_error(field: str, reason: str) -> UploadError:
+    return UploadError(422, "invalid_calibration", f"calibration `{field}`: {reason}")
+
+
+def _form(body: bytes, boundary: bytes) -> dict[str, list[tuple[bytes, bool]]]:
+    """The parts of a multipart body by field name: (content, whether it is a file) in order."""
     padded = re.search(b"--" + re.escape(boundary) + b"[ \t]{%d}" % (MAX_BOUNDARY_PADDING + 1), body)
     if padded is not None:  # the parser walks such padding byte by byte: seconds per 20 MiB
         raise UploadError(
@@ -99,24 +161,16 @@ def _form_files(body: bytes, boundary: bytes) -> tuple[bytes, bytes]:
         parser.finalize()
     except MultipartParseError as exc:
         raise UploadError(422, "invalid_multipart", f"malformed multipart body ({exc})") from None
-    files: dict[str, list[bytes | None]] = {}
+    form: dict[str, list[tuple[bytes, bool]]] = {}
     for headers, chunks in parts:
         _, options = parse_options_header(headers.get(b"content-disposition", b""))
         name = options.get(b"name", b"").decode("utf-8", "replace")
-        if name not in IMAGE_FIELDS:
+        if name not in (*IMAGE_FIELDS, CALIBRATION_FIELD):
             raise UploadError(
                 422, "unknown_field", f"unknown multipart field `{name[:64]}`; options go in the query string"
             )
-        files.setdefault(name, []).append(b"".join(chunks) if b"filename" in options else None)
-    values = []
-    for name in IMAGE_FIELDS:
-        given = files.get(name, [])
-        if not given:
-            raise UploadError(422, "missing_field", f"multipart field `{name}` is missing")
-        if len(given) > 1 or given[0] is None:
-            raise UploadError(422, "invalid_field", f"`{name}` must be exactly one file")
-        values.append(given[0])
-    return values[0], values[1]
+        form.setdefault(name, []).append((b"".join(chunks), b"filename" in options))
+    return form
 
 
 def check_headers(limits: ImageLimits, left: bytes, right: bytes) -> ImageHeader:

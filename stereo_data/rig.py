@@ -17,8 +17,9 @@ x - d on the same rectified row.
 
 from __future__ import annotations
 
+import json
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 
 import cv2
@@ -36,7 +37,7 @@ class RigError(ValueError):
 
     def __init__(self, field: str, message: str) -> None:
         super().__init__(f"{field}: {message}")
-        self.field = field
+        self.field, self.reason = field, message
 
 
 @dataclass(frozen=True, eq=False)
@@ -66,6 +67,47 @@ class StereoRig:
     def baseline(self) -> float:
         """Distance between the camera centres, in the unit of T (metres)."""
         return float(-self.p2[0, 3] / self.p2[0, 0])
+
+    def to_json(self) -> str:
+        """The rig as JSON numbers (float64 round-trips exactly); `from_json` reads it back."""
+        return json.dumps({field.name: np.asarray(getattr(self, field.name)).tolist() for field in fields(self)})
+
+    @staticmethod
+    def from_json(text: str) -> StereoRig:
+        """The rig of `to_json`'s text, checked again (shapes, finite numbers, a positive focal
+        length and baseline): RigError where it is not a rig."""
+        try:
+            values = json.loads(text)
+        except ValueError:
+            values = None
+        if not isinstance(values, dict):
+            raise RigError("calibration", "not a rig's JSON")
+
+        def array(key: str, shapes: Sequence[tuple[int, ...]]) -> np.ndarray:
+            try:
+                value = np.asarray(values[key], np.float64)
+            except (KeyError, TypeError, ValueError):
+                raise RigError(key, "missing or not numbers") from None
+            return _shaped(key, value.reshape(-1), shapes)
+
+        width, height = array("image_size", [(2,)])
+        if not (width >= 1 and height >= 1 and width.is_integer() and height.is_integer()):
+            raise RigError("image_size", f"expected positive whole numbers of pixels, got {width}x{height}")
+        distortion = [(n,) for n in DISTORTION_LENGTHS]
+        rig = StereoRig(
+            (int(width), int(height)),
+            array("k1", [(3, 3)]),
+            array("d1", distortion),
+            array("k2", [(3, 3)]),
+            array("d2", distortion),
+            array("r1", [(3, 3)]),
+            array("r2", [(3, 3)]),
+            array("p1", [(3, 4)]),
+            array("p2", [(3, 4)]),
+        )
+        if not (rig.focal_px > 0 and rig.baseline > 0):
+            raise RigError("calibration", "the rectified cameras need a positive focal length and baseline")
+        return rig
 
 
 def read_rig(paths: str | Path | Sequence[str | Path]) -> StereoRig:
@@ -134,11 +176,12 @@ class Rectifier:
         ]
         return rectified[0], rectified[1]
 
-    def to_original(self, rectified: np.ndarray) -> np.ndarray:
+    def to_original(self, rectified: np.ndarray, missing: float = float("nan")) -> np.ndarray:
         """A map of the rectified left frame (float HxW) resampled into the original left image's
-        pixel grid, bilinearly; NaN where an original pixel has no rectified counterpart."""
+        pixel grid, bilinearly, as float32; ``missing`` where an original pixel has no rectified
+        counterpart (or its neighbours there are not finite: +inf disparity stays unknown)."""
         back_x, back_y = self._back[..., 0], self._back[..., 1]
-        return cv2.remap(
+        resampled = cv2.remap(
             rectified.astype(np.float32),
             back_x,
             back_y,
@@ -146,6 +189,7 @@ class Rectifier:
             borderMode=cv2.BORDER_CONSTANT,
             borderValue=float("nan"),
         )
+        return np.where(np.isfinite(resampled), resampled, np.float32(missing)).astype(np.float32)
 
 
 def _storage(text: str, what: str) -> cv2.FileStorage:

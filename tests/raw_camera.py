@@ -47,3 +47,25 @@ def raw_view(k: np.ndarray, d: np.ndarray, rotation: np.ndarray, translation: np
     s = (PLANE_Z - origin[2]) / directions[:, 2]
     points = origin + s[:, None] * directions
     return texture(points[:, 0], points[:, 1]).reshape(HEIGHT, WIDTH)
+
+
+def ros_camera_info_files(folder: Path) -> tuple[Path, Path]:
+    """The same rig as two ROS camera_info YAML files (left.yaml, right.yaml in `folder`), as
+    `camera_calibration` writes them: each camera's K, D and its rectification R, P."""
+    r1, r2, p1, p2, *_ = cv2.stereoRectify(
+        K1, D1, K2, D2, (WIDTH, HEIGHT), R, T.reshape(3, 1), flags=cv2.CALIB_ZERO_DISPARITY, alpha=0.0
+    )
+
+    def entry(name: str, matrix: np.ndarray) -> str:
+        rows, cols = matrix.shape if matrix.ndim == 2 else (1, matrix.size)
+        data = ", ".join(repr(float(v)) for v in matrix.ravel())
+        return f"{name}:\n  rows: {rows}\n  cols: {cols}\n  data: [{data}]\n"
+
+    paths = []
+    for side, k, d, r, p in (("left", K1, D1, r1, p1), ("right", K2, D2, r2, p2)):
+        text = f"image_width: {WIDTH}\nimage_height: {HEIGHT}\ncamera_name: {side}\n"
+        text += entry("camera_matrix", k) + "distortion_model: plumb_bob\n" + entry("distortion_coefficients", d)
+        text += entry("rectification_matrix", r) + entry("projection_matrix", p)
+        paths.append(folder / f"{side}.yaml")
+        paths[-1].write_text(text)
+    return paths[0], paths[1]

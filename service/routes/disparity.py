@@ -1,4 +1,5 @@
-"""`POST /disparity`: a rectified stereo pair in, disparity and uncertainty (and depth) out.
+"""`POST /disparity`: a stereo pair in (rectified, or raw with its calibration), disparity and
+uncertainty (and depth) out.
 
 The route keeps HTTP: options, headers, readiness and the answer's headers. Uploads are read and
 checked by `service.uploads`, the maps are rendered by `service.encoding.render`, and what the
@@ -38,7 +39,7 @@ _ABANDON_POLL_S = 0.2  # how often a request whose images are being read checks 
 
 @router.post(
     "/disparity",
-    summary="Disparity and uncertainty of a rectified stereo pair",
+    summary="Disparity and uncertainty of a stereo pair (rectified, or raw with its calibration)",
     response_model=DisparityResponse,
     responses=RESPONSES,
     # `{}` beside the bearer scheme: the key is optional (only when CRESTEREO_API_KEY is set).
@@ -60,7 +61,8 @@ async def estimate_disparity(
         ),
     ] = None,
 ) -> Response:
-    """Send the two images as multipart files `left` and `right`; options go in the query string.
+    """Send the two images as multipart files `left` and `right`, and for a raw (unrectified) pair
+    its camera's calibration as `calibration`; options go in the query string.
 
     Every answer carries the model, the weights' identity, the image size, the batch size the
     request ran in and its timings (in the JSON body for `format=json`, and as `X-*` headers).
@@ -77,13 +79,20 @@ async def estimate_disparity(
     stop = partial(_abandoned, request, deadline, runtime)
     limits = ImageLimits(options.model, settings.pixel_limit(options.model), settings.min_image_side)
     # Parsing and decoding untrusted bytes happen in the decoder processes, never here.
-    left_bytes, right_bytes, header = await runtime.decoders.read_pair(body, content_type, limits, stop)
+    upload = await runtime.decoders.read_pair(body, content_type, limits, stop)
     del body
+    header = upload.header
+    problem = options.calibration_problem(upload.rig is not None)
+    if problem is not None:
+        raise bad_input(422, "invalid_request", problem)
+    rectifier = None if upload.rig is None else await runtime.rectifiers.get(upload.rig)
     inference = options.inference
     _check_scale(header, options.scale)
     key = batch_key(options.model, inference, header.height, header.width)
     async with batcher.admit(options.model, key, deadline=deadline) as admission:
-        left, right = await runtime.decoders.decode_pair(left_bytes, right_bytes, header, stop)
+        left, right = await runtime.decoders.decode_pair(upload.left, upload.right, header, stop)
+        if rectifier is not None:  # a raw pair: the network sees it rectified
+            left, right = await run_in_threadpool(rectifier.rectify, left, right)
         result = await admission.run(
             left,
             right,
@@ -95,7 +104,7 @@ async def estimate_disparity(
     request.state.batch_size = result.batch_size
     predictor = runtime.predictors[options.model]
     weights = weights_identity(predictor)
-    content, media_type = await run_in_threadpool(render, options, result, left, weights, header)
+    content, media_type = await run_in_threadpool(render, options, result, left, weights, header, rectifier)
     return Response(content, media_type=media_type, headers=_result_headers(predictor, weights, header, result))
 
 

@@ -19,7 +19,7 @@ const state = {
   files: { left: null, right: null },  // File objects
   baseName: "pair",                    // stem of the download file names
   models: {},                          // name -> GET /models entry
-  last: null,                          // { left, right, params, baseName, jsonText } of the result shown
+  last: null,                          // { left, right, calibration, params, baseName, jsonText } of the result shown
   result: null,                        // { width, height, disparity, uncertainty, depth }
 };
 
@@ -60,11 +60,13 @@ async function request(url, options) {
   return response;
 }
 
-/** POST /disparity with the pair, the options `params` (URLSearchParams) and `format`. */
-function postDisparity(left, right, params, format) {
+/** POST /disparity with the pair, its calibration files (none for a rectified pair), the options
+ * `params` (URLSearchParams) and `format`. */
+function postDisparity(left, right, calibration, params, format) {
   const form = new FormData();
   form.append("left", left, left.name);
   form.append("right", right, right.name);
+  for (const file of calibration) form.append("calibration", file, file.name);
   const query = new URLSearchParams(params);
   query.set("format", format);
   const headers = {};
@@ -73,11 +75,17 @@ function postDisparity(left, right, params, format) {
   return request(`disparity?${query}`, { method: "POST", body: form, headers });
 }
 
-/** The query options from the form: every named control, empty ones left out. */
-function readOptions() {
+/** The calibration files chosen: none, one OpenCV file, or the left and right ROS camera_info. */
+function readCalibration() {
+  return ["calibration-file", "calibration-right-file"].map((id) => $(id).files[0]).filter(Boolean);
+}
+
+/** The query options from the form: every named control, empty ones left out (and `frame`
+ * only with a calibration, the one case where it means something). */
+function readOptions(calibrated) {
   const params = new URLSearchParams();
   for (const element of $("options").elements) {
-    if (!element.name) continue;
+    if (!element.name || (element.name === "frame" && !calibrated)) continue;
     if (element.type === "checkbox") {
       if (element.checked) params.set(element.name, "true");
     } else if (element.value.trim() !== "") {
@@ -216,7 +224,9 @@ async function showResult(body, params, left) {
   state.result = result;
   $("summary").textContent = `${body.model}, weights ${body.weights} · ${width}x${height} px · ` +
     `batch of ${body.batch_size} · queued ${body.timings.queue_ms} ms · computed in ${body.timings.compute_ms} ms` +
-    ` · disparity ${g3(low)}-${g3(high)} px (colour range)`;
+    ` · disparity ${g3(low)}-${g3(high)} px (colour range)` +
+    (body.camera ? ` · raw pair, rectified by its calibration (f ${g3(body.camera.focal_px)} px, baseline ` +
+      `${g3(body.camera.baseline_m)} m); maps in the ${body.frame} left image` : "");
   $("readout").textContent = "hover over an image for the values at that pixel";
   renderDownloads(result.depth !== null);
   $("results").hidden = false;
@@ -231,13 +241,17 @@ function hover(event) {
   const x = Math.min(result.width - 1, Math.max(0, Math.floor((event.clientX - rect.left) / rect.width * result.width)));
   const y = Math.min(result.height - 1, Math.max(0, Math.floor((event.clientY - rect.top) / rect.height * result.height)));
   const i = y * result.width + x;
-  const parts = [`x ${x}, y ${y}`, `disparity ${result.disparity[i].toFixed(2)} px`,
-    `uncertainty ${result.uncertainty[i].toFixed(3)}`];
+  const disparity = result.disparity[i];
+  if (!Number.isFinite(disparity)) {  // frame=original: this camera pixel has no rectified counterpart
+    $("readout").textContent = `x ${x}, y ${y} · no value: outside the rectified image`;
+    return;
+  }
+  const parts = [`x ${x}, y ${y}`, `disparity ${disparity.toFixed(2)} px`, `uncertainty ${result.uncertainty[i].toFixed(3)}`];
   if (result.depth) {
     const depth = result.depth[i];
-    parts.push(Number.isFinite(depth) ? `depth ${depth.toPrecision(4)} m` : "depth invalid (disparity <= 0)");
+    parts.push(Number.isFinite(depth) ? `depth ${depth.toPrecision(4)} m` : "depth invalid (disparity too small)");
   } else {
-    parts.push("depth: give focal_px and baseline_m");
+    parts.push("depth: give a calibration file, or focal_px and baseline_m");
   }
   $("readout").textContent = parts.join(" · ");
 }
@@ -266,7 +280,7 @@ function renderDownloads(calibrated) {
     button.dataset.format = entry.format;
     if (entry.needsCalibration && !calibrated) {
       button.disabled = true;
-      button.title = "needs focal_px and baseline_m";
+      button.title = "needs a calibration file, or focal_px and baseline_m";
     }
     button.addEventListener("click", () => download(entry, button));
     item.append(button);
@@ -286,7 +300,7 @@ async function download(entry, button) {
   button.disabled = true;
   setStatus(`preparing ${entry.format}…`);
   try {
-    const response = await postDisparity(last.left, last.right, last.params, entry.format);
+    const response = await postDisparity(last.left, last.right, last.calibration, last.params, entry.format);
     save(await response.blob(), filename);
     setStatus(`saved ${filename}`);
   } catch (err) {
@@ -326,15 +340,16 @@ async function run(event) {
     showError(new ServiceError(0, "missing_image", "choose a left and a right image (or an example pair)"));
     return;
   }
-  const params = readOptions();
+  const calibration = readCalibration();
+  const params = readOptions(calibration.length > 0);
   $("run").disabled = true;
   setStatus("computing…");
   const started = performance.now();
   try {
-    const response = await postDisparity(left, right, params, "json");
+    const response = await postDisparity(left, right, calibration, params, "json");
     const jsonText = await response.text();
     const body = JSON.parse(jsonText);
-    state.last = { left, right, params, baseName: state.baseName, jsonText };
+    state.last = { left, right, calibration, params, baseName: state.baseName, jsonText };
     await showResult(body, params, left);
     setStatus(`done in ${Math.round(performance.now() - started)} ms`);
   } catch (err) {

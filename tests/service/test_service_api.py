@@ -274,4 +274,7 @@ async def test_a_depth_limit_bounds_the_metric_point_cloud_and_needs_a_calibrati
     ply = PlyData.read(io.BytesIO(bounded.content))
     assert 0 < len(ply["vertex"]) and ply["vertex"]["z"].max() <= 3.0
     assert "units metres; frame: left camera, x right, y down, z forward" in ply.comments
-    assert uncalibrated.status_code == 422 and "max_depth_m needs focal_px" in uncalibrated.json()["error"]["message"]
+    assert (
+        uncalibrated.status_code == 422
+        and "max_depth_m needs a `calibration` part" in uncalibrated.json()["error"]["message"]
+    )

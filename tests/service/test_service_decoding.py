@@ -53,11 +53,12 @@ async def test_the_pool_parses_the_form_and_decodes_the_pair_exactly():
     )
     pool = await started(GENEROUS)
     try:
-        left_bytes, right_bytes, header = await pool.read_pair(body, content_type, LIMITS, never)
-        decoded = await pool.decode_pair(left_bytes, right_bytes, header, never)
+        upload = await pool.read_pair(body, content_type, LIMITS, never)
+        decoded = await pool.decode_pair(upload.left, upload.right, upload.header, never)
     finally:
         await pool.close()
-    assert (header.width, header.height) == (left.shape[1], left.shape[0])
+    assert (upload.header.width, upload.header.height) == (left.shape[1], left.shape[0])
+    assert upload.rig is None  # a rectified pair
     assert np.array_equal(decoded[0], left) and np.array_equal(decoded[1], right)
 
 

@@ -58,6 +58,7 @@ def test_every_disparity_answer_is_documented_with_examples_of_its_error_codes()
         "baseline_m",
         "min_disparity",
         "max_depth_m",
+        "frame",
         "X-Request-Timeout-Ms",
     }
 

@@ -2,12 +2,14 @@
 one row at the disparity its geometry predicts, maps brought back to the original left pixels,
 and every unusable calibration refused with the field named."""
 
+import json
+
 import cv2
 import numpy as np
 import pytest
 from raw_camera import D1, D2, HEIGHT, K1, K2, PLANE_Z, WIDTH, R, T, opencv_file, raw_view
 
-from stereo_data.rig import Rectifier, RigError, parse_rig, read_rig
+from stereo_data.rig import Rectifier, RigError, StereoRig, parse_rig, read_rig
 
 
 def test_a_raw_pair_is_rectified_onto_rows_at_the_disparity_its_geometry_gives(tmp_path):
@@ -112,3 +114,23 @@ def test_a_pair_of_another_size_or_a_file_that_is_not_a_calibration_is_refused(t
         rectifier.rectify(np.zeros((480, 640, 3), np.uint8), np.zeros((480, 640, 3), np.uint8))
     with pytest.raises(RigError, match="calibration: not a YAML or JSON file"):
         parse_rig("\x00\x01 not yaml {[")
+
+
+def test_a_rig_travels_as_json_exactly_and_json_that_is_not_a_rig_is_refused(tmp_path):
+    rig = read_rig(opencv_file(tmp_path / "stereo.yaml"))
+    again = StereoRig.from_json(rig.to_json())
+    assert again.image_size == rig.image_size
+    for name in ("k1", "d1", "k2", "d2", "r1", "r2", "p1", "p2"):
+        assert np.array_equal(getattr(again, name), getattr(rig, name)), name
+    values = json.loads(rig.to_json())
+    for change, field in (
+        ({"p1": [[1.0, 2.0]]}, "p1"),
+        ({"k2": [[float("nan")] * 3] * 3}, "k2"),
+        ({"image_size": [320.5, 240]}, "image_size"),
+        ({"p2": (np.asarray(values["p2"]) * [[1, 1, 1, -1], [1, 1, 1, 1], [1, 1, 1, 1]]).tolist()}, "calibration"),
+    ):
+        with pytest.raises(RigError) as refused:
+            StereoRig.from_json(json.dumps({**values, **change}))
+        assert refused.value.field == field
+    with pytest.raises(RigError, match="calibration: not a rig"):
+        StereoRig.from_json("[1, 2]")

@@ -16,6 +16,9 @@ import cv2
 import httpx
 import numpy as np
 import pytest
+from raw_camera import D1, D2, K1, K2, PLANE_Z, R, T, opencv_file, raw_view
+from raw_camera import HEIGHT as RAW_HEIGHT
+from raw_camera import WIDTH as RAW_WIDTH
 
 from service.routes.page import STATIC_DIR
 from service.schemas import OutputFormat
@@ -193,6 +196,42 @@ def test_hover_shows_the_value_in_px_and_depth_in_m(web: WebPage) -> None:
         assert float(found.group(4)) == pytest.approx(maps["uncertainty"][y, x], abs=6e-4)
         assert float(found.group(5)) == pytest.approx(maps["depth"][y, x], rel=1e-3)
         assert maps["depth"][y, x] == pytest.approx(focal_px * baseline_m / maps["disparity"][y, x], rel=1e-4)
+
+
+def test_a_raw_pair_with_its_calibration_file_gives_depth_on_the_cameras_pixels(web: WebPage, tmp_path: Path) -> None:
+    page = web.page
+    left, right = (
+        np.clip(view, 0, 255).astype(np.uint8)
+        for view in (raw_view(K1, D1, np.eye(3), np.zeros(3)), raw_view(K2, D2, R, T))
+    )
+    for side, image in (("left", left), ("right", right)):
+        png = cv2.imencode(".png", image)[1].tobytes()
+        page.set_input_files(f"#{side}-file", files=[{"name": f"{side}.png", "mimeType": "image/png", "buffer": png}])
+    bad = opencv_file(tmp_path / "bad.yaml", T=np.zeros(3))
+    page.set_input_files("#calibration-file", str(bad))
+    page.click("#run")
+    page.wait_for_selector("#error", state="visible")
+    assert page.inner_text("#error").startswith("422 invalid_calibration: calibration `T`")
+
+    page.set_input_files("#calibration-file", str(opencv_file(tmp_path / "stereo.yaml")))
+    page.select_option("#frame", "original")
+    page.click("#run")
+    page.wait_for_selector("#results", state="visible")
+    assert "raw pair, rectified by its calibration" in page.inner_text("#summary")
+    assert "maps in the original left image" in page.inner_text("#summary")
+    assert page.is_enabled("#download-list button[data-format=depth_png16]")
+    canvas = page.locator("#disparity-canvas")
+    canvas.scroll_into_view_if_needed()
+    box = canvas.bounding_box()
+    assert box is not None
+    readouts = {}
+    for name, (x, y) in {"plane": (160, 120), "corner": (1, 1)}.items():
+        canvas.hover(position={"x": (x + 0.5) / RAW_WIDTH * box["width"], "y": (y + 0.5) / RAW_HEIGHT * box["height"]})
+        readouts[name] = page.inner_text("#readout")
+    depth = re.search(r"depth ([\d.e+-]+) m", readouts["plane"])
+    assert depth, readouts["plane"]
+    assert float(depth.group(1)) == pytest.approx(PLANE_Z, rel=0.08)
+    assert "no value: outside the rectified image" in readouts["corner"]
 
 
 def test_every_format_downloads(web: WebPage, tmp_path: Path) -> None:

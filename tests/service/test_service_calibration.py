@@ -1,0 +1,161 @@
+"""A raw pair sent with its camera's calibration: rectified by the service, maps and metric depth
+in the rectified or the original left frame, and every unusable calibration refused (422, the
+field named) before anything is computed."""
+
+from __future__ import annotations
+
+import base64
+
+import cv2
+import numpy as np
+import pytest
+from raw_camera import D1, D2, HEIGHT, K1, K2, PLANE_Z, WIDTH, R, T, opencv_file, raw_view, ros_camera_info_files
+
+from client import ServiceError, StereoClient
+from service_helpers import pair_files, serve_asgi, stereo_pair
+
+MIDDLE = (slice(60, -60), slice(100, -60))  # the plane, away from the borders rectification leaves black
+
+
+def decode_array(payload: dict) -> np.ndarray:
+    return np.frombuffer(base64.b64decode(payload["data"]), "<f4").reshape(payload["shape"])
+
+
+@pytest.fixture(scope="module")
+def raw_pair() -> dict:
+    """The multipart files of the raw camera's pair (grey PNGs)."""
+    left, right = raw_view(K1, D1, np.eye(3), np.zeros(3)), raw_view(K2, D2, R, T)
+    images = [np.clip(image, 0, 255).astype(np.uint8) for image in (left, right)]
+    return pair_files(*images)
+
+
+pytestmark = pytest.mark.anyio
+
+
+async def test_a_raw_pair_with_its_calibration_gives_metric_depth_in_either_frame(raw_pair, tmp_path):
+    calibration = opencv_file(tmp_path / "stereo.yaml").read_bytes()
+    files = [*raw_pair.items(), ("calibration", ("stereo.yaml", calibration))]
+    async with serve_asgi() as h:
+        rectified = await h.client.post("/disparity", files=files)
+        original = await h.client.post("/disparity", params={"frame": "original"}, files=files)
+    assert rectified.status_code == 200 and original.status_code == 200
+    body, body_original = rectified.json(), original.json()
+    assert body["frame"] == "rectified" and body_original["frame"] == "original"
+    camera = body["camera"]
+    assert camera["baseline_m"] == pytest.approx(0.12, abs=1e-3) and 380 < camera["focal_px"] < 440
+    depth, depth_original = decode_array(body["depth"]), decode_array(body_original["depth"])
+    assert depth.shape == depth_original.shape == (HEIGHT, WIDTH)
+    assert np.median(depth[MIDDLE]) == pytest.approx(PLANE_Z, rel=0.08)  # metres, from the calibration alone
+    assert np.median(depth_original[MIDDLE]) == pytest.approx(PLANE_Z, rel=0.08)
+    # The original frame: no counterpart at the corners the rectified image does not reach.
+    disparity_original = decode_array(body_original["disparity"])
+    uncertainty_original = decode_array(body_original["uncertainty"])
+    missing = np.isinf(disparity_original)
+    assert 0 < missing.mean() < 0.2
+    assert np.isinf(depth_original[missing]).all() and (uncertainty_original[missing] == 1).all()
+    # The rectified frame's disparity is the depth's: focal x baseline / depth.
+    disparity = decode_array(body["disparity"])
+    finite = np.isfinite(depth)
+    np.testing.assert_allclose(disparity[finite], camera["focal_px"] * camera["baseline_m"] / depth[finite], rtol=1e-4)
+
+
+async def test_two_ros_camera_info_parts_are_the_same_camera_as_the_opencv_file(raw_pair, tmp_path):
+    left_info, right_info = (path.read_bytes() for path in ros_camera_info_files(tmp_path))
+    opencv = opencv_file(tmp_path / "stereo.json").read_bytes()
+    async with serve_asgi() as h:
+        ros = await h.client.post(
+            "/disparity",
+            params={"format": "depth_png16"},
+            files=[*raw_pair.items(), ("calibration", ("l.yaml", left_info)), ("calibration", ("r.yaml", right_info))],
+        )
+        cv = await h.client.post(
+            "/disparity",
+            params={"format": "depth_png16"},
+            files=[*raw_pair.items(), ("calibration", ("stereo.json", opencv))],
+        )
+    assert ros.status_code == cv.status_code == 200
+    ros_depth, cv_depth = (cv2.imdecode(np.frombuffer(r.content, np.uint8), cv2.IMREAD_UNCHANGED) for r in (ros, cv))
+    assert ros_depth.dtype == np.uint16
+    assert np.median(ros_depth[MIDDLE]) / 256 == pytest.approx(PLANE_Z, rel=0.08)
+    assert np.abs(ros_depth.astype(int) - cv_depth.astype(int)).max() <= 1  # the same rectification
+
+
+BAD_CALIBRATIONS = [
+    ({"T": np.zeros(3)}, "T"),  # a baseline of zero
+    ({"K1": None}, "K1"),  # missing
+    ({"D1": np.zeros(3)}, "D1"),  # a wrong shape
+    ({"K2": np.array([[np.nan, 0, 160], [0, 400, 120], [0, 0, 1]])}, "K2"),  # not finite
+    ({"R": np.diag([1.0, 1.0, -1.0])}, "R"),  # a reflection: no rotation
+    ({"image_width": 640}, "image_size"),  # not the pair's size
+    ({"T": np.array([0.0, -0.12, 0.0])}, "T"),  # one camera above the other: cannot be rectified for rows
+]
+
+
+@pytest.mark.parametrize(("entries", "field"), BAD_CALIBRATIONS)
+async def test_a_bad_calibration_gets_422_naming_the_field_and_nothing_is_computed(raw_pair, tmp_path, entries, field):
+    calibration = opencv_file(tmp_path / "bad.yaml", **entries).read_bytes()
+    async with serve_asgi() as h:
+        response = await h.client.post(
+            "/disparity", files=[*raw_pair.items(), ("calibration", ("bad.yaml", calibration))]
+        )
+        calls = list(h.predictors["lite"].calls)
+    assert response.status_code == 422
+    error = response.json()["error"]
+    assert error["code"] == "invalid_calibration" and f"calibration `{field}`" in error["message"]
+    assert calls == []
+
+
+async def test_calibration_parts_that_are_not_one_calibration_and_options_that_contradict_it_get_clear_errors(
+    raw_pair, tmp_path
+):
+    calibration = opencv_file(tmp_path / "stereo.yaml").read_bytes()
+    left, right = stereo_pair()
+
+    def with_parts(*parts: bytes) -> list:
+        return [*raw_pair.items(), *(("calibration", (f"c{i}.yaml", part)) for i, part in enumerate(parts))]
+
+    async with serve_asgi() as h:
+        answers = {
+            "not yaml": await h.client.post("/disparity", files=with_parts(b"\x00\x01 {[ not yaml")),
+            "not text": await h.client.post("/disparity", files=with_parts(b"\xff\xfe\xfa")),
+            "three parts": await h.client.post("/disparity", files=with_parts(calibration, calibration, calibration)),
+            "too large": await h.client.post("/disparity", files=with_parts(b"#" * (300 << 10))),
+            "focal given too": await h.client.post(
+                "/disparity", params={"focal_px": 400, "baseline_m": 0.1}, files=with_parts(calibration)
+            ),
+            "original frame of a rectified pair": await h.client.post(
+                "/disparity", params={"frame": "original"}, files=pair_files(left, right)
+            ),
+            "depth without any calibration": await h.client.post(
+                "/disparity", params={"format": "depth_png16"}, files=pair_files(left, right)
+            ),
+        }
+        calls = list(h.predictors["lite"].calls)
+    expected = {
+        "not yaml": (422, "invalid_calibration", "calibration `calibration`: not a YAML or JSON file"),
+        "not text": (422, "invalid_calibration", "not UTF-8 text"),
+        "three parts": (422, "invalid_calibration", "two ROS camera_info files, got 3"),
+        "too large": (413, "calibration_too_large", "256 KiB"),
+        "focal given too": (422, "invalid_request", "leave out focal_px"),
+        "original frame of a rectified pair": (422, "invalid_request", "frame=original needs a `calibration` part"),
+        "depth without any calibration": (422, "invalid_request", "depth_png16 needs a `calibration` part"),
+    }
+    for name, (status, code, message) in expected.items():
+        error = answers[name].json()["error"]
+        assert (answers[name].status_code, error["code"]) == (status, code), name
+        assert message in error["message"], name
+    assert calls == []
+
+
+def test_the_client_sends_a_calibration_file_over_http(default_server, raw_pair, tmp_path):
+    calibration = opencv_file(tmp_path / "stereo.yaml")
+    left, right = raw_pair["left"][1], raw_pair["right"][1]
+    with StereoClient(default_server.base_url) as service:
+        result = service.disparity(left, right, calibration=calibration, frame="original")
+        with pytest.raises(ServiceError) as refused:
+            service.disparity(left, right, calibration=opencv_file(tmp_path / "bad.yaml", T=np.zeros(3)))
+    assert result.depth is not None and result.depth.shape == (HEIGHT, WIDTH)
+    assert np.median(result.depth[MIDDLE]) == pytest.approx(PLANE_Z, rel=0.08)
+    assert np.isinf(result.disparity).any()  # the original frame's uncovered corners
+    assert (refused.value.status, refused.value.code) == (422, "invalid_calibration")
+    assert "calibration `T`" in refused.value.message
