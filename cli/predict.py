@@ -103,7 +103,8 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         choices=["rectified", "original"],
         default="rectified",
         help="with --calibration: maps in the rectified left image, or resampled into the original left image's "
-        "pixels (+inf disparity and depth, uncertainty 1, where a pixel has no rectified counterpart) [rectified]",
+        "pixels (depth along that camera's axis; +inf disparity and depth, uncertainty 1, where a pixel has no "
+        "rectified counterpart) [rectified]",
     )
     parser.add_argument("--focal-px", type=float, help="focal length in px (with --baseline-m: depth, metric points)")
     parser.add_argument("--baseline-m", type=float, help="stereo baseline in metres")
@@ -245,7 +246,7 @@ def run(args: argparse.Namespace) -> int:
         if rectifier is not None and args.frame == "original":
             disparity = rectifier.to_original(disparity, np.inf)
             uncertainty = rectifier.to_original(uncertainty, 1.0)
-            depth = None if depth is None else rectifier.to_original(depth, np.inf)
+            depth = None if depth is None else rectifier.to_original_depth(depth)
         for output in targets:
             path = output.file(pair, single)
             path.parent.mkdir(parents=True, exist_ok=True)

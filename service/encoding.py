@@ -47,7 +47,7 @@ def render(
     depth = None if calibration is None else metric_depth(disparity, calibration, limits)
     if rectifier is not None and options.frame is Frame.original:
         disparity, uncertainty = rectifier.to_original(disparity, np.inf), rectifier.to_original(uncertainty, 1.0)
-        depth = None if depth is None else rectifier.to_original(depth, np.inf)
+        depth = None if depth is None else rectifier.to_original_depth(depth)
     match options.format:
         case OutputFormat.json:
             body = DisparityResponse(

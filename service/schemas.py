@@ -98,8 +98,9 @@ class DisparityOptions(BaseModel):
         Frame.rectified,
         description="With a `calibration` part (a raw pair): the maps in the rectified left image "
         "(`rectified`, what the network saw), or resampled into the original left image's pixels "
-        "(`original`, to overlay on the camera's image; disparity and depth +inf, uncertainty 1, where a "
-        "pixel has no rectified counterpart). Point clouds are always in the rectified left camera's frame.",
+        "(`original`, to overlay on the camera's image; depth along that camera's own axis; disparity and "
+        "depth +inf, uncertainty 1, where a pixel has no rectified counterpart). Point clouds are always in "
+        "the rectified left camera's frame.",
     )
     focal_px: FiniteFloat | None = Field(
         None,

@@ -6,6 +6,7 @@
     disparity, uncertainty = predictor.predict(left_r, right_r)
     depth_rig = rectifier.depth_calibration           # focal length, baseline, principal point (metres)
     disparity_original = rectifier.to_original(disparity)  # in the original left image's pixels
+    depth_original = rectifier.to_original_depth(depth)    # metres along the original camera's axis
 
 Conventions are OpenCV's: K is the 3x3 camera matrix, D the distortion coefficients (4, 5, 8, 12
 or 14), and R, T take a point from the left camera's frame into the right camera's (so a right
@@ -190,6 +191,18 @@ class Rectifier:
             borderValue=float("nan"),
         )
         return np.where(np.isfinite(resampled), resampled, np.float32(missing)).astype(np.float32)
+
+    def to_original_depth(self, depth: np.ndarray) -> np.ndarray:
+        """Metric depth of the rectified left frame (float HxW: Z along the rectified camera's
+        axis, +inf where none) as depth along the ORIGINAL left camera's axis, in the original
+        left image's pixels (float32; +inf where none). The rectified camera is the original one
+        turned by R1 (X_rect = R1 @ X_orig), so Z_orig = Z_rect * (R1[:, 2] . ((x - cx)/f, (y - cy)/f, 1))."""
+        p1, r1 = self.rig.p1, self.rig.r1
+        height, width = depth.shape
+        x = (np.arange(width) - p1[0, 2]) / p1[0, 0]
+        y = (np.arange(height) - p1[1, 2]) / p1[1, 1]
+        along = r1[0, 2] * x[None, :] + r1[1, 2] * y[:, None] + r1[2, 2]
+        return self.to_original((depth * along).astype(np.float32), np.inf)
 
 
 def _storage(text: str, what: str) -> cv2.FileStorage:

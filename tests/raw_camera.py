@@ -1,11 +1,17 @@
 """A raw stereo pair of a known scene from a calibrated, distorted camera (for the rig tests):
 a textured plane PLANE_Z metres in front of the left camera, seen by two cameras with lens
-distortion, the right one turned a little and 12 cm to the right (OpenCV's K1, D1, K2, D2, R, T)."""
+distortion, the right one turned a little and 12 cm to the right (OpenCV's K1, D1, K2, D2, R, T);
+and a real rectified pair made raw by a known rotation or lens distortion (`unrectify`)."""
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
 import numpy as np
+import pytest
+
+from shared_data import SMALL_STEREO_DEV_PAIR, STEREO_DEV
+from stereo_data.readers import StereoSample, open_dataset
 
 WIDTH, HEIGHT = 320, 240
 K1 = np.array([[400.0, 0, 158], [0, 402.0, 121], [0, 0, 1]])
@@ -69,3 +75,73 @@ def ros_camera_info_files(folder: Path) -> tuple[Path, Path]:
         paths.append(folder / f"{side}.yaml")
         paths[-1].write_text(text)
     return paths[0], paths[1]
+
+
+# --- a real rectified pair made raw again --------------------------------------------------------
+
+DEV_FOCAL_PX, DEV_BASELINE_M = 400.0, 0.1  # the camera given to a rectified dev pair
+
+
+@dataclass(frozen=True)
+class UnrectifiedPair:
+    """A real rectified pair made raw by a known change of its camera, with what undoes it.
+
+    left, right: uint8 HxWx3 RGB as the changed camera sees them; calibration: the OpenCV entries
+    (K1, D1, K2, D2, R, T, image size) of that camera; depth: float HxW metres along the left
+    camera's axis at the raw left image's pixels, NaN where the ground truth has none.
+    """
+
+    left: np.ndarray
+    right: np.ndarray
+    calibration: dict[str, object]
+    depth: np.ndarray
+
+
+def small_dev_sample() -> StereoSample:
+    """The smallest real stereo-dev pair with its ground truth, or a skip where the pairs are not here."""
+    folder = STEREO_DEV / SMALL_STEREO_DEV_PAIR
+    if not folder.is_dir():
+        pytest.skip(f"real pairs not available: {STEREO_DEV} does not exist (see tests/shared_data.py)")
+    dataset = open_dataset(STEREO_DEV)
+    return dataset[[files.name for files in dataset.files].index(SMALL_STEREO_DEV_PAIR)]
+
+
+def unrectify(left: np.ndarray, right: np.ndarray, disparity: np.ndarray, change: str) -> UnrectifiedPair:
+    """Take a rectified pair (its left disparity, +inf unknown) as seen by a pinhole camera of
+    focal DEV_FOCAL_PX and baseline DEV_BASELINE_M, and change the camera: `"rotation"` turns the
+    right camera by about 1.5 degrees (the right image warped by the homography K R^T K^-1), and
+    `"distortion"` gives both lenses radial distortion (k1 = -0.15, k2 = 0.05)."""
+    height, width = disparity.shape
+    k = np.array([[DEV_FOCAL_PX, 0, (width - 1) / 2], [0, DEV_FOCAL_PX, (height - 1) / 2], [0, 0, 1]])
+    baseline = np.array([-DEV_BASELINE_M, 0.0, 0.0])
+    no_distortion = np.zeros(5)
+    with np.errstate(divide="ignore"):
+        true_depth = np.where(
+            np.isfinite(disparity) & (disparity > 0), DEV_FOCAL_PX * DEV_BASELINE_M / disparity, np.nan
+        )
+    entries: dict[str, object] = {"K1": k, "K2": k, "image_width": width, "image_height": height}
+    if change == "rotation":
+        rotation = cv2.Rodrigues(np.array([0.01, -0.015, 0.02]))[0]  # X_right = rotation @ X_right_before
+        homography = k @ rotation.T @ np.linalg.inv(k)  # a raw right pixel -> where the rectified right saw it
+        raw_right = cv2.warpPerspective(
+            right, homography, (width, height), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+        )
+        entries.update(D1=no_distortion, D2=no_distortion, R=rotation, T=rotation @ baseline)
+        return UnrectifiedPair(left, raw_right, entries, true_depth.astype(np.float32))
+    if change != "distortion":
+        raise ValueError(f"unknown change {change!r}")
+    distortion = np.array([-0.15, 0.05, 0.0, 0.0, 0.0])
+    pixels = np.stack(np.meshgrid(np.arange(width), np.arange(height)), -1).reshape(-1, 1, 2).astype(np.float64)
+    seen = cv2.undistortPoints(pixels, k, distortion, P=k).reshape(height, width, 2).astype(np.float32)
+    raw = [cv2.remap(image, seen[..., 0], seen[..., 1], cv2.INTER_LINEAR) for image in (left, right)]
+    raw_depth = cv2.remap(
+        true_depth.astype(np.float32), seen[..., 0], seen[..., 1], cv2.INTER_NEAREST, borderValue=np.nan
+    )
+    entries.update(D1=distortion, D2=distortion, R=np.eye(3), T=baseline)
+    return UnrectifiedPair(raw[0], raw[1], entries, raw_depth)
+
+
+def share_within(depth: np.ndarray, truth: np.ndarray, tolerance: float = 0.05) -> float:
+    """The share of the pixels with a true depth whose depth is within `tolerance` (relative) of it."""
+    known = np.isfinite(truth)
+    return float((np.abs(depth[known] - truth[known]) <= tolerance * truth[known]).mean())

@@ -12,3 +12,5 @@ _BESIDE_REPOSITORY = Path(__file__).resolve().parents[2] / "shared" / "data" / "
 _CANDIDATES = [os.environ.get("STEREO_DEV"), _BESIDE_REPOSITORY, "/work/shared/data/stereo-dev"]
 
 STEREO_DEV: Path = next((Path(p) for p in _CANDIDATES if p and Path(p).is_dir()), _BESIDE_REPOSITORY)
+
+SMALL_STEREO_DEV_PAIR = "middlebury2001_tsukuba"  # 384x288, the smallest pair: keeps CPU tests fast

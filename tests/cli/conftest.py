@@ -6,10 +6,8 @@ import cv2
 import numpy as np
 import pytest
 
-from shared_data import STEREO_DEV
+from shared_data import SMALL_STEREO_DEV_PAIR, STEREO_DEV
 from stereo_data.formats import write_pfm
-
-SMALL_STEREO_DEV_PAIR = "middlebury2001_tsukuba"  # 384x288, the smallest pair: keeps CPU tests fast
 
 
 def write_shifted_pair(folder: Path, disparity: int, height: int = 64, width: int = 96, seed: int = 0) -> None:
