@@ -5,12 +5,15 @@ from __future__ import annotations
 import argparse
 import glob
 import os
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 from tqdm import tqdm
 
+from model.options import parse_iterations
 from stereo_data.formats import encode_png, read_image, write_depth, write_disparity, write_uncertainty
 from stereo_data.pointcloud import (
     IMAGE_FRAME,
@@ -28,6 +31,7 @@ from stereo_data.visualize import disparity_picture, scale_range
 from .options import add_model_options, inference_options, load_predictor
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".ppm", ".pgm", ".tif", ".tiff", ".webp"}
+VIDEO_SUFFIXES = {".mp4", ".avi", ".mkv", ".mov", ".webm", ".m4v"}
 DISPARITY_FORMATS = ("pfm", "png", "npy")
 
 
@@ -46,9 +50,11 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         help="disparity of one rectified pair (or a raw one with --calibration), or of folders / globs of pairs",
         description=(
             "LEFT and RIGHT are two image files (OUT is a file: .pfm float with +inf invalid, "
-            ".png KITTI 16-bit x256, or .npy float32), two folders (pairs share file names) or two "
-            "quoted globs (pairs in sorted order); then OUT, --uncertainty and --color are folders "
-            "that mirror the left images' relative paths."
+            ".png KITTI 16-bit x256, or .npy float32), two folders (pairs share file names), two "
+            "quoted globs (pairs in sorted order) or two video files (frame by frame); then OUT, "
+            "--uncertainty and --color are folders that mirror the left images' relative paths "
+            "(a video's frames are frame_000000 and on). With --sequence the pairs are the frames of "
+            "one camera, each warm-started from the previous one."
         ),
     )
     parser.add_argument("left", help="left image, folder or glob")
@@ -121,6 +127,18 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--max-depth-m", type=float, metavar="M", help="--depth, --ply: no depth and no point beyond this depth"
     )
+    parser.add_argument(
+        "--sequence",
+        action="store_true",
+        help="the pairs are consecutive frames of one camera (sorted folders or globs, or two videos): each "
+        "starts from the previous one's disparity (steadier and faster; a frame of another size starts cold)",
+    )
+    parser.add_argument(
+        "--warm-iters",
+        type=int,
+        metavar="N",
+        help="--sequence: iterations at 1/4 resolution of warm-started frames [those of --iters]",
+    )
     parser.add_argument("--mkdir", action="store_true", help="create missing output folders (else they are an error)")
     parser.add_argument(
         "--raw-uncertainty",
@@ -133,7 +151,66 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
 
 def is_single_pair(left: str, right: str) -> bool:
     """True when LEFT and RIGHT name two image files (then OUT names a file, not a folder)."""
-    return Path(left).is_file() and Path(right).is_file()
+    return Path(left).is_file() and Path(right).is_file() and not is_video_pair(left, right)
+
+
+def is_video_pair(left: str, right: str) -> bool:
+    """True when LEFT and RIGHT name two video files (a stereo video, frame by frame)."""
+    return all(Path(name).is_file() and Path(name).suffix.lower() in VIDEO_SUFFIXES for name in (left, right))
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One pair to compute: where it comes from (the output stem) and its images, RGB."""
+
+    pair: PairPaths
+    left: np.ndarray
+    right: np.ndarray
+
+
+def read_frames(left: str, right: str) -> tuple[int, Iterator[Frame]]:
+    """How many pairs LEFT and RIGHT hold (a video's count is its container's estimate) and
+    the pairs themselves, read one at a time."""
+    if is_video_pair(left, right):
+        return video_frames(Path(left), Path(right))
+    pairs = find_pairs(left, right)
+    return len(pairs), (Frame(pair, *read_pair(pair)) for pair in pairs)
+
+
+def read_pair(pair: PairPaths) -> tuple[np.ndarray, np.ndarray]:
+    left, right = read_image(pair.left), read_image(pair.right)
+    if left.shape != right.shape:
+        sizes = [
+            f"{path} is {image.shape[1]}x{image.shape[0]}" for path, image in ((pair.left, left), (pair.right, right))
+        ]
+        raise ValueError(f"{sizes[0]} but {sizes[1]}: a stereo pair has two images of one size")
+    return left, right
+
+
+def video_frames(left: Path, right: Path) -> tuple[int, Iterator[Frame]]:
+    """The frames of two videos of one stereo camera, in lockstep (ValueError where they cannot
+    be read or hold different numbers of frames)."""
+    videos = [cv2.VideoCapture(str(path)) for path in (left, right)]
+    for path, video in zip((left, right), videos, strict=True):
+        if not video.isOpened():
+            raise ValueError(f"{path}: not a video that OpenCV can read")
+    counts = [int(video.get(cv2.CAP_PROP_FRAME_COUNT)) for video in videos]
+    if counts[0] != counts[1]:
+        raise ValueError(f"{left} has {counts[0]} frames but {right} has {counts[1]}: a stereo video has one count")
+
+    def frames() -> Iterator[Frame]:
+        try:
+            for index in range(counts[0]):
+                read = [video.read() for video in videos]
+                if not all(ok for ok, _ in read):
+                    return  # the containers over-counted: what was read is what there is
+                images = [cv2.cvtColor(image, cv2.COLOR_BGR2RGB) for _, image in read]
+                yield Frame(PairPaths(left, right, Path(f"frame_{index:06d}")), images[0], images[1])
+        finally:
+            for video in videos:
+                video.release()
+
+    return counts[0], frames()
 
 
 def find_pairs(left: str, right: str) -> list[PairPaths]:
@@ -217,12 +294,16 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError("--depth needs --calibration, or --focal-px and --baseline-m")
     rectifier = None if args.calibration is None else Rectifier(read_rig(args.calibration))
     limits = DepthRange(args.min_disparity, args.max_depth_m)
-    pairs = find_pairs(args.left, args.right)
+    if args.warm_iters is not None and not args.sequence:
+        raise ValueError("--warm-iters needs --sequence (only a sequence's frames start warm)")
+    warm_iters = parse_iterations(args.warm_iters)
+    count, frames = read_frames(args.left, args.right)
     single = is_single_pair(args.left, args.right)
     targets = outputs(args)
     check_outputs(targets, single, args.mkdir)
     predictor = load_predictor(args)
     options = inference_options(args)
+    stream = predictor.stream(options, warm_iters)
     calibration = (
         rectifier.depth_calibration
         if rectifier is not None
@@ -230,17 +311,14 @@ def run(args: argparse.Namespace) -> int:
         if args.focal_px is None
         else Calibration(args.focal_px, args.baseline_m, args.cx, args.cy)
     )
-    for pair in tqdm(pairs, desc=f"predict {args.model}", unit="pair", disable=single):
-        left, right = read_image(pair.left), read_image(pair.right)
-        if left.shape != right.shape:
-            sizes = [
-                f"{path} is {image.shape[1]}x{image.shape[0]}"
-                for path, image in ((pair.left, left), (pair.right, right))
-            ]
-            raise ValueError(f"{sizes[0]} but {sizes[1]}: a stereo pair has two images of one size")
+    written = 0
+    for frame in tqdm(frames, total=count, desc=f"predict {args.model}", unit="pair", disable=single):
+        pair, left, right = frame.pair, frame.left, frame.right
         if rectifier is not None:
             left, right = rectifier.rectify(left, right)
-        prediction = predictor.predict(left, right, **options.keywords())
+        if not args.sequence:
+            stream.restart()  # every pair on its own
+        prediction = stream.predict(left, right)
         disparity, uncertainty = prediction.disparity, prediction.uncertainty
         depth = None if calibration is None else metric_depth(disparity, calibration, limits)
         if rectifier is not None and args.frame == "original":
@@ -268,7 +346,8 @@ def run(args: argparse.Namespace) -> int:
                 path.write_bytes(encode_ply(points, colours, IMAGE_FRAME if calibration is None else METRIC_FRAME))
             if single:
                 print(f"wrote {output.what} {path}")
+        written += 1
     if not single:  # every output was written once per pair (any failure stops the command)
         for output in targets:
-            print(f"wrote {len(pairs)} {output.what} files to {output.path}")
+            print(f"wrote {written} {output.what} files to {output.path}")
     return 0

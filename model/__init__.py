@@ -8,13 +8,14 @@ Disparity is positive everywhere, in pixels of the left image (the right match i
 """
 
 from .config import ModelConfig
-from .inference import Prediction, StereoPredictor, TensorPrediction, load_model
+from .inference import FrameStream, Prediction, StereoPredictor, TensorPrediction, load_model
 from .loss import matching_loss, sequence_loss
 from .network import CREStereoPP, NetworkOutput, padded_size
 from .options import InferenceOptions, Iterations, parse_iterations
 
 __all__ = [
     "CREStereoPP",
+    "FrameStream",
     "InferenceOptions",
     "Iterations",
     "ModelConfig",

@@ -5,7 +5,7 @@ from __future__ import annotations
 import contextlib
 import os
 import warnings
-from collections.abc import Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 from typing import Any, Literal, NamedTuple, overload
 
@@ -19,7 +19,7 @@ from .config import ModelConfig
 from .cuda_graphs import Forward, GraphedForward
 from .network import CREStereoPP, padded_size
 from .openvino_backend import OpenVINOForward, native_bf16, openvino_available
-from .options import Iterations, parse_iterations
+from .options import InferenceOptions, Iterations, parse_iterations
 from .upsample import resize_disparity
 from .weights import USABLE_BAD2, WEIGHTS_DIR, file_sha256, is_trained, network_from_weights, read_weights
 
@@ -419,6 +419,24 @@ class StereoPredictor:
             for i, (h, w) in enumerate(sizes)
         ]
 
+    def stream(self, options: InferenceOptions | None = None, warm_iters: Iterations = None) -> FrameStream:
+        """A video's pairs one at a time, each warm-started from the previous one (``FrameStream``)."""
+        return FrameStream(self, options or InferenceOptions(), warm_iters)
+
+    def predict_sequence(
+        self,
+        pairs: Iterable[tuple[np.ndarray, np.ndarray]],
+        options: InferenceOptions | None = None,
+        warm_iters: Iterations = None,
+    ) -> Iterator[Prediction]:
+        """The maps of consecutive pairs of one camera (a video), lazily, in order: the first cold
+        with ``options``, each next one warm-started from its predecessor's disparity with
+        ``warm_iters`` (default: ``options.iters``) at 1/4 resolution (see ``FrameStream``);
+        ``options`` default to the model's."""
+        frames = self.stream(options, warm_iters)
+        for left, right in pairs:
+            yield frames.predict(left, right)
+
     def maps(
         self,
         left_batch: Tensor,
@@ -491,3 +509,36 @@ class StereoPredictor:
         with autocast_bf16(self.device, bf16, cache=False):
             out = self.network(left, right, iters=iters, init_disparity=init)
         return out.disparity.float(), out.uncertainty.float()
+
+
+class FrameStream:
+    """Consecutive pairs of one camera, each warm-started from the previous pair's disparity.
+
+    The first pair (and any pair of another size than its predecessor, or after ``restart``) is
+    computed cold with ``options``; the others start from the previous disparity and refine at
+    1/4 resolution with ``warm_iters`` iterations (default: the finest stage's of ``options``), so
+    a static scene keeps its disparity from frame to frame instead of flickering, and fewer
+    iterations are needed. ``two_pass`` applies to cold pairs only.
+    """
+
+    def __init__(self, predictor: StereoPredictor, options: InferenceOptions, warm_iters: Iterations = None) -> None:
+        self.predictor = predictor
+        self.options = options
+        self.warm_iters = parse_iterations(warm_iters)
+        self._previous: np.ndarray | None = None
+
+    def predict(self, left: np.ndarray, right: np.ndarray) -> Prediction:
+        """The maps of the next pair (arrays, as ``StereoPredictor.predict`` takes them)."""
+        previous = self._previous
+        if previous is not None and previous.shape == left.shape[:2]:
+            iters = self.options.iters if self.warm_iters is None else self.warm_iters
+            keywords = {**self.options.keywords(), "iters": iters, "two_pass": False}
+            prediction = self.predictor.predict(left, right, init_disparity=previous, **keywords)
+        else:
+            prediction = self.predictor.predict(left, right, **self.options.keywords())
+        self._previous = prediction.disparity
+        return prediction
+
+    def restart(self) -> None:
+        """Forget the previous frame (a cut): the next pair is computed cold."""
+        self._previous = None

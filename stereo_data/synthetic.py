@@ -22,7 +22,7 @@ generators differ, so a seed gives different scenes on different device types.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import reduce
 
 import torch
@@ -187,6 +187,26 @@ class Scene:
     contrast: torch.Tensor
     ramp: torch.Tensor
     textures: torch.Tensor
+
+    def translated(self, dx: float, dy: float) -> Scene:
+        """The scene seen by a camera panned by (dx, dy) px: each view of the result at (x, y) is
+        this scene's at (x + dx, y + dy), disparities included (a static scene in a video whose
+        camera moves sideways: content moves by (-dx, -dy) px per frame)."""
+
+        def shifted(affine: torch.Tensor) -> torch.Tensor:  # (..., k) maps of (x, y, 1), k = 3
+            moved = affine.clone()
+            moved[..., 2] += affine[..., 0] * dx + affine[..., 1] * dy
+            return moved
+
+        offset = torch.tensor([dx, dy], dtype=self.apex.dtype, device=self.apex.device)
+        return replace(
+            self,
+            plane=shifted(self.plane),
+            apex=self.apex - offset,
+            to_shape=shifted(self.to_shape),
+            to_texture=shifted(self.to_texture),
+            ramp=shifted(self.ramp),
+        )
 
     def surfaces(self, part: slice) -> Scene:
         """The same scenes with only the surfaces ``part`` (sharing the texture bank)."""

@@ -29,6 +29,7 @@ from raw_camera import (
 from cli.main import main
 from cli.predict import find_pairs
 from stereo_data.formats import read_kitti_disparity, read_pfm
+from stereo_data.synthetic import SceneConfig, SceneGenerator
 from stereo_data.visualize import BAR_HEIGHT
 
 REPO = Path(__file__).resolve().parents[2]
@@ -326,3 +327,41 @@ def test_a_real_pair_made_raw_gives_its_true_depth_about_as_well_as_the_rectifie
     baseline = share_within(read_pfm(tmp_path / "z.pfm"), truth)
     share = share_within(read_pfm(tmp_path / "z0.pfm"), raw.depth)
     assert baseline > 0.4 and share >= baseline - 0.05
+
+
+def panned_frames(count: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Consecutive RGB pairs (64x128) of a static procedural scene seen by a panning camera."""
+    generator = SceneGenerator(SceneConfig(height=64, width=128, surfaces=6, min_surfaces=3, photometric=None))
+    scene = generator.sample_scene(batch_size=1, seed=5)
+    views = [generator.render(scene.translated(4.0 * t, 0.0)) for t in range(count)]
+    return [tuple(v[0].permute(1, 2, 0).round().byte().numpy() for v in (b.left, b.right)) for b in views]
+
+
+def test_a_sequence_of_frames_warm_starts_each_frame_and_a_stereo_video_is_read_frame_by_frame(tmp_path, capsys):
+    frames = panned_frames(3)
+    for side in ("left", "right"):
+        (tmp_path / side).mkdir()
+    for index, (left, right) in enumerate(frames):
+        cv2.imwrite(str(tmp_path / "left" / f"{index:03d}.png"), left[:, :, ::-1])
+        cv2.imwrite(str(tmp_path / "right" / f"{index:03d}.png"), right[:, :, ::-1])
+    folders = [str(tmp_path / "left"), str(tmp_path / "right"), "--iters", "1", "1", "2"]
+    assert main(["predict", *folders, "-o", str(tmp_path / "cold"), "--mkdir"]) == 0
+    assert main(["predict", *folders, "-o", str(tmp_path / "warm"), "--mkdir", "--sequence", "--warm-iters", "3"]) == 0
+    assert "wrote 3 disparity files" in capsys.readouterr().out
+    cold, warm = ([read_pfm(tmp_path / run / f"{i:03d}.pfm") for i in range(3)] for run in ("cold", "warm"))
+    np.testing.assert_array_equal(cold[0], warm[0])  # the first frame starts cold
+    assert all(not np.array_equal(c, w) for c, w in zip(cold[1:], warm[1:], strict=True))  # the others warm
+
+    for side in (0, 1):  # the same frames as two videos of one stereo camera
+        video = cv2.VideoWriter(str(tmp_path / f"{side}.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 10, (128, 64))
+        for frame in frames:
+            video.write(np.ascontiguousarray(frame[side][:, :, ::-1]))
+        video.release()
+    videos = [str(tmp_path / "0.avi"), str(tmp_path / "1.avi"), "--sequence"]
+    assert (
+        main(["predict", *videos, "-o", str(tmp_path / "video"), "--mkdir", "--uncertainty", str(tmp_path / "u")]) == 0
+    )
+    assert sorted(p.name for p in (tmp_path / "video").iterdir()) == [f"frame_{i:06d}.pfm" for i in range(3)]
+    assert read_pfm(tmp_path / "video" / "frame_000002.pfm").shape == (64, 128)
+    assert main(["predict", *folders, "-o", str(tmp_path / "x"), "--mkdir", "--warm-iters", "3"]) == 2
+    assert "--warm-iters needs --sequence" in capsys.readouterr().err

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from model import ModelConfig, load_model
+from model import InferenceOptions, ModelConfig, load_model
 from model.weights import file_sha256
 from stereo_data.synthetic import SceneConfig, SceneGenerator
 
@@ -195,3 +195,40 @@ def test_a_scale_that_leaves_the_network_too_few_pixels_is_refused_not_extrapola
             scaled_size(64, 256, scale)
     with pytest.raises(ValueError, match="scale must be in"):
         scaled_size(64, 256, 0.0)
+
+
+def panned_frames(count: int, height: int = 64, width: int = 128) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Consecutive pairs of a static procedural scene seen by a camera panning 4 px per frame."""
+    generator = SceneGenerator(SceneConfig(height=height, width=width, surfaces=6, min_surfaces=3, photometric=None))
+    scene = generator.sample_scene(batch_size=1, seed=11)
+    frames = []
+    for t in range(count):
+        batch = generator.render(scene.translated(4.0 * t, 0.0))
+        frames.append(
+            tuple(view[0].permute(1, 2, 0).round().to(torch.uint8).numpy() for view in (batch.left, batch.right))
+        )
+    return frames
+
+
+def test_a_sequence_starts_cold_and_warm_starts_every_next_frame_from_the_previous_one(lite):
+    frames = panned_frames(3)
+    options = InferenceOptions(iters=(1, 1, 2))
+    results = list(lite.predict_sequence(iter(frames), options, warm_iters=3))
+    assert len(results) == 3
+    first = lite.predict(*frames[0], iters=(1, 1, 2))
+    np.testing.assert_array_equal(results[0].disparity, first.disparity)  # the first frame is cold
+    for previous, (left, right), result in zip(results, frames[1:], results[1:], strict=False):
+        warm = lite.predict(left, right, iters=3, init_disparity=previous.disparity)
+        np.testing.assert_array_equal(result.disparity, warm.disparity)
+        assert not np.array_equal(result.disparity, lite.predict(left, right, iters=(1, 1, 2)).disparity)
+
+
+def test_a_frame_of_another_size_or_after_a_restart_starts_cold(lite):
+    (left, right), (small_left, small_right) = panned_frames(1)[0], panned_frames(1, 32, 64)[0]
+    stream = lite.stream()
+    stream.predict(left, right)
+    np.testing.assert_array_equal(
+        stream.predict(small_left, small_right).disparity, lite.predict(small_left, small_right).disparity
+    )
+    stream.restart()
+    np.testing.assert_array_equal(stream.predict(left, right).disparity, lite.predict(left, right).disparity)

@@ -383,3 +383,13 @@ def test_scenes_with_photo_textures_are_reproducible_and_warp_consistent() -> No
     scene = generator.sample_scene(batch_size=3, seed=5)
     procedural = config.texture_count - config.photo_textures
     assert (scene.texture[scene.present] >= procedural).any()
+
+
+def test_a_panned_scene_is_the_same_scene_shifted_in_both_views_with_its_disparity() -> None:
+    generator = SceneGenerator(replace(CLEAN, height=96, width=192, curve_probability=0.5))
+    scene = generator.sample_scene(batch_size=2, seed=8)
+    before, after = generator.render(scene), generator.render(scene.translated(8.0, 3.0))
+    for name in ("left", "right", "disparity"):
+        moved, still = getattr(after, name)[..., :-3, :-8], getattr(before, name)[..., 3:, 8:]
+        close = ((moved - still).abs() < 0.05).float().mean()
+        assert close > 0.995, name  # equal up to float rounding (a rare texel or edge sample flips)
