@@ -5,10 +5,12 @@
         result = service.disparity(left_rgb, right_rgb, model="lite")
     result.disparity, result.uncertainty            # float32 HxW
 
-`AsyncStereoClient` is the same with `await`. Only httpx, numpy and OpenCV (to encode arrays as
-PNG) are needed; nothing of the server is imported.
+`AsyncStereoClient` is the same with `await`. `service.stream(warm_iters=3)` opens a WebSocket
+for a video's pairs (`DisparityStream.send(left, right)`, each frame warm-started from the
+previous one). Only httpx, websockets, numpy and OpenCV (to encode arrays as PNG) are needed;
+nothing of the server is imported.
 """
 
-from .stereo_client import AsyncStereoClient, DisparityResult, ServiceError, StereoClient
+from .stereo_client import AsyncStereoClient, DisparityResult, DisparityStream, ServiceError, StereoClient
 
-__all__ = ["AsyncStereoClient", "DisparityResult", "ServiceError", "StereoClient"]
+__all__ = ["AsyncStereoClient", "DisparityResult", "DisparityStream", "ServiceError", "StereoClient"]

@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 import asyncio
+import base64
 import io
+import json
 import os
 import time
 from collections.abc import Sequence
+from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -14,6 +17,8 @@ from typing import Any
 import cv2
 import httpx
 import numpy as np
+from websockets.exceptions import ConnectionClosed, InvalidStatus
+from websockets.sync.client import connect
 
 Image = np.ndarray | bytes | str | os.PathLike[str]
 """An image: HxW or HxWx3 RGB array (uint8 or uint16), encoded file bytes, or a file path."""
@@ -197,6 +202,36 @@ class StereoClient:
                 time.sleep(wait)
         raise AssertionError("unreachable: the last attempt returns or raises")
 
+    def stream(
+        self,
+        *,
+        model: str = "lite",
+        iters: int | tuple[int, int, int] | None = None,
+        warm_iters: int | None = None,
+        scale: float | None = None,
+        raw_uncertainty: bool = False,
+        focal_px: float | None = None,
+        baseline_m: float | None = None,
+    ) -> DisparityStream:
+        """A WebSocket stream (`/disparity/stream`) for the rectified pairs of one camera, each
+        frame warm-started from the previous one (`warm_iters` iterations; see `DisparityStream`)."""
+        options = dict(
+            model=model,
+            iters=iters,
+            warm_iters=warm_iters,
+            scale=scale,
+            raw_uncertainty=raw_uncertainty,
+            focal_px=focal_px,
+            baseline_m=baseline_m,
+        )
+        params = {
+            "format": "json",
+            **{k: _query_value(v) for k, v in options.items() if v is not None and v is not False},
+        }
+        url = httpx.URL(str(self._http.base_url)).join("disparity/stream").copy_merge_params(params)
+        ws_url = str(url).replace("http://", "ws://", 1).replace("https://", "wss://", 1)
+        return DisparityStream(ws_url, self._http.headers.get("Authorization"), self._http.timeout.read)
+
     def health(self) -> dict[str, Any]:
         """`GET /health` (also when the service answers 503: the body says why)."""
         return dict(_json(self._http.get("/health")))
@@ -213,6 +248,65 @@ class StereoClient:
 
     def __exit__(self, *_: object) -> None:
         self.close()
+
+
+class DisparityStream:
+    """One WebSocket connection to `/disparity/stream`: `send(left, right)` sends the next pair
+    and returns its maps (a `DisparityResult`), or raises `ServiceError` for a frame the service
+    could not compute (the stream stays open); closing the stream closes the connection."""
+
+    def __init__(self, url: str, authorization: str | None, timeout_s: float | None) -> None:
+        headers = {"Authorization": authorization} if authorization else None
+        self._connection = ExitStack()
+        try:
+            self._socket = self._connection.enter_context(
+                connect(url, additional_headers=headers, max_size=None, open_timeout=timeout_s)
+            )
+        except InvalidStatus as refused:
+            status = refused.response.status_code
+            raise ServiceError(status, "unauthorized" if status == 403 else "http_error", str(refused)) from None
+        self._timeout_s = timeout_s
+
+    def send(self, left: Image, right: Image) -> DisparityResult:
+        self._socket.send(_encode(left))
+        self._socket.send(_encode(right))
+        try:
+            message = self._socket.recv(timeout=self._timeout_s)
+        except ConnectionClosed as closed:
+            reason = closed.rcvd.reason if closed.rcvd else "connection closed"
+            raise ServiceError(0, "stream_closed", reason) from None
+        body = json.loads(message)
+        if "error" in body:
+            raise ServiceError(0, str(body["error"]["code"]), str(body["error"]["message"]))
+        return _json_result(body)
+
+    def close(self) -> None:
+        self._connection.close()
+
+    def __enter__(self) -> DisparityStream:
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        self.close()
+
+
+def _json_result(body: dict[str, Any]) -> DisparityResult:
+    """The result of a `format=json` answer."""
+
+    def array(encoded: dict[str, Any]) -> np.ndarray:
+        return np.frombuffer(base64.b64decode(encoded["data"]), "<f4").reshape(encoded["shape"])
+
+    timings = body["timings"]
+    return DisparityResult(
+        disparity=array(body["disparity"]),
+        uncertainty=array(body["uncertainty"]),
+        depth=array(body["depth"]) if body.get("depth") else None,
+        model=body["model"],
+        weights=body["weights"],
+        batch_size=int(body["batch_size"]),
+        queue_ms=float(timings["queue_ms"]),
+        compute_ms=float(timings["compute_ms"]),
+    )
 
 
 class AsyncStereoClient:

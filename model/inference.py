@@ -19,7 +19,7 @@ from .config import ModelConfig
 from .cuda_graphs import Forward, GraphedForward
 from .network import CREStereoPP, padded_size
 from .openvino_backend import OpenVINOForward, native_bf16, openvino_available
-from .options import InferenceOptions, Iterations, parse_iterations
+from .options import InferenceOptions, Iterations, WarmStart, parse_iterations
 from .upsample import resize_disparity
 from .weights import USABLE_BAD2, WEIGHTS_DIR, file_sha256, is_trained, network_from_weights, read_weights
 
@@ -376,10 +376,12 @@ class StereoPredictor:
         two_pass: bool = False,
         scale: float = 1.0,
         raw_uncertainty: bool = False,
+        init_disparities: Sequence[np.ndarray] | None = None,
     ) -> list[Prediction]:
         """Several pairs (arrays, as ``predict`` takes them) in one forward pass; the maps come
         back as numpy HxW arrays, copied from the device once for the whole batch. On CUDA the
         forward is replayed from a CUDA graph of the padded shape (``self.graphs``).
+        ``init_disparities``: a warm start per pair (HxW px of its size), as ``predict``'s.
 
         Pairs of different sizes are replicate-padded at the bottom and right to one shape, a
         multiple of INPUT_MULTIPLE, exactly as ``predict`` pads a single pair, so each result
@@ -402,12 +404,19 @@ class StereoPredictor:
             batches = [as_image_batch(image, self.device) for image in images]
             return torch.cat([pad_to_size(b, height, width) for b in batches])
 
+        init: Tensor | None = None
+        if init_disparities is not None:
+            if len(init_disparities) != len(lefts):
+                raise ValueError(f"need one warm start per pair, got {len(init_disparities)} for {len(lefts)}")
+            maps = [torch.as_tensor(d, dtype=torch.float32, device=self.device)[None, None] for d in init_disparities]
+            init = torch.cat([pad_to_size(m, height, width) for m in maps])[:, 0]
+
         disparity, uncertainty = to_host(
             *self.maps(
                 stack(lefts),
                 stack(rights),
                 iters=iters,
-                init_disparity=None,
+                init_disparity=init,
                 two_pass=two_pass,
                 scale=scale,
                 raw_uncertainty=raw_uncertainty,
@@ -512,33 +521,20 @@ class StereoPredictor:
 
 
 class FrameStream:
-    """Consecutive pairs of one camera, each warm-started from the previous pair's disparity.
-
-    The first pair (and any pair of another size than its predecessor, or after ``restart``) is
-    computed cold with ``options``; the others start from the previous disparity and refine at
-    1/4 resolution with ``warm_iters`` iterations (default: the finest stage's of ``options``), so
-    a static scene keeps its disparity from frame to frame instead of flickering, and fewer
-    iterations are needed. ``two_pass`` applies to cold pairs only.
-    """
+    """Consecutive pairs of one camera computed one at a time, each warm-started from its
+    predecessor (the rules are ``WarmStart``'s)."""
 
     def __init__(self, predictor: StereoPredictor, options: InferenceOptions, warm_iters: Iterations = None) -> None:
         self.predictor = predictor
-        self.options = options
-        self.warm_iters = parse_iterations(warm_iters)
-        self._previous: np.ndarray | None = None
+        self.warm_start = WarmStart(options, warm_iters)
 
     def predict(self, left: np.ndarray, right: np.ndarray) -> Prediction:
         """The maps of the next pair (arrays, as ``StereoPredictor.predict`` takes them)."""
-        previous = self._previous
-        if previous is not None and previous.shape == left.shape[:2]:
-            iters = self.options.iters if self.warm_iters is None else self.warm_iters
-            keywords = {**self.options.keywords(), "iters": iters, "two_pass": False}
-            prediction = self.predictor.predict(left, right, init_disparity=previous, **keywords)
-        else:
-            prediction = self.predictor.predict(left, right, **self.options.keywords())
-        self._previous = prediction.disparity
+        options, init = self.warm_start.next(*left.shape[:2])
+        prediction = self.predictor.predict(left, right, init_disparity=init, **options.keywords())
+        self.warm_start.record(prediction.disparity)
         return prediction
 
     def restart(self) -> None:
         """Forget the previous frame (a cut): the next pair is computed cold."""
-        self._previous = None
+        self.warm_start.restart()

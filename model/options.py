@@ -1,13 +1,16 @@
-"""How a pair is computed: one type for the per-call inference options, and the one parser of
-iteration counts. The HTTP query, the command line, the service's batch key and the predictor
-all speak `InferenceOptions`; the backend and precision are the predictor's own (``load_model``).
+"""How a pair is computed: one type for the per-call inference options, the one parser of
+iteration counts, and the warm start of a video's frames. The HTTP query, the command line, the
+service's batch key and the predictor all speak `InferenceOptions`; the backend and precision are
+the predictor's own (``load_model``).
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
+
+import numpy as np
 
 Iterations = int | tuple[int, int, int] | None
 """None: the model's iterations; int: iterations of the finest (1/4) stage; or (n16, n8, n4)."""
@@ -66,3 +69,35 @@ class InferenceOptions:
             "scale": self.scale,
             "raw_uncertainty": self.raw_uncertainty,
         }
+
+
+class WarmStart:
+    """The options and warm start of each next frame of one camera (a video, a stream).
+
+    The first frame (and any frame of another size than its predecessor, or after ``restart``)
+    is computed cold with ``options``; each other one starts from the previous frame's disparity
+    and refines at 1/4 resolution with ``warm_iters`` iterations (default: those of ``options``),
+    without two_pass: a static scene keeps its disparity from frame to frame instead of flickering,
+    and fewer iterations are needed.
+    """
+
+    def __init__(self, options: InferenceOptions, warm_iters: Iterations = None) -> None:
+        self.options = options
+        self.warm_iters = parse_iterations(warm_iters)
+        self._previous: np.ndarray | None = None
+
+    def next(self, height: int, width: int) -> tuple[InferenceOptions, np.ndarray | None]:
+        """The options of the next frame (of this size) and its warm start (float32 HxW px, or None: cold)."""
+        previous = self._previous
+        if previous is None or previous.shape != (height, width):
+            return self.options, None
+        iters = self.options.iters if self.warm_iters is None else self.warm_iters
+        return replace(self.options, iters=iters, two_pass=False), previous
+
+    def record(self, disparity: np.ndarray) -> None:
+        """The disparity the frame just computed had (the next one starts from it)."""
+        self._previous = disparity
+
+    def restart(self) -> None:
+        """Forget the previous frame (a cut): the next one is computed cold."""
+        self._previous = None

@@ -27,6 +27,7 @@ class ServerLimits(TypedDict):
     limit_concurrency: int
     timeout_keep_alive: int
     h11_max_incomplete_event_size: int
+    ws_max_size: int
 
 
 SERVER_LIMITS: ServerLimits = {
@@ -41,6 +42,9 @@ SERVER_LIMITS: ServerLimits = {
     # head reaches the app, which answers 431 (JSON) over 16 KiB. Worst case in memory:
     # limit_concurrency x 1 MiB = 1 GiB, only with 1000 connections each sending a 1 MiB head.
     "h11_max_incomplete_event_size": 1024 * 1024,
+    # Bytes of one WebSocket message (`/disparity/stream`: one image file) before uvicorn closes
+    # the connection (1009): the request body limit's default, which holds two images.
+    "ws_max_size": 32 * 1024 * 1024,
 }
 SHUTDOWN_MARGIN_S = 5
 """After SIGTERM the service's drain (CRESTEREO_DRAIN_TIMEOUT_S) answers every admitted request;

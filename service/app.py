@@ -11,7 +11,7 @@ from model import load_model
 from service.errors import install_error_handlers
 from service.logs import configure_logging
 from service.middleware import ConcurrencyLimitMiddleware, RequestContextMiddleware, RequestSizeLimitMiddleware
-from service.routes import disparity, docs, health, metrics, models, page
+from service.routes import disparity, docs, health, metrics, models, page, stream
 from service.runtime import ModelLoader, ServiceRuntime
 from service.settings import Settings
 
@@ -52,6 +52,7 @@ def create_app(settings: Settings | None = None, loader: ModelLoader = load_mode
     app.add_middleware(ConcurrencyLimitMiddleware, max_requests=settings.max_requests, metrics=runtime.metrics)
     app.add_middleware(RequestContextMiddleware, metrics=runtime.metrics)
     app.include_router(disparity.router)
+    app.include_router(stream.router)
     app.include_router(health.router)
     app.include_router(metrics.router)
     app.include_router(models.router)

@@ -75,6 +75,7 @@ class Predictor(Protocol):
         two_pass: bool = False,
         scale: float = 1.0,
         raw_uncertainty: bool = False,
+        init_disparities: Sequence[np.ndarray] | None = None,
     ) -> list[Prediction]: ...
 
 
@@ -120,6 +121,7 @@ class _Job:
     key: BatchKey
     left: np.ndarray  # uint8 HxWx3 RGB
     right: np.ndarray
+    init: np.ndarray | None  # float32 HxW px: a warm start (the previous frame of a stream), or None
     deadline: float | None  # time.monotonic() by which the answer is due
     is_disconnected: Callable[[], Awaitable[bool]]
     request_id: str | None
@@ -145,10 +147,13 @@ class Admission:
         deadline: float | None,
         is_disconnected: Callable[[], Awaitable[bool]],
         request_id: str | None = None,
+        init: np.ndarray | None = None,
     ) -> JobResult:
-        """Queue a decoded pair (uint8 HxWx3 RGB) and wait for its result."""
+        """Queue a decoded pair (uint8 HxWx3 RGB), warm-started from `init` (float32 HxW px) when
+        given, and wait for its result."""
         height, width = left.shape[:2]
-        job = _Job(batch_key(self.model, options, height, width), left, right, deadline, is_disconnected, request_id)
+        key = batch_key(self.model, options, height, width, warm_start=init is not None)
+        job = _Job(key, left, right, init, deadline, is_disconnected, request_id)
         if deadline is not None and deadline <= job.enqueued_at:
             raise DeadlineExceeded("deadline passed before the request was queued")
         self.job = job
@@ -354,6 +359,7 @@ class Batcher:
                 key,
                 [job.left for job in batch],
                 [job.right for job in batch],
+                [job.init for job in batch if job.init is not None] if key.warm_start else None,
             )
         except Exception as exc:  # any failure of the network fails this batch only
             error_id = uuid.uuid4().hex[:12]
@@ -391,9 +397,14 @@ class Batcher:
 
 
 def compute_batch(
-    predictor: Predictor, key: BatchKey, lefts: Sequence[np.ndarray], rights: Sequence[np.ndarray]
+    predictor: Predictor,
+    key: BatchKey,
+    lefts: Sequence[np.ndarray],
+    rights: Sequence[np.ndarray],
+    inits: Sequence[np.ndarray] | None = None,
 ) -> list[tuple[np.ndarray, np.ndarray]]:
     """Run one batch on the calling (worker) thread: `StereoPredictor.predict_batch`, which pads
-    every pair to the batch shape the way the network pads one and returns host arrays."""
-    predictions = predictor.predict_batch(lefts, rights, **key.options.keywords())
+    every pair (and warm start, `inits`) to the batch shape the way the network pads one and
+    returns host arrays."""
+    predictions = predictor.predict_batch(lefts, rights, init_disparities=inits, **key.options.keywords())
     return [(p.disparity, p.uncertainty) for p in predictions]

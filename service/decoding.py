@@ -36,7 +36,7 @@ from typing import Any, BinaryIO
 import numpy as np
 
 from service.images import ImageHeader
-from service.uploads import ImageLimits, Upload, UploadError, decode_pair, read_pair
+from service.uploads import ImageLimits, Upload, UploadError, check_headers, decode_pair, read_pair
 
 logger = logging.getLogger(__name__)
 
@@ -94,11 +94,16 @@ class DecoderPool:
         meta, buffers = await self._call(
             {"job": "read_pair", "content_type": content_type, "limits": asdict(limits)}, [body], stop
         )
-        header, rig = meta["header"], meta.get("rig")
-        if len(buffers) != 2 or not isinstance(header, dict) or not isinstance(rig, str | None):
+        rig = meta.get("rig")
+        if len(buffers) != 2 or not isinstance(rig, str | None):
             raise RuntimeError("decoder process answered read_pair with a malformed frame")
-        size = ImageHeader(str(header["format"]), int(header["width"]), int(header["height"]))
-        return Upload(buffers[0], buffers[1], size, rig)
+        return Upload(buffers[0], buffers[1], _header(meta), rig)
+
+    async def check_headers(self, left: bytes, right: bytes, limits: ImageLimits, stop: Stop) -> ImageHeader:
+        """`service.uploads.check_headers` in a decoder process: two image files (a stream's
+        frame), checked from their headers; the left one's header."""
+        meta, _ = await self._call({"job": "check_headers", "limits": asdict(limits)}, [left, right], stop)
+        return _header(meta)
 
     async def decode_pair(
         self, left: bytes, right: bytes, header: ImageHeader, stop: Stop
@@ -218,6 +223,14 @@ class DecoderPool:
         )
 
 
+def _header(meta: dict[str, Any]) -> ImageHeader:
+    """The image header a decoder process answered with."""
+    header = meta.get("header")
+    if not isinstance(header, dict):
+        raise RuntimeError("decoder process answered without an image header")
+    return ImageHeader(str(header["format"]), int(header["width"]), int(header["height"]))
+
+
 async def _unless(stopped: asyncio.Future[Exception], work: Awaitable[Any]) -> Any:
     """The result of `work`, unless `stopped` resolves first: then `work` is cancelled and the
     exception `stopped` resolved with is raised."""
@@ -250,6 +263,9 @@ def _run_job(meta: dict[str, Any], buffers: list[bytes]) -> tuple[dict[str, Any]
     if meta["job"] == "read_pair":
         upload = read_pair(buffers[0], meta["content_type"], ImageLimits(**meta["limits"]))
         return {"ok": True, "header": asdict(upload.header), "rig": upload.rig}, [upload.left, upload.right]
+    if meta["job"] == "check_headers":
+        header = check_headers(ImageLimits(**meta["limits"]), buffers[0], buffers[1])
+        return {"ok": True, "header": asdict(header)}, []
     if meta["job"] == "decode_pair":
         images = decode_pair(buffers[0], buffers[1])
         return {"ok": True}, [np.ascontiguousarray(image).tobytes() for image in images]

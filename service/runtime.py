@@ -15,6 +15,7 @@ from typing import Any
 from service.batching import Batcher, Draining, Predictor
 from service.cpu import configure_torch_threads, usable_cpus
 from service.decoding import DecoderLimits, DecoderPool
+from service.errors import ApiError, bad_input, draining
 from service.metrics import Metrics
 from service.rigs import RectifierCache
 from service.schemas import BatchingConfig, HealthResponse, ModelStatus, ServiceState
@@ -82,6 +83,31 @@ class ServiceRuntime:
         if self.batcher is not None:
             self.batcher.begin_drain()
             self._spawn(self._expire_drain(self.batcher))
+
+    def batcher_for(self, model: str) -> Batcher:
+        """The batcher that computes `model`'s requests; the error to answer where there is none
+        (503 while loading, draining or failed; 422 for a model this server did not load)."""
+        if self.state == "failed":
+            raise ApiError(
+                503,
+                "unavailable",
+                "models failed to load; see the server log",
+                reject_reason="not_ready",
+                headers={"Retry-After": "60"},
+            )
+        if self.state == "draining":
+            raise draining("server is shutting down")
+        if self.state == "loading" or self.batcher is None:
+            raise ApiError(
+                503, "loading", "models are still loading", reject_reason="not_ready", headers={"Retry-After": "5"}
+            )
+        if model not in self.predictors:
+            raise bad_input(
+                422,
+                "model_not_loaded",
+                f"model `{model}` is not loaded by this server (loaded: {', '.join(self.predictors)})",
+            )
+        return self.batcher
 
     @property
     def is_alive(self) -> bool:

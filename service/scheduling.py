@@ -19,19 +19,20 @@ class BatchKey:
     options: InferenceOptions
     height: int  # input shape of the batch: padded to a multiple of 32, or exact (see batch_key)
     width: int
+    warm_start: bool = False  # each request starts from its own previous disparity (a stream's frames)
 
     @property
     def pixels(self) -> int:
         return self.height * self.width
 
 
-def batch_key(model: str, options: InferenceOptions, height: int, width: int) -> BatchKey:
+def batch_key(model: str, options: InferenceOptions, height: int, width: int, warm_start: bool = False) -> BatchKey:
     """Plain requests batch by padded shape: padding them to it is what the network does anyway.
     Two-pass and scaled requests batch by exact shape, since their resized passes see the
-    unpadded image."""
+    unpadded image. Warm-started requests batch only with warm-started ones (another graph)."""
     if options.two_pass or options.scale != 1.0:
-        return BatchKey(model, options, height, width)
-    return BatchKey(model, options, padded_size(height), padded_size(width))
+        return BatchKey(model, options, height, width, warm_start)
+    return BatchKey(model, options, padded_size(height), padded_size(width), warm_start)
 
 
 @dataclass(frozen=True)

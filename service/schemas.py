@@ -10,6 +10,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, field_validator, model_validator
 
 from model.config import ModelName
+from model.inference import scaled_size
 from model.options import InferenceOptions, parse_iterations
 from stereo_data.pointcloud import MIN_DISPARITY, Calibration
 
@@ -152,6 +153,14 @@ class DisparityOptions(BaseModel):
     def inference(self) -> InferenceOptions:
         """The options that say how the pair is computed (`model.InferenceOptions`)."""
         return InferenceOptions(parse_iterations(self.iters), self.two_pass, self.scale, self.raw_uncertainty)
+
+    def scale_problem(self, height: int, width: int) -> str | None:
+        """What is wrong with `scale` for a pair of this size (None: nothing)."""
+        try:
+            scaled_size(height, width, self.scale)
+        except ValueError as exc:
+            return str(exc)
+        return None
 
     def calibration_problem(self, calibrated: bool) -> str | None:
         """What is wrong with these options for a pair sent with (`calibrated`) or without a

@@ -18,12 +18,11 @@ from fastapi import APIRouter, Depends, Header, Query, Request, Response
 from starlette.concurrency import run_in_threadpool
 from starlette.requests import ClientDisconnect
 
-from model.inference import scaled_size
-from service.batching import Batcher, ClientDisconnected, DeadlineExceeded, Draining, JobResult, Predictor
+from service.batching import ClientDisconnected, DeadlineExceeded, Draining, JobResult, Predictor
 from service.dependencies import RuntimeDep, require_api_key
 from service.disparity_docs import RESPONSES, UPLOAD_BODY
 from service.encoding import render
-from service.errors import ApiError, bad_input, client_gone, draining
+from service.errors import ApiError, bad_input, client_gone
 from service.images import ImageHeader
 from service.logs import request_id_var
 from service.runtime import ServiceRuntime, weights_identity
@@ -71,7 +70,7 @@ async def estimate_disparity(
     request.state.model = options.model  # also read by the batching error handler
     _refuse_repeated_options(request)
     _refuse_repeated_headers(request)
-    batcher = _batcher_for(runtime, options.model)
+    batcher = runtime.batcher_for(options.model)
     settings = runtime.settings
     content_type = request.headers.get("content-type", "")
     boundary_of(content_type)  # 415 before the body is read
@@ -87,7 +86,9 @@ async def estimate_disparity(
         raise bad_input(422, "invalid_request", problem)
     rectifier = None if upload.rig is None else await runtime.rectifiers.get(upload.rig)
     inference = options.inference
-    _check_scale(header, options.scale)
+    problem = options.scale_problem(header.height, header.width)
+    if problem is not None:
+        raise bad_input(422, "scale_too_small", problem)
     key = batch_key(options.model, inference, header.height, header.width)
     async with batcher.admit(options.model, key, deadline=deadline) as admission:
         left, right = await runtime.decoders.decode_pair(upload.left, upload.right, header, stop)
@@ -142,13 +143,6 @@ async def _abandoned(request: Request, deadline: float | None, runtime: ServiceR
         await asyncio.sleep(_ABANDON_POLL_S)
 
 
-def _check_scale(header: ImageHeader, scale: float) -> None:
-    try:
-        scaled_size(header.height, header.width, scale)
-    except ValueError as exc:
-        raise bad_input(422, "scale_too_small", str(exc)) from None
-
-
 def _refuse_repeated_headers(request: Request) -> None:
     """A repeated `X-Request-Timeout-Ms` is ambiguous: 422 rather than silently taking one."""
     if len(request.headers.getlist("x-request-timeout-ms")) > 1:
@@ -162,30 +156,6 @@ def _refuse_repeated_options(request: Request) -> None:
     repeated = sorted(name for name, count in counts.items() if count > 1)
     if repeated:
         raise bad_input(422, "invalid_request", f"query.{repeated[0]}: given more than once")
-
-
-def _batcher_for(runtime: ServiceRuntime, model: str) -> Batcher:
-    if runtime.state == "failed":
-        raise ApiError(
-            503,
-            "unavailable",
-            "models failed to load; see the server log",
-            reject_reason="not_ready",
-            headers={"Retry-After": "60"},
-        )
-    if runtime.state == "draining":
-        raise draining("server is shutting down")
-    if runtime.state == "loading" or runtime.batcher is None:
-        raise ApiError(
-            503, "loading", "models are still loading", reject_reason="not_ready", headers={"Retry-After": "5"}
-        )
-    if model not in runtime.predictors:
-        raise bad_input(
-            422,
-            "model_not_loaded",
-            f"model `{model}` is not loaded by this server (loaded: {', '.join(runtime.predictors)})",
-        )
-    return runtime.batcher
 
 
 def _result_headers(predictor: Predictor, weights: str, size: ImageHeader, result: JobResult) -> dict[str, str]:

@@ -1,0 +1,187 @@
+"""`/disparity/stream`: a WebSocket for video. One connection streams the pairs of one camera and
+receives their maps in order, each frame warm-started from the previous one of the connection.
+
+The protocol (service/README.md, "Streams"): the query string takes the options of
+`POST /disparity` (but `frame`: a stream's pairs are rectified) and `warm_iters`; the client sends
+each pair as two binary messages, the left image file then the right one, and receives one
+message per pair: the answer in `format` (text for `json`, binary otherwise), or a text message
+`{"error": {"code", "message"}, "frame": N}` for a frame that could not be computed (the
+connection stays open). The same image limits, decoder processes, batching, and bearer key apply
+as to `POST /disparity`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import hmac
+import json
+import logging
+from collections.abc import Awaitable, Callable
+
+from fastapi import APIRouter, WebSocket, WebSocketDisconnect
+from pydantic import ValidationError
+from starlette.concurrency import run_in_threadpool
+from starlette.websockets import WebSocketState
+
+from model import WarmStart, parse_iterations
+from service.batching import BatchingError
+from service.encoding import render
+from service.errors import ApiError, bad_input, batching_answer
+from service.images import ImageHeader
+from service.runtime import ServiceRuntime, weights_identity
+from service.scheduling import batch_key
+from service.schemas import DisparityOptions, OutputFormat
+from service.uploads import ImageLimits, UploadError
+
+logger = logging.getLogger(__name__)
+router = APIRouter()
+
+GOING_AWAY, UNSUPPORTED_DATA, POLICY_VIOLATION, TRY_AGAIN_LATER = 1001, 1003, 1008, 1013
+"""WebSocket close codes (RFC 6455, 7.4.1; 1013 from the IANA registry)."""
+
+
+class _Closing(Exception):
+    """End the stream: say why (`error` code and `reason`, unless `error` is None) in a last text
+    message, then close with the WebSocket close `code`."""
+
+    def __init__(self, code: int, error: str | None, reason: str) -> None:
+        super().__init__(reason)
+        self.code, self.error, self.reason = code, error, reason
+
+
+@router.websocket("/disparity/stream")
+async def stream_disparity(websocket: WebSocket) -> None:
+    runtime: ServiceRuntime = websocket.app.state.runtime
+    api_key = runtime.settings.api_key
+    given = websocket.headers.get("authorization", "").removeprefix("Bearer ").encode()
+    if api_key is not None and not hmac.compare_digest(given, api_key.encode()):
+        await websocket.close(code=POLICY_VIOLATION, reason="missing or wrong bearer token")  # HTTP 403
+        return
+    await websocket.accept()
+    try:
+        options, warm_start = _options(websocket)
+        await _serve(websocket, runtime, options, warm_start)
+    except _Closing as closing:
+        if closing.error is not None:
+            await websocket.send_text(json.dumps({"error": {"code": closing.error, "message": closing.reason}}))
+        await websocket.close(code=closing.code, reason=closing.reason[:120])
+    except WebSocketDisconnect:
+        return
+
+
+def _options(websocket: WebSocket) -> tuple[DisparityOptions, WarmStart]:
+    """The stream's options from the query string (an error message and close where invalid)."""
+    items = websocket.query_params.multi_items()
+    names = [name for name, _ in items]
+    repeated = sorted({name for name in names if names.count(name) > 1})
+    if repeated:
+        raise _Closing(POLICY_VIOLATION, "invalid_request", f"query.{repeated[0]}: given more than once")
+    query = dict(items)
+    warm_iters = query.pop("warm_iters", None)
+    try:
+        options = DisparityOptions.model_validate(query)
+        warm = parse_iterations(warm_iters)
+    except ValidationError as error:
+        first = error.errors()[0]
+        where = ".".join(map(str, first["loc"]))
+        raise _Closing(POLICY_VIOLATION, "invalid_request", f"query.{where}: {first['msg']}") from None
+    except ValueError as error:
+        raise _Closing(POLICY_VIOLATION, "invalid_request", f"query.warm_iters: {error}") from None
+    problem = options.calibration_problem(calibrated=False)
+    if problem is not None:
+        raise _Closing(POLICY_VIOLATION, "invalid_request", f"{problem}; a stream's pairs are rectified")
+    return options, WarmStart(options.inference, warm)
+
+
+async def _serve(websocket: WebSocket, runtime: ServiceRuntime, options: DisparityOptions, frames: WarmStart) -> None:
+    settings = runtime.settings
+    limits = ImageLimits(options.model, settings.pixel_limit(options.model), settings.min_image_side)
+    index = 0
+    while True:
+        try:
+            left = await _image(websocket, settings.body_timeout_s, "left")
+        except TimeoutError:
+            raise _Closing(1000, None, f"no frame for {settings.body_timeout_s:g} s") from None
+        try:
+            right = await _image(websocket, settings.body_timeout_s, "right")
+        except TimeoutError:
+            raise _Closing(
+                POLICY_VIOLATION, "body_timeout", "the right image did not follow the left one in time"
+            ) from None
+        try:
+            await _answer(websocket, runtime, options, frames, limits, left, right)
+        except (UploadError, ApiError, BatchingError) as error:
+            status, code, message = _error(error, runtime, options.model)
+            await websocket.send_text(json.dumps({"error": {"code": code, "message": message}, "frame": index}))
+            logger.info("stream frame refused", extra={"status": status, "code": code, "frame": index})
+            if code in ("draining", "unavailable"):  # no later frame can be computed here
+                raise _Closing(GOING_AWAY if code == "draining" else TRY_AGAIN_LATER, None, message) from None
+        index += 1
+
+
+async def _image(websocket: WebSocket, timeout_s: float, side: str) -> bytes:
+    """The next message, which must be an image file (binary)."""
+    async with asyncio.timeout(timeout_s):
+        message = await websocket.receive()
+    if message["type"] == "websocket.disconnect":
+        raise WebSocketDisconnect(message.get("code", 1000))
+    data = message.get("bytes")
+    if data is None:
+        raise _Closing(UNSUPPORTED_DATA, "invalid_message", f"expected the {side} image as a binary message, got text")
+    return data
+
+
+async def _answer(
+    websocket: WebSocket,
+    runtime: ServiceRuntime,
+    options: DisparityOptions,
+    frames: WarmStart,
+    limits: ImageLimits,
+    left_bytes: bytes,
+    right_bytes: bytes,
+) -> None:
+    """Compute one pair and send its answer."""
+
+    async def never() -> Exception:  # a frame's images are read whole: nothing abandons them
+        await asyncio.Event().wait()
+        raise AssertionError("unreachable")
+
+    batcher = runtime.batcher_for(options.model)
+    header: ImageHeader = await runtime.decoders.check_headers(left_bytes, right_bytes, limits, never)
+    problem = options.scale_problem(header.height, header.width)
+    if problem is not None:
+        raise bad_input(422, "scale_too_small", problem)
+    inference, init = frames.next(header.height, header.width)
+    key = batch_key(options.model, inference, header.height, header.width, warm_start=init is not None)
+    async with batcher.admit(options.model, key) as admission:
+        left, right = await runtime.decoders.decode_pair(left_bytes, right_bytes, header, never)
+        result = await admission.run(
+            left, right, options=inference, deadline=None, is_disconnected=_gone(websocket), init=init
+        )
+    frames.record(result.disparity)
+    weights = weights_identity(runtime.predictors[options.model])
+    content, _ = await run_in_threadpool(render, options, result, left, weights, header)
+    if options.format is OutputFormat.json:
+        await websocket.send_text(content.decode())
+    else:
+        await websocket.send_bytes(content)
+
+
+def _gone(websocket: WebSocket) -> Callable[[], Awaitable[bool]]:
+    """Whether the client has gone (the batcher's predicate, as `Request.is_disconnected`)."""
+
+    async def is_disconnected() -> bool:
+        return websocket.client_state is WebSocketState.DISCONNECTED
+
+    return is_disconnected
+
+
+def _error(error: Exception, runtime: ServiceRuntime, model: str) -> tuple[int, str, str]:
+    """(HTTP status it would have, code, message) of a frame's error."""
+    if isinstance(error, UploadError):
+        return error.status, error.code, error.message
+    if isinstance(error, BatchingError):
+        assert runtime.batcher is not None  # only a batcher raises these
+        error = batching_answer(error, runtime.batcher, model)
+    assert isinstance(error, ApiError)
+    return error.status, error.code, error.message

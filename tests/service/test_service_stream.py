@@ -1,0 +1,96 @@
+"""`/disparity/stream` over a real WebSocket on a real uvicorn: the pairs of one camera answered in
+order, each warm-started from the previous one as the library computes a sequence; a bad frame
+answered with an error while the stream goes on; protocol errors, bad options and a missing key
+refused with a clear message and close code; the client's `stream`."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from websockets.exceptions import ConnectionClosed, InvalidStatus
+from websockets.sync.client import connect
+
+from client import ServiceError, StereoClient
+from model import InferenceOptions
+from service_helpers import assert_same_maps, encode, quiet_load_model, run_uvicorn
+from stereo_data.synthetic import SceneConfig, SceneGenerator
+
+
+def panned_frames(count: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Consecutive RGB pairs (64x96) of a static procedural scene seen by a panning camera."""
+    generator = SceneGenerator(SceneConfig(height=64, width=96, surfaces=6, min_surfaces=3, photometric=None))
+    scene = generator.sample_scene(batch_size=1, seed=7)
+    views = [generator.render(scene.translated(3.0 * t, 0.0)) for t in range(count)]
+    return [tuple(v[0].permute(1, 2, 0).round().to(torch.uint8).numpy() for v in (b.left, b.right)) for b in views]
+
+
+def ws_url(base_url: str, query: str = "") -> str:
+    return base_url.replace("http://", "ws://") + "/disparity/stream" + (f"?{query}" if query else "")
+
+
+def test_a_stream_answers_each_pair_in_order_warm_started_as_the_library_computes_a_sequence(default_server):
+    frames = panned_frames(3)
+    with StereoClient(default_server.base_url) as service, service.stream(iters=(1, 1, 2), warm_iters=3) as stream:
+        results = [stream.send(left, right) for left, right in frames]
+    expected = list(quiet_load_model("lite").predict_sequence(frames, InferenceOptions(iters=(1, 1, 2)), warm_iters=3))
+    for result, reference in zip(results, expected, strict=True):
+        assert result.model == "lite" and result.disparity.shape == (64, 96)
+        assert_same_maps(result.disparity, reference.disparity)
+
+
+def test_a_bad_frame_gets_an_error_naming_it_and_the_stream_goes_on(default_server):
+    (left, right), (next_left, next_right) = panned_frames(2)
+    with connect(ws_url(default_server.base_url, "format=npz")) as socket:
+        socket.send(b"not an image")
+        socket.send(encode(right))
+        error = json.loads(socket.recv(timeout=60))
+        socket.send(encode(left))
+        socket.send(encode(next_right[:, :-1]))  # of another size than its left image
+        mismatch = json.loads(socket.recv(timeout=60))
+        socket.send(encode(next_left))
+        socket.send(encode(next_right))
+        answer = socket.recv(timeout=60)
+    assert error == {
+        "error": {"code": "unsupported_media_type", "message": "left: not a PNG, JPEG, BMP or TIFF file"},
+        "frame": 0,
+    }
+    assert mismatch["frame"] == 1 and mismatch["error"]["code"] == "size_mismatch"
+    assert isinstance(answer, bytes) and answer.startswith(b"PK")  # an npz archive
+
+
+def test_protocol_errors_and_bad_options_close_the_stream_saying_why(default_server):
+    with connect(ws_url(default_server.base_url)) as socket:
+        socket.send("hello")  # text where the left image is expected
+        said = json.loads(socket.recv(timeout=30))
+        with pytest.raises(ConnectionClosed):
+            socket.recv(timeout=30)
+    assert said["error"]["code"] == "invalid_message" and "binary message" in said["error"]["message"]
+    assert socket.close_code == 1003
+    for query, expected in (
+        ("scale=2", "query.scale"),
+        ("warm_iters=0", "query.warm_iters"),
+        ("frame=original", "frame=original"),
+    ):
+        with connect(ws_url(default_server.base_url, query)) as socket:
+            said = json.loads(socket.recv(timeout=30))
+            with pytest.raises(ConnectionClosed):
+                socket.recv(timeout=30)
+        assert said["error"]["code"] == "invalid_request" and expected in said["error"]["message"], query
+        assert socket.close_code == 1008
+
+
+def test_a_stream_needs_the_bearer_key_when_the_server_has_one(tmp_path):
+    left, right = panned_frames(1)[0]
+    with run_uvicorn(tmp_path, api_key="s3cret") as server:
+        with pytest.raises(InvalidStatus) as refused, connect(ws_url(server.base_url)):
+            pass
+        with pytest.raises(ServiceError) as client_refused, StereoClient(server.base_url, api_key="wrong") as service:
+            service.stream()
+        with StereoClient(server.base_url, api_key="s3cret") as service, service.stream() as stream:
+            result = stream.send(left, right)
+    assert refused.value.response.status_code == 403
+    assert client_refused.value.status == 403
+    assert result.disparity.shape == left.shape[:2]
