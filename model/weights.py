@@ -1,15 +1,9 @@
-"""The weights file: the one reader and writer of the format (docs/CONTRACTS.md).
+"""The weights file: the one reader and writer of the format (docs/CONTRACTS.md), and the one
+spelling of its keys (`WeightsFile`).
 
 A weights file is a dict saved with `torch.save`, every value a tensor or a builtin, so it loads
-with `torch.load(weights_only=True)`:
-    "model": the network's state_dict (float32, or float16 for a `--fp16` export),
-    "config": the ModelConfig as a dict (absent in old files: the preset of the name is used),
-    "model_name": "lite" | "full",
-    "calibration": the fitted uncertainty calibration (model.calibration), when present,
-    "training": the cumulative training record, "train_config", "step", "dtype": metadata.
-A training checkpoint is a weights file with more keys ("optimizer", "scheduler", "rng", and
-"train_model" when "model" is a moving average of the trained weights: those raw weights, which
-a resumed run continues from), so it loads as weights directly.
+with `torch.load(weights_only=True)`. A training checkpoint is a weights file with more keys
+(`CHECKPOINT_KEYS`), so it loads as weights directly.
 """
 
 from __future__ import annotations
@@ -17,12 +11,57 @@ from __future__ import annotations
 import hashlib
 import os
 from pathlib import Path
-from typing import Any
+from typing import Any, NotRequired, TypedDict
 
 import torch
+from torch import Tensor
 
 from .config import ModelConfig
 from .network import CREStereoPP
+
+
+class WeightsFile(TypedDict):
+    """What a weights file (or checkpoint) holds; only "model" is always there.
+
+    model: the network's state_dict (float32, or float16 for a `--fp16` export).
+    config: the ModelConfig as a dict (absent in old files: the preset of the name is used).
+    model_name: "lite" | "full".
+    calibration: the fitted uncertainty calibration (model.calibration), when present.
+    training: the cumulative training record (training.history); train_config: the TrainConfig
+        as a dict; step: optimiser steps done; dtype: "float32" | "float16".
+    Checkpoints only (CHECKPOINT_KEYS): train_model: the raw trained weights when "model" is
+    their moving average (a resumed run continues them); optimizer, scheduler: state_dicts;
+    rng: the random generators' states (training.checkpoint).
+    """
+
+    model: dict[str, Tensor]
+    config: NotRequired[dict[str, Any]]
+    model_name: NotRequired[str]
+    calibration: NotRequired[dict[str, Any]]
+    training: NotRequired[dict[str, Any]]
+    train_config: NotRequired[dict[str, Any]]
+    step: NotRequired[int]
+    dtype: NotRequired[str]
+    train_model: NotRequired[dict[str, Tensor]]
+    optimizer: NotRequired[dict[str, Any]]
+    scheduler: NotRequired[dict[str, Any]]
+    rng: NotRequired[dict[str, Any]]
+
+
+CHECKPOINT_KEYS = ("train_model", "optimizer", "scheduler", "rng")
+"""The keys only a training checkpoint has (what `weights_of` drops)."""
+
+
+def weights_of(checkpoint: WeightsFile, half: bool = False) -> WeightsFile:
+    """The weights file of a checkpoint (or of another weights file): every key but the training
+    state (CHECKPOINT_KEYS); with `half`, floating-point tensors stored as float16 (half the size;
+    `load_state` casts them back to float32) and "dtype" saying so."""
+    payload: dict[str, Any] = {key: value for key, value in checkpoint.items() if key not in CHECKPOINT_KEYS}
+    if half:
+        payload["model"] = {name: t.half() if t.is_floating_point() else t for name, t in checkpoint["model"].items()}
+    payload["dtype"] = "float16" if half else "float32"
+    return WeightsFile(**payload)  # type: ignore[typeddict-item]  # the checkpoint's own keys
+
 
 WEIGHTS_DIR = Path(__file__).parent / "weights"
 """Bundled weights: ``WEIGHTS_DIR / f"{name}.pt"``."""
@@ -42,7 +81,7 @@ def is_trained(training: dict[str, Any] | None) -> bool:
     return bool(validations) and float(validations[-1]["bad2"]) <= USABLE_BAD2
 
 
-def read_weights(path: str | Path) -> dict[str, Any]:
+def read_weights(path: str | Path) -> WeightsFile:
     """The weights file (or checkpoint) at `path` as a dict, tensors on the CPU.
 
     Raises FileNotFoundError when there is no file, ValueError when it is not a weights file."""
@@ -52,10 +91,10 @@ def read_weights(path: str | Path) -> dict[str, Any]:
     payload = torch.load(path, map_location="cpu", weights_only=True)
     if not isinstance(payload, dict) or "model" not in payload:
         raise ValueError(f"{path} is not a weights file or checkpoint: expected a dict with a 'model' state_dict")
-    return payload
+    return WeightsFile(**payload)  # type: ignore[typeddict-item]  # the file's own keys, checked where read
 
 
-def write_weights(payload: dict[str, Any], path: str | Path) -> None:
+def write_weights(payload: WeightsFile, path: str | Path) -> None:
     """torch.save `payload` to `path` through a temporary file and a rename, so that `path` is
     always either the previous complete file or the new complete file, never a partial one."""
     if "model" not in payload:
@@ -67,24 +106,23 @@ def write_weights(payload: dict[str, Any], path: str | Path) -> None:
     os.replace(temporary, path)
 
 
-def model_config_of(payload: dict[str, Any], name: str) -> ModelConfig:
+def model_config_of(payload: WeightsFile, name: str) -> ModelConfig:
     """The network config stored in `payload`, or the `name` preset for files that have none."""
     if "config" in payload:
         return ModelConfig.from_dict(dict(payload["config"]))
     return ModelConfig.preset(name)
 
 
-def network_from_weights(payload: dict[str, Any], name: str) -> CREStereoPP:
+def network_from_weights(payload: WeightsFile, name: str) -> CREStereoPP:
     """A float32 CREStereoPP built from `payload`'s config with its state_dict loaded."""
     network = CREStereoPP(model_config_of(payload, name))
-    load_state(network, payload)
+    load_state(network, payload["model"])
     return network
 
 
-def load_state(network: CREStereoPP, payload: dict[str, Any], key: str = "model") -> None:
-    """Load `payload[key]` (a state_dict: "model", or a checkpoint's "train_model") into `network`,
-    float16 tensors cast back to float32."""
-    state = payload[key]
+def load_state(network: CREStereoPP, state: dict[str, Tensor]) -> None:
+    """Load a state_dict (a weights file's "model", or a checkpoint's "train_model") into
+    `network`, float16 tensors cast back to float32."""
     network.load_state_dict({name: t.float() if t.is_floating_point() else t for name, t in state.items()})
 
 

@@ -3,32 +3,13 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
 
-from model.weights import read_weights, write_weights
+from model.weights import WeightsFile, read_weights, weights_of, write_weights
 
 
-def export_weights(checkpoint: Path, output: Path, half: bool = False) -> dict[str, Any]:
-    """Write `output` = {"model", "config", "model_name", "train_config", "step", "training",
-    "calibration"}
-    from a checkpoint, dropping the optimiser, scheduler and RNG states.
-
-    half: store floating-point tensors as float16 (half the size; `model.weights.load_state`
-    casts them back to float32). Returns the written payload.
-    """
-    source = read_weights(checkpoint)
-    state = source["model"]
-    if half:
-        state = {name: t.half() if t.is_floating_point() else t for name, t in state.items()}
-    payload = {
-        "model": state,
-        "config": source["config"],
-        "model_name": source.get("model_name"),
-        "train_config": source.get("train_config"),
-        "step": source.get("step"),
-        "training": source.get("training"),
-        "calibration": source.get("calibration"),  # fitted for these weights (model.calibration)
-        "dtype": "float16" if half else "float32",
-    }
+def export_weights(checkpoint: Path, output: Path, half: bool = False) -> WeightsFile:
+    """Write `output`: the checkpoint's weights file (`model.weights.weights_of`: without the
+    optimiser, scheduler and RNG states), float16 with `half`. Returns the written payload."""
+    payload = weights_of(read_weights(checkpoint), half)
     write_weights(payload, output)
     return payload

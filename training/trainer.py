@@ -7,7 +7,6 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import torch
 from torch.nn.parallel import DistributedDataParallel
@@ -17,7 +16,7 @@ from evaluation.evaluate import evaluate
 from model import CREStereoPP, ModelConfig, NetworkOutput, StereoPredictor, matching_loss, sequence_loss
 from model.device import resolve_device
 from model.inference import autocast_bf16
-from model.weights import load_state, model_config_of, read_weights, write_weights
+from model.weights import WeightsFile, load_state, model_config_of, read_weights, write_weights
 from stereo_data.readers import open_dataset
 
 from .checkpoint import restore_rng_state, rng_state
@@ -110,10 +109,10 @@ class Trainer:
         )
         self.history = TrainingHistory.from_dict(source.get("training") if source else None)
         self.start_step = 0
-        resumes_average = resume is not None and source is not None and "train_model" in source
+        trained = source.get("train_model") if source is not None and resume is not None else None
         if source is not None:
             # a resumed run continues the trained weights, which are "train_model" when "model" is their average
-            load_state(self.network, source, "train_model" if resumes_average else "model")
+            load_state(self.network, source["model"] if trained is None else trained)
             if resume is not None:  # source is the checkpoint resumed
                 self.optimizer.load_state_dict(source["optimizer"])
                 self.scheduler.load_state_dict(source["scheduler"])
@@ -121,9 +120,9 @@ class Trainer:
                 self.start_step = int(source["step"])
                 restore_rng_state(source["rng"])
         self.average = WeightAverage(self.network, config.ema_decay) if config.ema_decay > 0 else None
-        if self.average is not None and resumes_average:
+        if self.average is not None and trained is not None:
             assert source is not None
-            load_state(self.average.network, source)
+            load_state(self.average.network, source["model"])
         if self.start_step >= config.max_steps:
             raise ValueError(f"nothing to do: the run is at step {self.start_step} and max_steps is {config.max_steps}")
 
@@ -257,22 +256,20 @@ class Trainer:
                     **raw,
                 )
             )
-        trained: dict[str, Any] = {} if self.average is None else {"train_model": self.network.state_dict()}
-        write_weights(
-            {
-                "model": served.state_dict(),
-                **trained,
-                "config": self.model_config.to_dict(),
-                "model_name": self.config.model,
-                "train_config": self.config.to_dict(),
-                "optimizer": self.optimizer.state_dict(),
-                "scheduler": self.scheduler.state_dict(),
-                "step": step,
-                "rng": rng_state(),
-                "training": self.history.to_dict(),
-            },
-            self.out_dir / CHECKPOINT_NAME,
+        checkpoint = WeightsFile(
+            model=served.state_dict(),
+            config=self.model_config.to_dict(),
+            model_name=self.config.model,
+            train_config=self.config.to_dict(),
+            optimizer=self.optimizer.state_dict(),
+            scheduler=self.scheduler.state_dict(),
+            step=step,
+            rng=rng_state(),
+            training=self.history.to_dict(),
         )
+        if self.average is not None:
+            checkpoint["train_model"] = self.network.state_dict()
+        write_weights(checkpoint, self.out_dir / CHECKPOINT_NAME)
         draw_curves(self.out_dir)
 
 
