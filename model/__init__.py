@@ -11,7 +11,7 @@ from .config import ModelConfig
 from .inference import FrameStream, Prediction, StereoPredictor, TensorPrediction, load_model
 from .loss import matching_loss, sequence_loss
 from .network import CREStereoPP, NetworkOutput, padded_size
-from .options import InferenceOptions, Iterations, WarmStart, parse_iterations
+from .options import InferenceOptions, Iterations, StageCounts, WarmStart, parse_iterations
 
 __all__ = [
     "CREStereoPP",
@@ -21,6 +21,7 @@ __all__ = [
     "ModelConfig",
     "NetworkOutput",
     "Prediction",
+    "StageCounts",
     "StereoPredictor",
     "TensorPrediction",
     "WarmStart",

@@ -23,11 +23,12 @@ from typing import TypeVar
 import torch
 from torch import Tensor
 
-Iters = tuple[int, int, int]
+from .options import StageCounts
+
 Maps = tuple[Tensor, Tensor]
 """(disparity, uncertainty), each float32 (B, 1, H, W) on the inputs' device."""
 
-Forward = Callable[[Tensor, Tensor, Tensor | None, Iters, bool], Maps]
+Forward = Callable[[Tensor, Tensor, Tensor | None, StageCounts, bool], Maps]
 """forward(left, right, init, iters, bf16): the network on (B, 3, H, W) float images in [0, 255]
 (H, W multiples of 32), an optional (B, 1, H, W) warm-start disparity (px), the iterations per
 stage and whether to autocast to bf16; returns the maps."""
@@ -50,7 +51,7 @@ class GraphKey:
 
     shape: tuple[int, ...]
     warm_start: bool
-    iters: Iters
+    iters: StageCounts
     bf16: bool
 
 
@@ -113,7 +114,7 @@ class GraphedForward:
         self.captures = self.replays = self.eager_runs = 0
         self._lock = threading.Lock()
 
-    def __call__(self, left: Tensor, right: Tensor, init: Tensor | None, iters: Iters, bf16: bool) -> Maps:
+    def __call__(self, left: Tensor, right: Tensor, init: Tensor | None, iters: StageCounts, bf16: bool) -> Maps:
         key = GraphKey(tuple(left.shape), init is not None, (*iters,), bf16)
         with self._lock:
             graph = self._graph_for(key, left, right, init)

@@ -19,7 +19,7 @@ from .config import ModelConfig
 from .cuda_graphs import Forward, GraphedForward
 from .network import CREStereoPP, padded_size
 from .openvino_backend import OpenVINOForward, native_bf16, openvino_available
-from .options import InferenceOptions, Iterations, WarmStart, parse_iterations
+from .options import InferenceOptions, Iterations, StageCounts, WarmStart, parse_iterations
 from .upsample import resize_disparity
 from .weights import USABLE_BAD2, WEIGHTS_DIR, file_sha256, is_trained, network_from_weights, read_weights
 
@@ -290,7 +290,7 @@ class StereoPredictor:
         backend now; False while OpenVINO is still exporting their graph (torch computes them)."""
         return self.openvino is None or self.openvino.ready(self.iterations(iters), warm_start)
 
-    def iterations(self, iters: Iterations) -> tuple[int, int, int]:
+    def iterations(self, iters: Iterations) -> StageCounts:
         """The counts per stage (1/16, 1/8, 1/4) that ``iters`` (see ``parse_iterations``) means here."""
         parsed = parse_iterations(iters)
         if parsed is None:
@@ -352,7 +352,7 @@ class StereoPredictor:
         A ``left`` array gives a ``Prediction`` (numpy arrays, copied from the device once); a
         ``left`` tensor a ``TensorPrediction`` (tensors on the predictor's device).
         """
-        disparity, uncertainty = self.maps(
+        disparity, uncertainty = self.predict_tensors(
             as_image_batch(left, self.device),
             as_image_batch(right, self.device),
             iters=iters,
@@ -412,7 +412,7 @@ class StereoPredictor:
             init = torch.cat([pad_to_size(m, height, width) for m in maps])[:, 0]
 
         disparity, uncertainty = to_host(
-            *self.maps(
+            *self.predict_tensors(
                 stack(lefts),
                 stack(rights),
                 iters=iters,
@@ -446,7 +446,7 @@ class StereoPredictor:
         for left, right in pairs:
             yield frames.predict(left, right)
 
-    def maps(
+    def predict_tensors(
         self,
         left_batch: Tensor,
         right_batch: Tensor,
@@ -476,9 +476,11 @@ class StereoPredictor:
             init = init if size == (height, width) else resize_disparity(init, *size)
         elif two_pass:
             half_size = (max(1, size[0] // 2), max(1, size[1] // 2))
-            coarse, _ = self.run(shrink(left_batch, half_size), shrink(right_batch, half_size), counts, None, forward)
+            coarse, _ = self.forward_padded(
+                shrink(left_batch, half_size), shrink(right_batch, half_size), counts, None, forward
+            )
             init = resize_disparity(coarse, *size)
-        disparity, uncertainty = self.run(left_batch, right_batch, counts, init, forward)
+        disparity, uncertainty = self.forward_padded(left_batch, right_batch, counts, init, forward)
         if size != (height, width):
             disparity = resize_disparity(disparity, height, width)
             uncertainty = F.interpolate(uncertainty, size=(height, width), mode="bilinear", align_corners=False)
@@ -489,11 +491,11 @@ class StereoPredictor:
         through the weights' calibration where they carry one, else U itself."""
         return raw if self.calibration is None else self.calibration.apply(raw)
 
-    def run(
+    def forward_padded(
         self,
         left: Tensor,
         right: Tensor,
-        iters: tuple[int, int, int],
+        iters: StageCounts,
         init: Tensor | None,
         forward: Forward | None = None,
     ) -> tuple[Tensor, Tensor]:
@@ -510,7 +512,7 @@ class StereoPredictor:
         return disparity[..., :height, :width].clamp(min=0.0), uncertainty[..., :height, :width]
 
     def forward(
-        self, left: Tensor, right: Tensor, init: Tensor | None, iters: tuple[int, int, int], bf16: bool
+        self, left: Tensor, right: Tensor, init: Tensor | None, iters: StageCounts, bf16: bool
     ) -> tuple[Tensor, Tensor]:
         """The network, eagerly, on padded (B, 3, H, W) images in [0, 255] (H, W multiples of 32)
         and an optional (B, 1, H, W) warm start (px), under bf16 autocast when `bf16`: disparity

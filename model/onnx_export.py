@@ -27,7 +27,7 @@ class ExportedGraph(nn.Module):
         self.counts = predictor.iterations(iters)
 
     def forward(self, left: Tensor, right: Tensor) -> tuple[Tensor, Tensor]:
-        disparity, uncertainty = self.predictor.run(left, right, self.counts, None)
+        disparity, uncertainty = self.predictor.forward_padded(left, right, self.counts, None)
         return disparity, self.predictor.served_uncertainty(uncertainty)
 
 

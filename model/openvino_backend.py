@@ -35,8 +35,9 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from .cuda_graphs import Forward, Iters, Maps, put_bounded
+from .cuda_graphs import Forward, Maps, put_bounded
 from .network import INPUT_MULTIPLE
+from .options import StageCounts
 
 logger = logging.getLogger(__name__)
 
@@ -80,7 +81,7 @@ class GraphKind:
     """What an exported graph computes: the iterations per stage (1/16, 1/8, 1/4) and whether it
     starts warm from a given disparity (an extra input)."""
 
-    iters: Iters
+    iters: StageCounts
     warm_start: bool
 
     @property
@@ -101,7 +102,7 @@ class _Compiled:
 class _Graph(nn.Module):
     """The module that is exported: the network at fixed iterations, maps in float32."""
 
-    def __init__(self, network: nn.Module, iters: Iters) -> None:
+    def __init__(self, network: nn.Module, iters: StageCounts) -> None:
         super().__init__()
         self.network = network
         self.iters = iters
@@ -197,7 +198,7 @@ class OpenVINOForward:
         self._lock = threading.Lock()
         self._export_lock = threading.Lock()  # one export at a time
 
-    def __call__(self, left: Tensor, right: Tensor, init: Tensor | None, iters: Iters, bf16: bool) -> Maps:
+    def __call__(self, left: Tensor, right: Tensor, init: Tensor | None, iters: StageCounts, bf16: bool) -> Maps:
         kind = GraphKind((*iters,), init is not None)
         graph = self._graph_or_prepare(kind)
         if graph is None:
@@ -215,13 +216,13 @@ class OpenVINOForward:
             self.runs += 1
         return disparity.to(left.device), uncertainty.to(left.device)
 
-    def ready(self, iters: Iters, warm_start: bool = False) -> bool:
+    def ready(self, iters: StageCounts, warm_start: bool = False) -> bool:
         """Whether calls of this kind run on OpenVINO now (its graph in memory or in the disk
         cache); starts nothing."""
         with self._lock:
             return self._cached(GraphKind((*iters,), warm_start)) is not None
 
-    def prepare(self, iters: Iters, warm_start: bool = False, *, wait: bool = True) -> bool:
+    def prepare(self, iters: StageCounts, warm_start: bool = False, *, wait: bool = True) -> bool:
         """Load or export the graph of this kind (in the background unless `wait`); returns
         whether it is ready (False after a failed export: that kind runs on torch)."""
         kind = GraphKind((*iters,), warm_start)

@@ -12,8 +12,12 @@ from typing import Any
 
 import numpy as np
 
-Iterations = int | tuple[int, int, int] | None
-"""None: the model's iterations; int: iterations of the finest (1/4) stage; or (n16, n8, n4)."""
+StageCounts = tuple[int, int, int]
+"""ARM iterations of the three stages, at 1/16, 1/8 and 1/4 resolution (what the network runs)."""
+
+Iterations = int | StageCounts | None
+"""What a caller asks for: None, the model's counts; an int, the finest (1/4) stage's; or the
+three `StageCounts`. `StereoPredictor.iterations` resolves it to `StageCounts`."""
 
 MAX_ITERATIONS = 99
 """Most ARM iterations per stage that a caller may ask for."""

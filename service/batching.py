@@ -25,7 +25,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from model import InferenceOptions, Iterations, ModelConfig, Prediction
+from model import InferenceOptions, Iterations, ModelConfig, Prediction, StageCounts
 from model.calibration import UncertaintyCalibration
 from model.inference import Backend, Precision
 from service.metrics import Metrics
@@ -62,7 +62,7 @@ class Predictor(Protocol):
     @property
     def config(self) -> ModelConfig: ...
 
-    def iterations(self, iters: Iterations) -> tuple[int, int, int]: ...
+    def iterations(self, iters: Iterations) -> StageCounts: ...
 
     def ready(self, iters: Iterations = None, *, warm_start: bool = False) -> bool: ...
 

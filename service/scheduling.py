@@ -8,7 +8,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Protocol, TypeVar
 
-from model import InferenceOptions, padded_size
+from model import InferenceOptions, StageCounts, padded_size
 
 
 @dataclass(frozen=True)
@@ -109,9 +109,7 @@ TWO_PASS_COST = 1.0
 """Two-pass inference adds a pass at half resolution, and its warm start saves about as much."""
 
 
-def relative_cost(
-    counts: tuple[int, int, int], default_counts: tuple[int, int, int], scale: float, two_pass: bool
-) -> float:
+def relative_cost(counts: StageCounts, default_counts: StageCounts, scale: float, two_pass: bool) -> float:
     """Compute of a request relative to a plain one of the same size (the model's own iteration
     counts `default_counts`, scale 1, one pass): its iterations `counts` (at 1/16, 1/8, 1/4),
     `scale` (the network sees scale^2 of the pixels) and `two_pass`."""
