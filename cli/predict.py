@@ -340,10 +340,10 @@ def run(args: argparse.Namespace) -> int:
                 scale = scale_range(shown, args.color_min, args.color_max)
                 path.write_bytes(encode_png(disparity_picture(shown, scale)))
             else:  # points in the (rectified) left camera's frame, coloured by the image the network saw
-                points, colours = point_cloud(
+                points, colors = point_cloud(
                     prediction.disparity, left, prediction.uncertainty, calibration, args.max_uncertainty, limits
                 )
-                path.write_bytes(encode_ply(points, colours, IMAGE_FRAME if calibration is None else METRIC_FRAME))
+                path.write_bytes(encode_ply(points, colors, IMAGE_FRAME if calibration is None else METRIC_FRAME))
             if single:
                 print(f"wrote {output.what} {path}")
         written += 1

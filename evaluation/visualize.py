@@ -129,15 +129,15 @@ def line_plot(
     cv2.putText(canvas, x_label, (margin_left + plot_w // 2 - 30, height - 8), font, 0.5, black, 1, cv2.LINE_AA)
     cv2.putText(canvas, y_label, (margin_left + 5, margin - 5), font, 0.5, black, 1, cv2.LINE_AA)
 
-    colours = [(30, 80, 200), (220, 40, 40), (40, 160, 40), (160, 40, 160)]  # RGB
+    colors = [(30, 80, 200), (220, 40, 40), (40, 160, 40), (160, 40, 160)]  # RGB
     for number, (name, (xs, ys)) in enumerate(series.items()):
-        colour = colours[number % len(colours)]
+        color = colors[number % len(colors)]
         x_values, y_values = np.asarray(xs, np.float64), np.asarray(ys, np.float64)
         keep = np.isfinite(y_values) & ((y_values > 0) if log_y else True)
         if keep.any():
             line = to_pixels(x_values[keep], transform(y_values[keep]))
-            cv2.polylines(canvas, [line], False, colour, 2, cv2.LINE_AA)
+            cv2.polylines(canvas, [line], False, color, 2, cv2.LINE_AA)
         legend_y = margin + 20 + 20 * number
-        cv2.line(canvas, (width - 220, legend_y - 4), (width - 195, legend_y - 4), colour, 2)
+        cv2.line(canvas, (width - 220, legend_y - 4), (width - 195, legend_y - 4), color, 2)
         cv2.putText(canvas, name, (width - 190, legend_y), font, 0.45, black, 1, cv2.LINE_AA)
     return canvas

@@ -82,11 +82,11 @@ def render(
         case OutputFormat.uncertainty_png16:
             return encode_png16(uncertainty, UNCERTAINTY_SCALE), "image/png"
         case OutputFormat.ply:
-            points, colours = point_cloud(
+            points, colors = point_cloud(
                 result.disparity, left, result.uncertainty, calibration, options.max_uncertainty, limits
             )
             frame = IMAGE_FRAME if calibration is None else METRIC_FRAME
-            return encode_ply(points, colours, frame), "application/x-ply"
+            return encode_ply(points, colors, frame), "application/x-ply"
 
 
 def rectified_camera(rectifier: Rectifier) -> RectifiedCamera:

@@ -95,16 +95,16 @@ METRIC_FRAME = "units metres; frame: left camera, x right, y down, z forward"
 IMAGE_FRAME = "units pixels; x = column, y = row, z = disparity (left image)"
 
 
-def encode_ply(points: np.ndarray, colours: np.ndarray, frame: str) -> bytes:
+def encode_ply(points: np.ndarray, colors: np.ndarray, frame: str) -> bytes:
     """Binary little-endian PLY of float32 x, y, z and uint8 red, green, blue per vertex; `frame`
     (METRIC_FRAME or IMAGE_FRAME) is written as a header comment."""
-    if points.ndim != 2 or points.shape[1] != 3 or colours.shape != points.shape:
-        raise ValueError(f"expected Nx3 points and Nx3 colours, got {points.shape} and {colours.shape}")
+    if points.ndim != 2 or points.shape[1] != 3 or colors.shape != points.shape:
+        raise ValueError(f"expected Nx3 points and Nx3 colours, got {points.shape} and {colors.shape}")
     vertex = np.empty(
         len(points), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")]
     )
     vertex["x"], vertex["y"], vertex["z"] = points[:, 0], points[:, 1], points[:, 2]
-    vertex["red"], vertex["green"], vertex["blue"] = colours[:, 0], colours[:, 1], colours[:, 2]
+    vertex["red"], vertex["green"], vertex["blue"] = colors[:, 0], colors[:, 1], colors[:, 2]
     header = (
         f"ply\nformat binary_little_endian 1.0\ncomment crestereo-pp point cloud\ncomment {frame}\n"
         f"element vertex {len(points)}\n"

@@ -311,8 +311,8 @@ class SceneGenerator:
         x = (self._x[..., None] + offsets).flatten(-2)  # (1, 1, 1, W * k), sample columns
         y = (self._y[..., None, :] + offsets[:, None]).flatten(-3, -2)  # (1, 1, H * k, 1), sample rows
         _, surface, x_left = _nearest_surface(scene, x, y, view)
-        colour = _shade(scene, surface, x_left.expand_as(surface), y)
-        return F.avg_pool2d(colour, k) if k > 1 else colour
+        color = _shade(scene, surface, x_left.expand_as(surface), y)
+        return F.avg_pool2d(color, k) if k > 1 else color
 
     def _sample_scene(self, batch_size: int, draw: _Draw) -> Scene:
         cfg = self.config
@@ -743,8 +743,8 @@ def _shade(scene: Scene, surface: torch.Tensor, x_left: torch.Tensor, y: torch.T
     slot = batch_index.flatten() * scene.textures.shape[1] + at_pixels(scene.texture)
     texture = _sample_wrapped(scene.textures.flatten(0, 1), slot, texel_u, texel_v)  # (N, 3)
     shading = (at_pixels(scene.ramp) * point).sum(-1, keepdim=True)
-    colour = at_pixels(scene.base) + contrast[:, None] * texture + shading
-    return colour.clamp(0, 255).view(batch, *surface.shape[2:], 3).permute(0, 3, 1, 2).contiguous()
+    color = at_pixels(scene.base) + contrast[:, None] * texture + shading
+    return color.clamp(0, 255).view(batch, *surface.shape[2:], 3).permute(0, 3, 1, 2).contiguous()
 
 
 def _sample_wrapped(textures: torch.Tensor, slot: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
@@ -855,8 +855,8 @@ def _dead_leaves(shape: tuple[int, int], size: int, draw: _Draw, discs: int = 64
         du = torch.remainder(u - centre_u[disc] + size / 2, size) - size / 2
         dv = torch.remainder(v - centre_v[disc] + size / 2, size) - size / 2
         top = torch.where(du.square() + dv.square() < radius[disc].square(), disc + 1, top)
-    colours = draw.normal((*shape, discs + 1, 3))  # entry 0 is the ground under all discs
-    return torch.gather(colours, 2, top.flatten(2)[..., None].expand(-1, -1, -1, 3)).view(*shape, size, size, 3)
+    colors = draw.normal((*shape, discs + 1, 3))  # entry 0 is the ground under all discs
+    return torch.gather(colors, 2, top.flatten(2)[..., None].expand(-1, -1, -1, 3)).view(*shape, size, size, 3)
 
 
 def _patterns(shape: tuple[int, int], size: int, draw: _Draw) -> torch.Tensor:

@@ -51,7 +51,7 @@ def scale_range(values: np.ndarray, low: float | None = None, high: float | None
     return low, high
 
 
-def colour_bar(width: int, vmin: float, vmax: float, colormap: int, label: str) -> np.ndarray:
+def color_bar(width: int, vmin: float, vmax: float, colormap: int, label: str) -> np.ndarray:
     """A BAR_HEIGHT x width strip: the colour map from vmin (left) to vmax (right) over the top
     half, and below it `label` with both ends of the scale written out."""
     bar = np.full((BAR_HEIGHT, width, 3), 255, np.uint8)
@@ -68,15 +68,15 @@ def colour_bar(width: int, vmin: float, vmax: float, colormap: int, label: str) 
     return bar
 
 
-def with_colour_bar(values: np.ndarray, vmin: float, vmax: float, colormap: int, label: str) -> np.ndarray:
+def with_color_bar(values: np.ndarray, vmin: float, vmax: float, colormap: int, label: str) -> np.ndarray:
     """The coloured map with its colour bar beneath it."""
-    return np.vstack([colorize(values, vmin, vmax, colormap), colour_bar(values.shape[1], vmin, vmax, colormap, label)])
+    return np.vstack([colorize(values, vmin, vmax, colormap), color_bar(values.shape[1], vmin, vmax, colormap, label)])
 
 
 def disparity_picture(disparity: np.ndarray, disparity_range: tuple[float, float]) -> np.ndarray:
     """Disparity coloured (turbo) over `disparity_range` px (see `scale_range`), with its bar."""
     low, high = disparity_range
-    return with_colour_bar(disparity, low, high, DISPARITY_COLORMAP, "disparity px")
+    return with_color_bar(disparity, low, high, DISPARITY_COLORMAP, "disparity px")
 
 
 PREVIEW_GAP = 12
@@ -89,4 +89,4 @@ def preview(disparity: np.ndarray, uncertainty: np.ndarray, disparity_range: tup
     a colour bar that prints its range, PREVIEW_GAP white pixels apart."""
     left = disparity_picture(disparity, disparity_range)
     gap = np.full((left.shape[0], PREVIEW_GAP, 3), 255, np.uint8)
-    return np.hstack([left, gap, with_colour_bar(uncertainty, 0.0, 1.0, UNCERTAINTY_COLORMAP, "uncertainty")])
+    return np.hstack([left, gap, with_color_bar(uncertainty, 0.0, 1.0, UNCERTAINTY_COLORMAP, "uncertainty")])

@@ -125,14 +125,14 @@ def augment_real_pair(
     left_edge = int(rng.integers(new_width - crop_width + 1))
     window = (slice(top, top + crop_height), slice(left_edge, left_edge + crop_width))
 
-    def recolour(image: np.ndarray) -> torch.Tensor:
+    def recolor(image: np.ndarray) -> torch.Tensor:
         gains = rng.uniform(1.0 - color_jitter, 1.0 + color_jitter, size=3).astype(np.float32)
         pixels = np.clip(image[window].astype(np.float32) * gains, 0.0, 255.0)
         return torch.from_numpy(pixels).permute(2, 0, 1)[None]
 
     return TrainingBatch(
-        left=recolour(left),
-        right=recolour(right),
+        left=recolor(left),
+        right=recolor(right),
         disparity=torch.from_numpy(np.ascontiguousarray(disparity[window]))[None, None],
         valid=torch.from_numpy(np.ascontiguousarray(valid[window]))[None, None],
     )

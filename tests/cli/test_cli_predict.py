@@ -36,9 +36,9 @@ REPO = Path(__file__).resolve().parents[2]
 pytestmark = pytest.mark.filterwarnings("ignore:no weights at:RuntimeWarning")
 
 
-def test_one_pair_to_pfm_with_uncertainty_and_colour(pairs_dir, tmp_path):
+def test_one_pair_to_pfm_with_uncertainty_and_color(pairs_dir, tmp_path):
     pair = pairs_dir / "shift4"
-    out, uncertainty, colour = tmp_path / "d.pfm", tmp_path / "u.npy", tmp_path / "c.png"
+    out, uncertainty, color = tmp_path / "d.pfm", tmp_path / "u.npy", tmp_path / "c.png"
 
     status = main(
         [
@@ -50,7 +50,7 @@ def test_one_pair_to_pfm_with_uncertainty_and_colour(pairs_dir, tmp_path):
             "--uncertainty",
             str(uncertainty),
             "--color",
-            str(colour),
+            str(color),
             "--device",
             "cpu",
         ]
@@ -62,7 +62,7 @@ def test_one_pair_to_pfm_with_uncertainty_and_colour(pairs_dir, tmp_path):
     assert np.isfinite(disparity).all() and (disparity >= 0).all()
     u = np.load(uncertainty)
     assert u.shape == (64, 96) and 0.0 <= u.min() and u.max() <= 1.0
-    assert cv2.imread(str(colour)).shape == (64 + BAR_HEIGHT, 96, 3)  # the map, then its colour bar
+    assert cv2.imread(str(color)).shape == (64 + BAR_HEIGHT, 96, 3)  # the map, then its colour bar
 
 
 @pytest.mark.parametrize("suffix", [".png", ".npy"])

@@ -100,7 +100,7 @@ def test_a_pair_without_ground_truth_is_an_error():
         evaluate([sample], OffsetPredictor([sample], 0.0), dataset_name="mem", progress=False)
 
 
-def test_colour_scale_is_fixed_and_unknown_is_black():
+def test_color_scale_is_fixed_and_unknown_is_black():
     values = np.array([[0.0, 10.0, 20.0, np.inf]], np.float32)
     image = colorize(values, 0.0, 10.0)
     assert image.dtype == np.uint8 and image.shape == (1, 4, 3)

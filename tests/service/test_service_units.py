@@ -164,7 +164,7 @@ def test_unknown_and_truncated_files_are_told_apart():
 # --- encodings ---------------------------------------------------------------------------------
 
 
-def test_preview_puts_disparity_left_of_uncertainty_with_colour_bars_on_their_scales():
+def test_preview_puts_disparity_left_of_uncertainty_with_color_bars_on_their_scales():
     disparity = np.tile(np.linspace(12.0, 53.0, 64, dtype=np.float32), (40, 1))  # a Middlebury range
     uncertainty = np.tile(np.linspace(0.0, 1.0, 64, dtype=np.float32), (40, 1))
     png = encode_preview(disparity, uncertainty, scale_range(disparity))
@@ -180,7 +180,7 @@ def test_preview_puts_disparity_left_of_uncertainty_with_colour_bars_on_their_sc
     assert (preview[40:] == 255).any() and (preview[40:] < 128).any()  # bars: white with dark text
 
 
-def test_a_fixed_colour_scale_is_honoured_and_a_reversed_one_refused():
+def test_a_fixed_color_scale_is_honoured_and_a_reversed_one_refused():
     disparity = np.full((8, 8), 30.0, np.float32)
     assert scale_range(disparity, 0.0, 192.0) == (0.0, 192.0)
     low, high = scale_range(disparity)

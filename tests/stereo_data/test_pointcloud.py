@@ -17,14 +17,14 @@ from stereo_data.pointcloud import (
 )
 
 
-def test_metric_points_follow_the_pinhole_model_and_keep_their_colours():
+def test_metric_points_follow_the_pinhole_model_and_keep_their_colors():
     disparity = np.array([[10.0, 20.0], [0.0, 40.0]], np.float32)  # one pixel without disparity
     left = np.arange(12, dtype=np.uint8).reshape(2, 2, 3)
-    points, colours = point_cloud(disparity, left, calibration=Calibration(100.0, 0.5, cx=0.0, cy=0.0))
+    points, colors = point_cloud(disparity, left, calibration=Calibration(100.0, 0.5, cx=0.0, cy=0.0))
     z = 100.0 * 0.5 / np.array([10.0, 20.0, 40.0])
     expected = np.stack([np.array([0, 1, 1]) * z / 100.0, np.array([0, 0, 1]) * z / 100.0, z], axis=1)
     np.testing.assert_allclose(points, expected, rtol=1e-6)
-    np.testing.assert_array_equal(colours, left.reshape(-1, 3)[[0, 1, 3]])
+    np.testing.assert_array_equal(colors, left.reshape(-1, 3)[[0, 1, 3]])
 
 
 def test_without_calibration_points_are_in_image_space_and_uncertain_ones_are_dropped():
@@ -38,13 +38,13 @@ def test_without_calibration_points_are_in_image_space_and_uncertain_ones_are_dr
 
 def test_the_ply_is_binary_and_reads_back_with_plyfile():
     points = np.array([[0.5, -1.0, 2.0], [3.0, 4.0, 5.0]], np.float32)
-    colours = np.array([[255, 0, 10], [1, 2, 3]], np.uint8)
-    data = encode_ply(points, colours, METRIC_FRAME)
+    colors = np.array([[255, 0, 10], [1, 2, 3]], np.uint8)
+    data = encode_ply(points, colors, METRIC_FRAME)
     assert data.startswith(b"ply\nformat binary_little_endian 1.0\n")
     assert f"comment {METRIC_FRAME}\n".encode() in data  # units and frame, for whoever opens the file
     vertex = PlyData.read(io.BytesIO(data))["vertex"]
     np.testing.assert_array_equal(np.stack([vertex["x"], vertex["y"], vertex["z"]], axis=1), points)
-    np.testing.assert_array_equal(np.stack([vertex["red"], vertex["green"], vertex["blue"]], axis=1), colours)
+    np.testing.assert_array_equal(np.stack([vertex["red"], vertex["green"], vertex["blue"]], axis=1), colors)
 
 
 def test_depth_is_focal_times_baseline_over_disparity_within_its_range():

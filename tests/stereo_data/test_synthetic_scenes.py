@@ -84,9 +84,9 @@ def test_anti_aliased_scenes_keep_the_point_ground_truth_and_blend_only_edge_pix
     sharp, blended = point.render(scene), smooth.render(scene)
     assert torch.equal(sharp.disparity, blended.disparity) and torch.equal(sharp.occluded, blended.occluded)
 
-    colours = scene.base.clamp(0, 255)  # (B, S, 3)
+    colors = scene.base.clamp(0, 255)  # (B, S, 3)
     for batch, image in ((sharp, sharp.left), (blended, blended.left)):
-        distance = (image[:, None] - colours[..., None, None]).abs().amax(dim=2)  # (B, S, H, W)
+        distance = (image[:, None] - colors[..., None, None]).abs().amax(dim=2)  # (B, S, H, W)
         pure = distance.amin(dim=1) < 1e-3
         if batch is sharp:
             assert pure.all()  # point samples: every pixel is exactly one surface's colour

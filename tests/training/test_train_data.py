@@ -74,7 +74,7 @@ def test_a_pair_smaller_than_the_crop_is_enlarged_to_cover_it():
     assert torch.allclose(batch.disparity, torch.full_like(batch.disparity, 2.0 * 64 / 40))
 
 
-def test_colour_jitter_changes_the_two_views_independently_within_bounds():
+def test_color_jitter_changes_the_two_views_independently_within_bounds():
     sample = constant_pair(32, 64, 1.0)
     plain = augment_real_pair(sample, 32, 64, (1.0, 1.0), 0.0, seed=3)
     jittered = augment_real_pair(sample, 32, 64, (1.0, 1.0), 0.2, seed=3)

@@ -137,7 +137,7 @@ def test_page_loads_without_external_requests(web: WebPage) -> None:
     assert page.get_attribute("#iters", "placeholder") == "2,4,6"  # the model's default iterations
 
 
-def test_example_pair_gives_three_pictures_with_colour_bars_in_px(web: WebPage) -> None:
+def test_example_pair_gives_three_pictures_with_color_bars_in_px(web: WebPage) -> None:
     run_example(web)
     page = web.page
     pictures = {name: canvas_rgb(web, f"{name}-canvas") for name in ("left", "disparity", "uncertainty")}
@@ -164,7 +164,7 @@ def test_example_pair_gives_three_pictures_with_colour_bars_in_px(web: WebPage) 
     expect(page.locator("#results")).to_be_in_viewport()  # brought into view below the form
 
 
-def test_colour_range_follows_color_min_and_color_max(web: WebPage) -> None:
+def test_color_range_follows_color_min_and_color_max(web: WebPage) -> None:
     run_example(web, color_min="2", color_max="30")
     assert web.page.inner_text("#disparity-bar .low") == "2 px"
     assert web.page.inner_text("#disparity-bar .high") == "30 px"
