@@ -14,7 +14,6 @@ from tqdm import tqdm
 from model import InferenceOptions, Prediction, StereoPredictor
 from stereo_data.formats import encode_png
 from stereo_data.readers import StereoSample
-from stereo_data.visualize import UNCERTAINTY_COLORMAP, colorize
 
 from .metrics import (
     DisparityMetrics,
@@ -28,7 +27,7 @@ from .metrics import (
     sparsification,
 )
 from .sgbm import sgbm_disparity
-from .visualize import Panel, compose_sheet, disparity_panels, line_plot
+from .visualize import evaluation_sheet
 
 SGBM = "sgbm"
 """Method name of the OpenCV StereoSGBM baseline in reports."""
@@ -236,38 +235,3 @@ def evaluate(
             sheets_dir.mkdir(parents=True, exist_ok=True)
             (sheets_dir / f"{sample.name}.png").write_bytes(encode_png(sheet))
     return report
-
-
-def evaluation_sheet(
-    sample: StereoSample,
-    known: np.ndarray,
-    uncertainty: np.ndarray,
-    disparities: dict[str, np.ndarray],
-    curves: dict[str, Sparsification],
-) -> np.ndarray:
-    """Sheet image (uint8 RGB) of one pair: row 1 left, ground truth, the model's uncertainty;
-    then one row per method (disparity, |error|); last, the sparsification curves of `curves`
-    with the optimal one. `disparities` maps method -> float HxW px."""
-    ground_truth = np.where(known, sample.disparity, np.inf)
-    disparity_max = float(ground_truth[known].max())
-    rows = [
-        [
-            Panel(f"{sample.name} left", sample.left),
-            Panel(
-                f"ground truth 0-{disparity_max:.0f} px (black: unknown)", colorize(ground_truth, 0.0, disparity_max)
-            ),
-            Panel("uncertainty 0-1", colorize(uncertainty, 0.0, 1.0, UNCERTAINTY_COLORMAP)),
-        ]
-    ]
-    rows += [disparity_panels(name, d, sample.disparity, known, disparity_max) for name, d in disparities.items()]
-    rows.append([Panel("sparsification: bad-2 % of the most trusted pixels", sparsification_plot(curves))])
-    return compose_sheet(rows)
-
-
-def sparsification_plot(curves: dict[str, Sparsification]) -> np.ndarray:
-    """uint8 RGB plot of each method's sparsification curve (bad-2 % against % removed)."""
-    series = {
-        f"{name} (AUC/opt {curve.ratio_to_optimal:.2f})": (list(curve.removed_percent), list(curve.bad_percent))
-        for name, curve in curves.items()
-    }
-    return line_plot(series, "% most uncertain pixels removed", "bad-2 % of the rest", size=(720, 360))

@@ -10,7 +10,10 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from stereo_data.visualize import colorize
+from stereo_data.readers import StereoSample
+from stereo_data.visualize import UNCERTAINTY_COLORMAP, colorize
+
+from .metrics import Sparsification
 
 ERROR_SCALE_PX = 8.0
 """Absolute disparity error (px) shown at the top of the error colour map on every sheet."""
@@ -141,3 +144,38 @@ def line_plot(
         cv2.line(canvas, (width - 220, legend_y - 4), (width - 195, legend_y - 4), color, 2)
         cv2.putText(canvas, name, (width - 190, legend_y), font, 0.45, black, 1, cv2.LINE_AA)
     return canvas
+
+
+def evaluation_sheet(
+    sample: StereoSample,
+    known: np.ndarray,
+    uncertainty: np.ndarray,
+    disparities: dict[str, np.ndarray],
+    curves: dict[str, Sparsification],
+) -> np.ndarray:
+    """Sheet image (uint8 RGB) of one pair: row 1 left, ground truth, the model's uncertainty;
+    then one row per method (disparity, |error|); last, the sparsification curves of `curves`
+    with the optimal one. `disparities` maps method -> float HxW px."""
+    ground_truth = np.where(known, sample.disparity, np.inf)
+    disparity_max = float(ground_truth[known].max())
+    rows = [
+        [
+            Panel(f"{sample.name} left", sample.left),
+            Panel(
+                f"ground truth 0-{disparity_max:.0f} px (black: unknown)", colorize(ground_truth, 0.0, disparity_max)
+            ),
+            Panel("uncertainty 0-1", colorize(uncertainty, 0.0, 1.0, UNCERTAINTY_COLORMAP)),
+        ]
+    ]
+    rows += [disparity_panels(name, d, sample.disparity, known, disparity_max) for name, d in disparities.items()]
+    rows.append([Panel("sparsification: bad-2 % of the most trusted pixels", sparsification_plot(curves))])
+    return compose_sheet(rows)
+
+
+def sparsification_plot(curves: dict[str, Sparsification]) -> np.ndarray:
+    """uint8 RGB plot of each method's sparsification curve (bad-2 % against % removed)."""
+    series = {
+        f"{name} (AUC/opt {curve.ratio_to_optimal:.2f})": (list(curve.removed_percent), list(curve.bad_percent))
+        for name, curve in curves.items()
+    }
+    return line_plot(series, "% most uncertain pixels removed", "bad-2 % of the rest", size=(720, 360))
