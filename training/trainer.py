@@ -108,21 +108,10 @@ class Trainer:
             self.optimizer, config.schedule_length, config.schedule, config.warmup_fraction, config.decay_steps
         )
         self.history = TrainingHistory.from_dict(source.get("training") if source else None)
-        self.start_step = 0
-        trained = source.get("train_model") if source is not None and resume is not None else None
-        if source is not None:
-            # a resumed run continues the trained weights, which are "train_model" when "model" is their average
-            load_state(self.network, source["model"] if trained is None else trained)
-            if resume is not None:  # source is the checkpoint resumed
-                self.optimizer.load_state_dict(source["optimizer"])
-                self.scheduler.load_state_dict(source["scheduler"])
-                follow_config(self.optimizer, self.scheduler, config)
-                self.start_step = int(source["step"])
-                restore_rng_state(source["rng"])
+        self.start_step = 0 if source is None else self._restore(source, resumed=resume is not None)
         self.average = WeightAverage(self.network, config.ema_decay) if config.ema_decay > 0 else None
-        if self.average is not None and trained is not None:
-            assert source is not None
-            load_state(self.average.network, source["model"])
+        if self.average is not None and resume is not None and source is not None and "train_model" in source:
+            load_state(self.average.network, source["model"])  # "model" is the average the run kept
         if self.start_step >= config.max_steps:
             raise ValueError(f"nothing to do: the run is at step {self.start_step} and max_steps is {config.max_steps}")
 
@@ -152,6 +141,20 @@ class Trainer:
         self.use_bf16 = config.precision == "bf16" or (config.precision == "auto" and device.type == "cuda")
         if device.type == "cuda":
             torch.backends.cudnn.benchmark = True  # the crops have one shape: pick the fastest convolutions once
+
+    def _restore(self, source: WeightsFile, resumed: bool) -> int:
+        """Start from `source`'s weights; a `resumed` checkpoint also restores the optimiser,
+        schedule and random generators. Returns the step to start from."""
+        trained = source.get("train_model") if resumed else None
+        # a resumed run continues the trained weights, which are "train_model" when "model" is their average
+        load_state(self.network, source["model"] if trained is None else trained)
+        if not resumed:
+            return 0
+        self.optimizer.load_state_dict(source["optimizer"])
+        self.scheduler.load_state_dict(source["scheduler"])
+        follow_config(self.optimizer, self.scheduler, self.config)
+        restore_rng_state(source["rng"])
+        return int(source["step"])
 
     def run(self, progress: bool) -> TrainResult:
         """Train from start_step until max_steps or the time budget; log, checkpoint, return."""
