@@ -203,7 +203,13 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def run_stages(
-    plan: Plan, args: argparse.Namespace, out: Path, data: Path | None, scratch: Path, environments: dict, log: Any
+    plan: Plan,
+    args: argparse.Namespace,
+    out: Path,
+    data: Path | None,
+    scratch: Path,
+    environments: dict[str, Any],
+    log: Any,
 ) -> dict[str, StageResult]:
     """Every stage in turn (in environments[stage]), each within its share of the time left; the
     summary after each."""
@@ -464,7 +470,7 @@ def run_stage_here(args: argparse.Namespace, plan: Plan) -> int:
     return 0 if result.status in ("passed", "skipped") else 1
 
 
-def environment_stage(plan: Plan, deadline: float, args: argparse.Namespace, save: Callable) -> StageResult:
+def environment_stage(plan: Plan, deadline: float, args: argparse.Namespace, save: Callable[..., None]) -> StageResult:
     import torch
 
     data: dict[str, Any] = {
@@ -493,7 +499,7 @@ def environment_stage(plan: Plan, deadline: float, args: argparse.Namespace, sav
     return StageResult("passed", f"{data['device']}, torch {torch.__version__}", data=data)
 
 
-def samples_for(data_dir: Path | None, count: int, height: int, width: int, device: Any) -> tuple[list, str]:
+def samples_for(data_dir: Path | None, count: int, height: int, width: int, device: Any) -> tuple[list[Any], str]:
     """`count` pairs with ground truth (StereoSample, host arrays): the dev pairs, or procedural
     scenes of height x width rendered on `device`. Returns them and what they are."""
     import numpy as np
@@ -519,7 +525,7 @@ def samples_for(data_dir: Path | None, count: int, height: int, width: int, devi
     return samples, f"procedural scenes {height}x{width}"
 
 
-def bench_stage(plan: Plan, deadline: float, args: argparse.Namespace, save: Callable) -> StageResult:
+def bench_stage(plan: Plan, deadline: float, args: argparse.Namespace, save: Callable[..., None]) -> StageResult:
     import torch
 
     from model import load_model
@@ -561,7 +567,7 @@ def bench_stage(plan: Plan, deadline: float, args: argparse.Namespace, save: Cal
     return StageResult("passed" if complete and measured else "failed", detail, data=data)
 
 
-def bench_row(plan: Plan, eager: Any, graphed: Any, graphs: bool, precision: str, samples: list) -> dict[str, Any]:
+def bench_row(plan: Plan, eager: Any, graphed: Any, graphs: bool, precision: str, samples: list[Any]) -> dict[str, Any]:
     """One row's numbers (see time_predict_batch), or why there are none. A graphed row's graphs
     are dropped after it, so that each row's peak memory is its own."""
     if not graphs:
@@ -573,7 +579,9 @@ def bench_row(plan: Plan, eager: Any, graphed: Any, graphs: bool, precision: str
     return numbers
 
 
-def time_predict_batch(predictor: Any, precision: str, lefts: list, rights: list, plan: Plan) -> dict[str, Any]:
+def time_predict_batch(
+    predictor: Any, precision: str, lefts: list[Any], rights: list[Any], plan: Plan
+) -> dict[str, Any]:
     """Median wall time of up to plan.timed_runs calls of predict_batch(lefts, rights) at
     `precision` (after plan.warmup_calls; at least MIN_TIMED_CALLS, then while under
     ROW_SECONDS), peak device memory, and how many of the timed calls replayed a CUDA graph."""
@@ -640,7 +648,7 @@ def accuracy(plan: Plan, name: str, eager: Any, graphed: Any, data_dir: Path | N
     )
 
 
-def service_stage(plan: Plan, deadline: float, args: argparse.Namespace, save: Callable) -> StageResult:
+def service_stage(plan: Plan, deadline: float, args: argparse.Namespace, save: Callable[..., None]) -> StageResult:
     missing = [package for module, package in SERVICE_PACKAGES.items() if importlib.util.find_spec(module) is None]
     if missing:
         return StageResult("skipped", f"skipped: {', '.join(missing)} not installed (carry wheels: --wheels)")
@@ -724,7 +732,7 @@ def exchange(client: Any, plan: Plan, sample: Any) -> dict[str, Any]:
     )
 
 
-def train_stage(plan: Plan, deadline: float, args: argparse.Namespace, save: Callable) -> StageResult:
+def train_stage(plan: Plan, deadline: float, args: argparse.Namespace, save: Callable[..., None]) -> StageResult:
     import torch
 
     from model.weights import WEIGHTS_DIR, read_weights

@@ -24,6 +24,7 @@ import sys
 import time
 import warnings
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -55,7 +56,7 @@ def peak_rss_mib() -> float:
 
 def measure(
     name: str, height: int, width: int, backend: Backend, precision: Precision, runs: int, profile: bool
-) -> dict:
+) -> dict[str, Any]:
     """One model at one size on one backend and precision, in this process."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # random weights time the same as trained ones

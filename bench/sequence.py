@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a checkout without installing
-from model import InferenceOptions, load_model  # noqa: E402
+from model import InferenceOptions, StereoPredictor, load_model  # noqa: E402
 from stereo_data.synthetic import SceneConfig, SceneGenerator, SyntheticBatch  # noqa: E402
 
 
@@ -41,7 +41,9 @@ def as_image(view: torch.Tensor) -> np.ndarray:
     return view[0].permute(1, 2, 0).round().clamp(0, 255).to(torch.uint8).numpy()
 
 
-def run_mode(predictor, batches: list[SyntheticBatch], warm_iters: int | None, pan: tuple[float, float]) -> dict:
+def run_mode(
+    predictor: StereoPredictor, batches: list[SyntheticBatch], warm_iters: int | None, pan: tuple[float, float]
+) -> dict[str, float]:
     """One pass over the sequence: warm_iters None means cold every frame."""
     stream = predictor.stream(InferenceOptions(), warm_iters)
     times, epes, bad2s, maps = [], [], [], []

@@ -28,6 +28,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import cv2
 import httpx
@@ -79,7 +80,9 @@ def server_settings(backend: str, max_batch_size: int, threads: int) -> dict[str
     }
 
 
-def run_cell(base_url: str, files: dict, concurrency: int, requests: int) -> tuple[float, list[float], list[int]]:
+def run_cell(
+    base_url: str, files: dict[str, Any], concurrency: int, requests: int
+) -> tuple[float, list[float], list[int]]:
     """Send `requests` requests from `concurrency` threads; wall seconds, latencies, batch sizes."""
     limits = httpx.Limits(max_connections=concurrency)
     with httpx.Client(base_url=base_url, timeout=600, limits=limits) as client:
@@ -97,7 +100,7 @@ def run_cell(base_url: str, files: dict, concurrency: int, requests: int) -> tup
     return seconds, [latency for latency, _ in results], [batch for _, batch in results]
 
 
-def wait_compiled(base_url: str, files: dict, timeout_s: float = 600.0) -> None:
+def wait_compiled(base_url: str, files: dict[str, Any], timeout_s: float = 600.0) -> None:
     """One request (which starts the export where the graph is not cached), then poll
     `GET /models/lite` until its default iterations run on the backend."""
     run_cell(base_url, files, 1, 1)

@@ -8,7 +8,7 @@ from pathlib import Path
 from training.calibrate import CALIBRATION_SCENES, calibrate_weights_file
 
 
-def add_parser(commands: argparse._SubParsersAction) -> None:
+def add_parser(commands: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     parser = commands.add_parser(
         "calibrate",
         help="fit P(error > 2 px) from the uncertainty on procedural scenes; store it in the weights",

@@ -22,7 +22,7 @@ def option_name(field_name: str) -> str:
     return "--" + _SINGULAR.get(field_name, field_name).replace("_", "-")
 
 
-def add_dataclass_options(parser: argparse.ArgumentParser, cls: type) -> None:
+def add_dataclass_options(parser: argparse.ArgumentParser | argparse._ArgumentGroup, cls: type) -> None:
     """Add one option per field of dataclass `cls`, typed from its annotation, helped from its
     metadata["help"], defaulting to "not given" (the dataclass default is shown in the help)."""
     hints = typing.get_type_hints(cls)

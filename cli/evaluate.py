@@ -12,7 +12,7 @@ from stereo_data.readers import LAYOUTS, open_dataset
 from .options import add_model_options, inference_options, load_predictor
 
 
-def add_parser(commands: argparse._SubParsersAction) -> None:
+def add_parser(commands: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     parser = commands.add_parser(
         "eval",
         help="EPE, bad-1/2/3, D1-all and time per pair and mean, on a dataset with ground truth",

@@ -11,7 +11,7 @@ from model.weights import read_weights
 from training.export import export_weights
 
 
-def add_parser(commands: argparse._SubParsersAction) -> None:
+def add_parser(commands: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     parser = commands.add_parser(
         "export",
         help="write a weights file (or an ONNX model) from a training checkpoint or weights file",

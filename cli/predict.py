@@ -44,7 +44,7 @@ class PairPaths:
     stem: Path
 
 
-def add_parser(commands: argparse._SubParsersAction) -> None:
+def add_parser(commands: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     parser = commands.add_parser(
         "predict",
         help="disparity of one rectified pair (or a raw one with --calibration), or of folders / globs of pairs",

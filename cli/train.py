@@ -14,7 +14,7 @@ from training.trainer import train
 from .dataclass_args import add_dataclass_options, given_options
 
 
-def add_parser(commands: argparse._SubParsersAction) -> None:
+def add_parser(commands: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     parser = commands.add_parser(
         "train",
         help="train a network (procedural scenes and/or datasets; torchrun for several GPUs)",

@@ -72,7 +72,7 @@ def capture_cuda_graph(run: Callable[[], Maps], device: torch.device) -> tuple[C
     (the pattern of the PyTorch CUDA-graph notes). Returns the graph's replay and its output
     tensors; the outputs hold garbage until the first replay."""
     with torch.cuda.device(device):
-        side = torch.cuda.Stream()
+        side = torch.cuda.Stream()  # type: ignore[no-untyped-call]  # torch leaves it unannotated
         side.wait_stream(torch.cuda.current_stream())
         with torch.cuda.stream(side):
             for _ in range(WARMUP_RUNS):

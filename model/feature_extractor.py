@@ -54,7 +54,8 @@ class FeatureExtractor(nn.Module):
                     nn.init.zeros_(m.bias)
 
     def forward(self, image: Tensor) -> Tensor:
-        return self.head(self.stages(self.stem(image)))
+        features: Tensor = self.head(self.stages(self.stem(image)))
+        return features
 
 
 def feature_pyramid(features: Tensor) -> list[Tensor]:

@@ -9,7 +9,8 @@ from pathlib import Path
 import torch
 from torch import Tensor, nn
 
-from .inference import Iterations, StereoPredictor
+from .inference import StereoPredictor
+from .options import Iterations
 
 
 class ExportedGraph(nn.Module):

@@ -158,4 +158,5 @@ class UpdateBlock(nn.Module):
 
     def upsample_mask(self, hidden: Tensor) -> Tensor:
         """Convex-upsampling logits (B, 9*16, h, w), scaled by 0.25 as in RAFT."""
-        return 0.25 * self.mask_head(hidden)
+        logits: Tensor = self.mask_head(hidden)
+        return 0.25 * logits

@@ -14,7 +14,8 @@ from service.settings import Settings
 
 
 def get_runtime(request: Request) -> ServiceRuntime:
-    return request.app.state.runtime
+    runtime: ServiceRuntime = request.app.state.runtime
+    return runtime
 
 
 def get_settings(runtime: Annotated[ServiceRuntime, Depends(get_runtime)]) -> Settings:

@@ -120,12 +120,14 @@ def _load(files: SampleFiles, layout: _Layout) -> StereoSample:
 
 def _read_nonoccluded_mask(path: Path) -> np.ndarray:
     """Middlebury / ETH3D ``mask0nocc.png``: 255 = non-occluded (128 = occluded, 0 = unknown)."""
-    return read_image(path, gray_to_rgb=False) == 255
+    mask: np.ndarray = read_image(path, gray_to_rgb=False) == 255
+    return mask
 
 
 def _read_kitti_nonoccluded(path: Path) -> np.ndarray:
     """KITTI ``disp_noc``: the pixels with ground truth there are the non-occluded ones."""
-    return np.isfinite(read_kitti_disparity(path))
+    known: np.ndarray = np.isfinite(read_kitti_disparity(path))
+    return known
 
 
 def _optional(path: Path) -> Path | None:

@@ -834,7 +834,7 @@ def _power_law_noise(shape: tuple[int, int], size: int, draw: _Draw) -> torch.Te
     fields = torch.fft.irfft2(spectrum, s=(size, size))  # (B, K, 4, T, T)
     fields = fields / fields.std(dim=(3, 4), keepdim=True).clamp_min(1e-12)
     saturation = draw.uniform((*shape, 1, 1, 1), 0.0, 0.7)
-    rgb = fields[:, :, :1] + saturation * fields[:, :, 1:]
+    rgb: torch.Tensor = fields[:, :, :1] + saturation * fields[:, :, 1:]
     return rgb.permute(0, 1, 3, 4, 2)
 
 

@@ -138,7 +138,7 @@ def augment_real_pair(
     )
 
 
-class HostPartsByStep(Dataset):
+class HostPartsByStep(Dataset["TrainingBatch | None"]):
     """Map-style dataset whose item `step` is the part of that step's batch made on the host (a
     CPU TrainingBatch, or None when there is none): the procedural scenes when `generator` is
     given (a CPU generator), then the real pairs. A DataLoader with workers thus prepares the next

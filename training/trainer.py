@@ -226,7 +226,7 @@ class Trainer:
                 left_features, right_features, batch.disparity, batch.valid, config.scene_max_disparity
             )
         self.optimizer.zero_grad(set_to_none=True)
-        loss.backward()
+        loss.backward()  # type: ignore[no-untyped-call]  # torch leaves it unannotated
         if config.grad_clip > 0:
             torch.nn.utils.clip_grad_norm_(self.network.parameters(), config.grad_clip)
         self.optimizer.step()

@@ -125,7 +125,7 @@ async def _image(websocket: WebSocket, timeout_s: float, side: str) -> bytes:
         message = await websocket.receive()
     if message["type"] == "websocket.disconnect":
         raise WebSocketDisconnect(message.get("code", 1000))
-    data = message.get("bytes")
+    data: bytes | None = message.get("bytes")
     if data is None:
         raise _Closing(UNSUPPORTED_DATA, "invalid_message", f"expected the {side} image as a binary message, got text")
     return data
