@@ -22,6 +22,7 @@ generators differ, so a seed gives different scenes on different device types.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from functools import reduce
 
@@ -68,6 +69,13 @@ class SceneConfig:
     The plane's slope and span are shrunk so that the surface still keeps |grad d| <= max_slope and
     its disparity range within the shape.
 
+    Lighting: with ``lighting_probability`` a scene is lit by a directional light: each surface
+    point's colour is scaled by ambient + (1 - ambient) * max(0, n . L), its normal n following its
+    disparity gradient (so curved surfaces shade smoothly, slanted ones by their slant), the same in
+    both views. With ``specular_probability`` surfaces of lit scenes also get a Blinn-Phong highlight
+    towards each camera: the right camera sits to the right, so a highlight lies elsewhere on the
+    surface in each view (real glossy surfaces break matching so). The ground truth is unchanged.
+
     Road scenes: with ``road_probability`` a scene is laid out as driving scenes are: a ground plane
     receding to a horizon (a strong vertical disparity gradient), a far and weakly textured sky
     above it, and the foreground surfaces standing on the ground (each at least as near as the
@@ -103,6 +111,8 @@ class SceneConfig:
     shading: float = 60.0  # at most this many grey levels of linear ramp across a surface
     log2_scale: tuple[float, float] = (-0.2, 0.4)
     curve_probability: float = 0.0  # foreground surfaces that are curved (quadric disparity); the others planar
+    lighting_probability: float = 0.0  # scenes lit by a directional light (shading by surface orientation)
+    specular_probability: float = 0.0  # surfaces of lit scenes with highlights, which differ between the views
     road_probability: float = 0.0  # scenes laid out as a road under a sky (see `_Road`); the others as before
     supersample: int = 1  # anti-aliasing: images are the mean of supersample x supersample samples per pixel
     photometric: PhotometricConfig | None = field(default_factory=PhotometricConfig)
@@ -122,7 +132,7 @@ class SceneConfig:
             raise ValueError("ranges must be (low, high)")
         if self.texture_count < 1:
             raise ValueError("need at least one texture")
-        for name in ("road_probability", "curve_probability"):
+        for name in ("road_probability", "curve_probability", "lighting_probability", "specular_probability"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)}")
         if self.supersample < 1:
@@ -166,6 +176,13 @@ class Scene:
     base: (B, S, 3) float, mean RGB colour, grey levels.
     contrast: (B, S) float, grey levels per unit of (standardised) texture.
     ramp: (B, S, 3) float, (gx, gy, g0): gx*x + gy*y + g0 grey levels are added (shading).
+    specular: (B, S) float grey levels of a full highlight (0: matte); shininess: (B, S) its
+        Blinn-Phong exponent.
+    light: (B, 3) float, unit vector from the surfaces towards the light (camera frame: x right,
+        y down, z forward); ambient: (B,) in (0, 1], the unlit share (1: no lighting); relief: (B,)
+        the normal's tilt per unit of disparity gradient, n = normalize(-relief * grad d, -1);
+        camera: (B, 3) (f, cx, cy) px, the pinhole that gives each pixel its direction to the
+        camera: a point seen at x in a view sees that camera along (-(x - cx) / f, -(y - cy) / f, -1).
     textures: (B, K, T, T, 3) float, the texture bank: periodic, zero mean, unit std per texture.
     """
 
@@ -186,6 +203,12 @@ class Scene:
     base: torch.Tensor
     contrast: torch.Tensor
     ramp: torch.Tensor
+    specular: torch.Tensor
+    shininess: torch.Tensor
+    light: torch.Tensor
+    ambient: torch.Tensor
+    relief: torch.Tensor
+    camera: torch.Tensor
     textures: torch.Tensor
 
     def translated(self, dx: float, dy: float) -> Scene:
@@ -209,9 +232,13 @@ class Scene:
         )
 
     def surfaces(self, part: slice) -> Scene:
-        """The same scenes with only the surfaces ``part`` (sharing the texture bank)."""
+        """The same scenes with only the surfaces ``part`` (sharing the per-scene values)."""
         fields = vars(self).items()
-        return Scene(**{name: v if name == "textures" else v[:, part] for name, v in fields})
+        return Scene(**{name: v if name in _PER_SCENE else v[:, part] for name, v in fields})
+
+
+_PER_SCENE = frozenset({"textures", "light", "ambient", "relief", "camera"})
+"""`Scene` fields of the whole scene, not of each surface."""
 
 
 @dataclass
@@ -288,7 +315,7 @@ class SceneGenerator:
         x, y = self._x, self._y
         left_disparity, left_surface, _ = _nearest_surface(scene, x, y, "left")
         if self.config.supersample == 1:  # the point samples are the pixel centres: shade what was found
-            left = _shade(scene, left_surface, x.expand_as(left_disparity), y)
+            left = _shade(scene, left_surface, x.expand_as(left_disparity), y, "left")
         else:
             left = self._view(scene, "left")
         right = self._view(scene, "right")
@@ -311,7 +338,7 @@ class SceneGenerator:
         x = (self._x[..., None] + offsets).flatten(-2)  # (1, 1, 1, W * k), sample columns
         y = (self._y[..., None, :] + offsets[:, None]).flatten(-3, -2)  # (1, 1, H * k, 1), sample rows
         _, surface, x_left = _nearest_surface(scene, x, y, view)
-        color = _shade(scene, surface, x_left.expand_as(surface), y)
+        color = _shade(scene, surface, x_left.expand_as(surface), y, view)
         return F.avg_pool2d(color, k) if k > 1 else color
 
     def _sample_scene(self, batch_size: int, draw: _Draw) -> Scene:
@@ -444,6 +471,9 @@ class SceneGenerator:
             fade_disparity[:, 1] = road.fade_disparity
             contrast[:, 0] = torch.where(road.present, road.sky_contrast, contrast[:, 0])
 
+        lighting = (
+            _Lighting.draw(shape, cfg, draw) if cfg.lighting_probability > 0 else _Lighting.none(shape, cfg, draw)
+        )
         return Scene(
             plane=plane,
             curvature=curvature,
@@ -462,8 +492,52 @@ class SceneGenerator:
             base=base,
             contrast=contrast,
             ramp=ramp,
+            specular=lighting.specular,
+            shininess=lighting.shininess,
+            light=lighting.light,
+            ambient=lighting.ambient,
+            relief=lighting.relief,
+            camera=lighting.camera,
             textures=_texture_bank(batch_size, cfg, draw, self._photos),
         )
+
+
+@dataclass
+class _Lighting:
+    """A scene's light and its surfaces' gloss (see `SceneConfig` and `Scene`)."""
+
+    light: torch.Tensor
+    ambient: torch.Tensor
+    relief: torch.Tensor
+    camera: torch.Tensor
+    specular: torch.Tensor
+    shininess: torch.Tensor
+
+    @staticmethod
+    def none(shape: tuple[int, int], cfg: SceneConfig, draw: _Draw) -> _Lighting:
+        """No light: every surface shows its own colour (ambient 1), no highlights."""
+        batch = shape[0]
+        light = torch.zeros(batch, 3, device=draw.device)
+        light[:, 2] = -1.0
+        ones, zeros = torch.ones(batch, device=draw.device), torch.zeros(shape, device=draw.device)
+        camera = torch.tensor([cfg.width, (cfg.width - 1) / 2, (cfg.height - 1) / 2], device=draw.device)
+        return _Lighting(light, ones, ones, camera.expand(batch, 3), zeros, zeros + 1)
+
+    @staticmethod
+    def draw(shape: tuple[int, int], cfg: SceneConfig, draw: _Draw) -> _Lighting:
+        batch = shape[0]
+        lit = draw.chance((batch,), cfg.lighting_probability)
+        sideways = draw.uniform((batch, 2), -1.5, 1.5)  # the light comes from the camera's side
+        light = torch.cat([sideways, -torch.ones(batch, 1, device=draw.device)], dim=1)
+        light = light / light.norm(dim=1, keepdim=True)
+        ambient = torch.where(lit, draw.uniform((batch,), 0.25, 0.8), 1.0)
+        relief = draw.log_uniform((batch,), 0.5, 4.0)
+        focal = cfg.width * draw.log_uniform((batch,), 0.7, 2.0)
+        centre = torch.tensor([(cfg.width - 1) / 2, (cfg.height - 1) / 2], device=draw.device).expand(batch, 2)
+        glossy = draw.chance(shape, cfg.specular_probability) & lit[:, None]
+        specular = torch.where(glossy, draw.uniform(shape, 40.0, 200.0), 0.0)
+        shininess = draw.log_uniform(shape, 20.0, 200.0)
+        return _Lighting(light, ambient, relief, torch.cat([focal[:, None], centre], 1), specular, shininess)
 
 
 @dataclass
@@ -625,6 +699,15 @@ def _surface_disparity(
     return disparity + (kxx * u + kxy * v) * u + kyy * v * v
 
 
+def _surface_gradient(
+    plane: torch.Tensor, curvature: torch.Tensor, apex: torch.Tensor, x: torch.Tensor, y: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """(d_x, d_y): the gradient of `_surface_disparity` (px per px) at the same points."""
+    kxx, kxy, kyy = curvature.unbind(-1)
+    u, v = x - apex[..., 0], y - apex[..., 1]
+    return plane[..., 0] + 2 * kxx * u + kxy * v, plane[..., 1] + kxy * u + 2 * kyy * v
+
+
 def _seen_from_right(scene: Scene, x_right: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
     """(B, S, H, W): for each surface, the left-view x of its point seen at right-view x_right,
     i.e. x_l solving x_l - d(x_l, y) = x_right. x_right broadcastable to (B, 1, H, W) px.
@@ -714,8 +797,9 @@ def _polygon_edges(scene: Scene) -> torch.Tensor:
     return torch.cat([normal, offset], dim=-1)
 
 
-def _shade(scene: Scene, surface: torch.Tensor, x_left: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-    """Colour of the given surfaces at left-view points.
+def _shade(scene: Scene, surface: torch.Tensor, x_left: torch.Tensor, y: torch.Tensor, view: str) -> torch.Tensor:
+    """Colour of the given surfaces at left-view points, as the ``view`` camera ("left" or
+    "right") sees them (they differ only in highlights).
 
     surface: (B, 1, H, W) int64 surface index; x_left: (B, 1, H, W) px; y: (1, 1, H, 1) px.
     Returns (B, 3, H, W) float32 RGB in [0, 255].
@@ -743,8 +827,41 @@ def _shade(scene: Scene, surface: torch.Tensor, x_left: torch.Tensor, y: torch.T
     slot = batch_index.flatten() * scene.textures.shape[1] + at_pixels(scene.texture)
     texture = _sample_wrapped(scene.textures.flatten(0, 1), slot, texel_u, texel_v)  # (N, 3)
     shading = (at_pixels(scene.ramp) * point).sum(-1, keepdim=True)
-    color = at_pixels(scene.base) + contrast[:, None] * texture + shading
+    color = at_pixels(scene.base) + contrast[:, None] * texture
+    if (scene.ambient < 1).any() or scene.specular.any():
+        color = _lit(scene, at_pixels, batch_index.flatten(), x, y, color, view)
+    color = color + shading
     return color.clamp(0, 255).view(batch, *surface.shape[2:], 3).permute(0, 3, 1, 2).contiguous()
+
+
+def _lit(
+    scene: Scene,
+    at_pixels: Callable[[torch.Tensor], torch.Tensor],
+    scene_index: torch.Tensor,
+    x: torch.Tensor,
+    y: torch.Tensor,
+    color: torch.Tensor,
+    view: str,
+) -> torch.Tensor:
+    """`color` (N, 3) of surface points at left-view (x, y) (N,) px under the scene's light, seen
+    from the ``view`` camera: Lambertian shading by the point's normal plus its highlight."""
+    plane, curvature, apex = (at_pixels(value) for value in (scene.plane, scene.curvature, scene.apex))
+    gradient_x, gradient_y = _surface_gradient(plane, curvature, apex, x, y)
+    relief = scene.relief[scene_index]
+    normal = torch.stack([-relief * gradient_x, -relief * gradient_y, -torch.ones_like(x)], dim=-1)
+    normal = normal / normal.norm(dim=-1, keepdim=True)
+    light = scene.light[scene_index]
+    ambient = scene.ambient[scene_index, None]
+    diffuse = (normal * light).sum(-1, keepdim=True).clamp_min(0)
+    focal, centre_x, centre_y = scene.camera[scene_index].unbind(-1)
+    x_view = x - _surface_disparity(plane, curvature, apex, x, y) if view == "right" else x
+    to_camera = torch.stack([(centre_x - x_view) / focal, (centre_y - y) / focal, -torch.ones_like(x)], dim=-1)
+    half = light + to_camera / to_camera.norm(dim=-1, keepdim=True)
+    half = half / half.norm(dim=-1, keepdim=True)
+    gloss: torch.Tensor = (normal * half).sum(-1).clamp_min(0) ** at_pixels(scene.shininess)
+    highlight = (at_pixels(scene.specular) * gloss)[:, None]
+    lit: torch.Tensor = color * (ambient + (1 - ambient) * diffuse) + highlight
+    return lit
 
 
 def _sample_wrapped(textures: torch.Tensor, slot: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:

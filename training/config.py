@@ -86,6 +86,13 @@ class TrainConfig:
         "procedural scenes: fraction of foreground surfaces that are curved (domes, bowls, saddles, cylinders) "
         "instead of planar",
     )
+    lighting_probability: float = _knob(
+        0.0, "procedural scenes: fraction lit by a directional light (shading by the surfaces' orientation)"
+    )
+    specular_probability: float = _knob(
+        0.0,
+        "procedural scenes: fraction of the surfaces of lit scenes with highlights, which differ between the views",
+    )
     road_probability: float = _knob(
         0.0,
         "procedural scenes: fraction laid out as a road scene (a ground plane receding to a horizon under a far, "
@@ -169,6 +176,8 @@ class TrainConfig:
             supersample=self.supersample,
             road_probability=self.road_probability,
             curve_probability=self.curve_probability,
+            lighting_probability=self.lighting_probability,
+            specular_probability=self.specular_probability,
         )
 
     @property

@@ -62,6 +62,8 @@ def test_default_max_disparity_is_192_at_512_px_and_scales_with_width() -> None:
         {"texel_size": (0.6, 2.0)},  # under a pixel: needs supersample 2
         {"road_probability": 1.5},
         {"curve_probability": -0.1},
+        {"lighting_probability": 2.0},
+        {"specular_probability": -1.0},
     ],
 )
 def test_config_rejects_settings_the_generator_cannot_honour(bad: dict) -> None:
@@ -123,7 +125,15 @@ def test_different_seeds_give_different_scenes() -> None:
     assert (first.left - second.left).abs().mean() > 10
 
 
-@pytest.mark.parametrize("layout", [{}, {"road_probability": 1.0}, {"curve_probability": 1.0}])
+@pytest.mark.parametrize(
+    "layout",
+    [
+        {},
+        {"road_probability": 1.0},
+        {"curve_probability": 1.0},
+        {"lighting_probability": 1.0, "curve_probability": 0.5},
+    ],
+)
 def test_right_view_warped_by_ground_truth_reproduces_left_where_not_occluded(layout: dict) -> None:
     config = replace(CLEAN, height=96, width=192, **layout)
     batch = SceneGenerator(config).generate(batch_size=4, seed=3)
@@ -331,6 +341,12 @@ def one_square_scene() -> Scene:
         base=pair([50] * 3, [200] * 3),
         contrast=torch.zeros(1, 2),
         ramp=torch.zeros(1, 2, 3),
+        specular=torch.zeros(1, 2),
+        shininess=torch.ones(1, 2),
+        light=torch.tensor([[0.0, 0.0, -1.0]]),
+        ambient=torch.ones(1),
+        relief=torch.ones(1),
+        camera=torch.tensor([[200.0, 99.5, 39.5]]),
         textures=torch.zeros(1, 1, 4, 4, 3),
     )
 
@@ -393,3 +409,42 @@ def test_a_panned_scene_is_the_same_scene_shifted_in_both_views_with_its_dispari
         moved, still = getattr(after, name)[..., :-3, :-8], getattr(before, name)[..., 3:, 8:]
         close = ((moved - still).abs() < 0.05).float().mean()
         assert close > 0.995, name  # equal up to float rounding (a rare texel or edge sample flips)
+
+
+LIT = replace(CLEAN, height=96, width=192, lighting_probability=1.0, curve_probability=0.5)
+
+
+def test_light_shades_surfaces_by_their_orientation_and_leaves_the_geometry_alone() -> None:
+    generator = SceneGenerator(LIT)
+    scene = generator.sample_scene(batch_size=2, seed=12)
+    lit = generator.render(scene)
+    unlit = generator.render(replace(scene, ambient=torch.ones_like(scene.ambient)))
+    assert torch.equal(lit.disparity, unlit.disparity) and torch.equal(lit.occluded, unlit.occluded)
+    ratio = (lit.left / unlit.left.clamp_min(1.0))[unlit.left > 20]
+    assert ratio.max() <= 1.0 + 1e-4 and ratio.min() >= scene.ambient.min() - 1e-3  # a share of the light
+    # A slanted plane turned towards the light is brighter than the same plane facing the camera.
+    flat = replace(
+        scene, plane=scene.plane * torch.tensor([0.0, 0.0, 1.0]), curvature=torch.zeros_like(scene.curvature)
+    )
+    turned = scene.light[:, :2] / scene.light[:, :2].norm(dim=1, keepdim=True)  # (B, 2)
+    towards = replace(
+        flat,
+        plane=flat.plane + torch.cat([-0.3 * turned, torch.zeros(2, 1)], 1)[:, None] * torch.tensor([1.0, 1.0, 0.0]),
+    )
+    assert generator.render(towards).left.mean() > generator.render(flat).left.mean()
+
+
+def test_highlights_differ_between_the_views_while_matte_surfaces_match() -> None:
+    glossy_config = replace(LIT, specular_probability=1.0)
+    generator = SceneGenerator(glossy_config)
+    scene = generator.sample_scene(batch_size=3, seed=13)
+    scene = replace(scene, light=torch.tensor([[0.0, 0.0, -1.0]]).expand(3, 3))  # head-on: highlights in view
+    glossy = generator.render(scene)
+    matte = generator.render(replace(scene, specular=torch.zeros_like(scene.specular)))
+    visible = (~glossy.occluded).expand_as(glossy.left)
+
+    def mismatch(batch) -> float:
+        return float((warp_right_to_left(batch.right, batch.disparity) - batch.left).abs()[visible].mean())
+
+    assert mismatch(glossy) > 3 * mismatch(matte)  # the views disagree where a highlight is
+    assert (glossy.left - matte.left).abs().amax() > 100  # and highlights are bright
