@@ -1,7 +1,10 @@
 """Dynamic batching: requests queue per model and run, one batch at a time, on one worker thread.
 
-A batch holds requests of one model, one set of inference options and one input shape
-(`service.scheduling.batch_key`). Whenever the worker is free, `service.scheduling.choose_batch`
+The batcher knows nothing of what it computes: a request is a key (`service.scheduling.BatchKey`:
+requests with equal keys may share a batch) and a payload; an adapter says what a request costs
+(`work`) and computes a batch of payloads on the worker thread (`compute`). The stereo adapter is
+`service.stereo_batches.StereoBatches` (a batch holds pairs of one model, one set of inference
+options and one input shape). Whenever the worker is free, `service.scheduling.choose_batch`
 picks the next batch from the queued requests and those still being received or decoded. Before
 a batch runs, requests whose client has gone, whose deadline has passed or cannot be met
 (estimated from the measured compute time per unit of work, `service.scheduling.ComputeTimes`) are
@@ -17,66 +20,17 @@ import math
 import time
 import uuid
 from collections import deque
-from collections.abc import AsyncIterator, Awaitable, Callable, Mapping, Sequence
+from collections.abc import AsyncIterator, Awaitable, Callable, Sequence
 from concurrent.futures import Executor
 from contextlib import asynccontextmanager
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Generic, Protocol, TypeVar
 
-import numpy as np
-
-from model import InferenceOptions, Iterations, ModelConfig, Prediction, StageCounts
-from model.calibration import UncertaintyCalibration
-from model.inference import Backend, Precision
 from service.metrics import Metrics
-from service.scheduling import (
-    BatchKey,
-    BatchLimits,
-    ComputeTime,
-    ComputeTimes,
-    batch_key,
-    choose_batch,
-    relative_cost,
-)
+from service.scheduling import BatchKey, BatchLimits, ComputeTime, ComputeTimes, choose_batch
 from service.settings import Settings
 
 logger = logging.getLogger(__name__)
-
-
-class Predictor(Protocol):
-    """What the service needs from `model.load_model(...)` (a `model.StereoPredictor`)."""
-
-    name: str
-    weights_sha256: str | None
-    calibration: UncertaintyCalibration | None
-    training: dict[str, Any] | None
-    backend: Backend
-    precision: Precision
-
-    @property
-    def num_parameters(self) -> int: ...
-
-    @property
-    def trained(self) -> bool: ...
-
-    @property
-    def config(self) -> ModelConfig: ...
-
-    def iterations(self, iters: Iterations) -> StageCounts: ...
-
-    def ready(self, iters: Iterations = None, *, warm_start: bool = False) -> bool: ...
-
-    def predict_batch(
-        self,
-        lefts: Sequence[np.ndarray],
-        rights: Sequence[np.ndarray],
-        *,
-        iters: Iterations = None,
-        two_pass: bool = False,
-        scale: float = 1.0,
-        raw_uncertainty: bool = False,
-        init_disparities: Sequence[np.ndarray] | None = None,
-    ) -> list[Prediction]: ...
 
 
 class BatchingError(Exception):
@@ -107,53 +61,74 @@ class InferenceFailed(BatchingError):
         self.error_id = error_id
 
 
+KeyT = TypeVar("KeyT", bound=BatchKey)
+PayloadT = TypeVar("PayloadT")
+OutputT = TypeVar("OutputT")
+
+
+KeyIn = TypeVar("KeyIn", bound=BatchKey, contravariant=True)
+PayloadIn = TypeVar("PayloadIn", contravariant=True)
+OutputOut = TypeVar("OutputOut", covariant=True)
+
+
+class Adapter(Protocol[KeyIn, PayloadIn, OutputOut]):
+    """What the batcher computes: one queue per model of `models`; `work(key)`, the units of
+    compute of one request of `key` (the compute-time estimates count in them); `compute(key,
+    payloads)`, the outputs of a batch, in order, on the worker thread."""
+
+    @property
+    def models(self) -> list[str]: ...
+
+    def work(self, key: KeyIn) -> float: ...
+
+    def compute(self, key: KeyIn, payloads: Sequence[PayloadIn]) -> Sequence[OutputOut]: ...
+
+
 @dataclass(frozen=True)
-class JobResult:
-    disparity: np.ndarray  # float32 HxW, pixels of the left image
-    uncertainty: np.ndarray  # float32 HxW in [0, 1]
-    batch_size: int
-    queue_seconds: float
-    compute_seconds: float
+class JobResult(Generic[OutputT]):
+    """A computed request: its output and how it was computed."""
+
+    output: OutputT
+    batch_size: int  # requests in its batch
+    queue_seconds: float  # from queueing until its batch started
+    compute_seconds: float  # of the whole batch
 
 
 @dataclass(eq=False)
-class _Job:
-    key: BatchKey
-    left: np.ndarray  # uint8 HxWx3 RGB
-    right: np.ndarray
-    init: np.ndarray | None  # float32 HxW px: a warm start (the previous frame of a stream), or None
+class _Job(Generic[KeyT, PayloadT, OutputT]):
+    key: KeyT
+    payload: PayloadT
     deadline: float | None  # time.monotonic() by which the answer is due
     is_disconnected: Callable[[], Awaitable[bool]]
     request_id: str | None
     enqueued_at: float = field(default_factory=time.monotonic)
     dispatched: bool = False  # its batch has started; its admission no longer counts it
-    future: asyncio.Future[JobResult] = field(default_factory=lambda: asyncio.get_running_loop().create_future())
+    future: asyncio.Future[JobResult[OutputT]] = field(
+        default_factory=lambda: asyncio.get_running_loop().create_future()
+    )
 
 
-class Admission:
+class Admission(Generic[KeyT, PayloadT, OutputT]):
     """A request's place in its model's queue, from before decoding until its batch starts."""
 
-    def __init__(self, batcher: Batcher, model: str) -> None:
+    def __init__(self, batcher: Batcher[KeyT, PayloadT, OutputT], model: str) -> None:
         self._batcher = batcher
         self.model = model
-        self.job: _Job | None = None
+        self.job: _Job[KeyT, PayloadT, OutputT] | None = None
 
     async def run(
         self,
-        left: np.ndarray,
-        right: np.ndarray,
+        key: KeyT,
+        payload: PayloadT,
         *,
-        options: InferenceOptions,
         deadline: float | None,
         is_disconnected: Callable[[], Awaitable[bool]],
         request_id: str | None = None,
-        init: np.ndarray | None = None,
-    ) -> JobResult:
-        """Queue a decoded pair (uint8 HxWx3 RGB), warm-started from `init` (float32 HxW px) when
-        given, and wait for its result."""
-        height, width = left.shape[:2]
-        key = batch_key(self.model, options, height, width, warm_start=init is not None)
-        job = _Job(key, left, right, init, deadline, is_disconnected, request_id)
+    ) -> JobResult[OutputT]:
+        """Queue a request of `key` (of this admission's model) and wait for its result."""
+        if key.model != self.model:
+            raise ValueError(f"a request of model {key.model!r} in an admission for {self.model!r}")
+        job: _Job[KeyT, PayloadT, OutputT] = _Job(key, payload, deadline, is_disconnected, request_id)
         if deadline is not None and deadline <= job.enqueued_at:
             raise DeadlineExceeded("deadline passed before the request was queued")
         self.job = job
@@ -165,19 +140,24 @@ class Admission:
             raise DeadlineExceeded("deadline passed while waiting for the result") from None
 
 
-class Batcher:
+class Batcher(Generic[KeyT, PayloadT, OutputT]):
     """Per-model queues, the batch scheduler and the worker thread that computes batches."""
 
     def __init__(
-        self, settings: Settings, predictors: Mapping[str, Predictor], executor: Executor, metrics: Metrics
+        self,
+        settings: Settings,
+        adapter: Adapter[KeyT, PayloadT, OutputT],
+        executor: Executor,
+        metrics: Metrics,
     ) -> None:
         self._settings = settings
-        self._predictors = predictors
+        self._adapter = adapter
         self._executor = executor
         self._metrics = metrics
-        self._queues: dict[str, deque[_Job]] = {name: deque() for name in predictors}
-        self._pending: dict[str, int] = dict.fromkeys(predictors, 0)
-        self._running: list[_Job] = []
+        models = adapter.models
+        self._queues: dict[str, deque[_Job[KeyT, PayloadT, OutputT]]] = {name: deque() for name in models}
+        self._pending: dict[str, int] = dict.fromkeys(models, 0)
+        self._running: list[_Job[KeyT, PayloadT, OutputT]] = []
         self._running_since = 0.0
         self._limits = BatchLimits(settings.max_batch_size, settings.max_batch_pixels, settings.max_wait_ms / 1000)
         self._times = ComputeTimes()
@@ -185,7 +165,7 @@ class Batcher:
         self._draining = False
         self._abandoned: BatchingError | None = None  # set by `abandon`: the answer to all work from then on
         self._task: asyncio.Task[None] | None = None
-        for name in predictors:
+        for name in models:
             metrics.queue_depth.labels(model=name).set(0)
 
     def start(self) -> None:
@@ -215,7 +195,7 @@ class Batcher:
         self._abandoned = error
         self._fail([*self._running, *self._take_queued()], error)
 
-    def _take_queued(self) -> list[_Job]:
+    def _take_queued(self) -> list[_Job[KeyT, PayloadT, OutputT]]:
         jobs = [job for queue in self._queues.values() for job in queue]
         for queue in self._queues.values():
             queue.clear()
@@ -243,12 +223,9 @@ class Batcher:
             running = max(0.0, times.seconds(batch_work) - (time.monotonic() - self._running_since))
         return running + times.seconds(work)
 
-    def work(self, key: BatchKey) -> float:
-        """Units of compute of one request of `key` (`service.scheduling.relative_cost`)."""
-        predictor = self._predictors[key.model]
-        counts = predictor.iterations(key.options.iters)
-        cost = relative_cost(counts, predictor.config.iters, key.options.scale, key.options.two_pass)
-        return key.pixels * cost
+    def work(self, key: KeyT) -> float:
+        """Units of compute of one request of `key` (the adapter's count)."""
+        return self._adapter.work(key)
 
     def retry_after(self, model: str) -> int:
         """Seconds after which a retry likely finds the model's queue worked off: the work ahead
@@ -258,8 +235,8 @@ class Batcher:
 
     @asynccontextmanager
     async def admit(
-        self, model: str, key: BatchKey | None = None, deadline: float | None = None
-    ) -> AsyncIterator[Admission]:
+        self, model: str, key: KeyT | None = None, deadline: float | None = None
+    ) -> AsyncIterator[Admission[KeyT, PayloadT, OutputT]]:
         """Reserve a queue place for `model` before the request is decoded (raises `QueueFull`,
         `Draining`, or `DeadlineExceeded` when the work ahead plus this request's, of `key`,
         cannot finish by `deadline`); the place is given back when the batch starts or the
@@ -275,7 +252,7 @@ class Batcher:
                 raise DeadlineExceeded(
                     f"deadline cannot be met: about {finish - time.monotonic():.1f} s of compute would be needed"
                 )
-        admission = Admission(self, model)
+        admission: Admission[KeyT, PayloadT, OutputT] = Admission(self, model)
         self._set_pending(model, +1)
         try:
             yield admission
@@ -288,7 +265,7 @@ class Batcher:
                 job.future.cancel()
             self._changed.set()
 
-    def enqueue(self, job: _Job) -> None:
+    def enqueue(self, job: _Job[KeyT, PayloadT, OutputT]) -> None:
         if self._abandoned is not None:
             raise self._abandoned
         self._queues[job.key.model].append(job)
@@ -305,7 +282,7 @@ class Batcher:
             logger.exception("batch scheduler stopped")
             raise
 
-    async def _next_batch(self) -> list[_Job]:
+    async def _next_batch(self) -> list[_Job[KeyT, PayloadT, OutputT]]:
         while True:
             self._changed.clear()
             queued = [job for queue in self._queues.values() for job in queue]
@@ -318,7 +295,7 @@ class Batcher:
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(self._changed.wait(), wait_s)
 
-    async def _drop_unservable(self, batch: list[_Job]) -> bool:
+    async def _drop_unservable(self, batch: list[_Job[KeyT, PayloadT, OutputT]]) -> bool:
         """Drop requests of `batch` whose client left or whose deadline cannot be met; True when
         the batch is no longer intact."""
         changed = False
@@ -336,13 +313,13 @@ class Batcher:
         # Requests can also leave while the disconnect checks above await.
         return changed or any(job.future.done() for job in batch)
 
-    def _drop(self, job: _Job, error: BatchingError) -> None:
+    def _drop(self, job: _Job[KeyT, PayloadT, OutputT], error: BatchingError) -> None:
         queue = self._queues[job.key.model]
         if job in queue:
             queue.remove(job)
         self._fail([job], error)
 
-    async def _execute(self, batch: list[_Job]) -> None:
+    async def _execute(self, batch: list[_Job[KeyT, PayloadT, OutputT]]) -> None:
         key = batch[0].key
         started = time.monotonic()
         for job in batch:
@@ -354,12 +331,9 @@ class Batcher:
         try:
             outputs = await asyncio.get_running_loop().run_in_executor(
                 self._executor,
-                compute_batch,
-                self._predictors[key.model],
+                self._adapter.compute,
                 key,
-                [job.left for job in batch],
-                [job.right for job in batch],
-                [job.init for job in batch if job.init is not None] if key.warm_start else None,
+                [job.payload for job in batch],
             )
         except Exception as exc:  # any failure of the network fails this batch only
             error_id = uuid.uuid4().hex[:12]
@@ -381,30 +355,16 @@ class Batcher:
         self._metrics.compute.labels(model=key.model).observe(compute)
         self._metrics.batch_size.labels(model=key.model).observe(len(batch))
         self._times.record(key.model, self.work(key), len(batch), compute)
-        for job, (disparity, uncertainty) in zip(batch, outputs, strict=True):
+        for job, output in zip(batch, outputs, strict=True):
             if not job.future.done():
-                job.future.set_result(JobResult(disparity, uncertainty, len(batch), started - job.enqueued_at, compute))
+                job.future.set_result(JobResult(output, len(batch), started - job.enqueued_at, compute))
 
     def _set_pending(self, model: str, delta: int) -> None:
         self._pending[model] += delta
         self._metrics.queue_depth.labels(model=model).set(self._pending[model])
 
     @staticmethod
-    def _fail(jobs: Sequence[_Job], error: BatchingError) -> None:
+    def _fail(jobs: Sequence[_Job[KeyT, PayloadT, OutputT]], error: BatchingError) -> None:
         for job in jobs:
             if not job.future.done():
                 job.future.set_exception(error)
-
-
-def compute_batch(
-    predictor: Predictor,
-    key: BatchKey,
-    lefts: Sequence[np.ndarray],
-    rights: Sequence[np.ndarray],
-    inits: Sequence[np.ndarray] | None = None,
-) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Run one batch on the calling (worker) thread: `StereoPredictor.predict_batch`, which pads
-    every pair (and warm start, `inits`) to the batch shape the way the network pads one and
-    returns host arrays."""
-    predictions = predictor.predict_batch(lefts, rights, init_disparities=inits, **key.options.keywords())
-    return [(p.disparity, p.uncertainty) for p in predictions]

@@ -19,6 +19,7 @@ from service.schemas import (
     RectifiedCamera,
     Timings,
 )
+from service.stereo_batches import Maps
 from stereo_data.formats import KITTI_SCALE, UNCERTAINTY_SCALE, encode_png, encode_png16
 from stereo_data.pointcloud import IMAGE_FRAME, METRIC_FRAME, DepthRange, encode_ply, metric_depth, point_cloud
 from stereo_data.rig import Rectifier
@@ -27,7 +28,7 @@ from stereo_data.visualize import preview, scale_range
 
 def render(
     options: DisparityOptions,
-    result: JobResult,
+    result: JobResult[Maps],
     left: np.ndarray,
     weights: str,
     size: ImageHeader,
@@ -43,7 +44,7 @@ def render(
     """
     calibration = options.calibration if rectifier is None else rectifier.depth_calibration
     limits = DepthRange(options.min_disparity, options.max_depth_m)
-    disparity, uncertainty = result.disparity, result.uncertainty
+    disparity, uncertainty = result.output.disparity, result.output.uncertainty
     depth = None if calibration is None else metric_depth(disparity, calibration, limits)
     if rectifier is not None and options.frame is Frame.original:
         disparity, uncertainty = rectifier.to_original(disparity, np.inf), rectifier.to_original(uncertainty, 1.0)
@@ -83,7 +84,7 @@ def render(
             return encode_png16(uncertainty, UNCERTAINTY_SCALE), "image/png"
         case OutputFormat.ply:
             points, colors = point_cloud(
-                result.disparity, left, result.uncertainty, calibration, options.max_uncertainty, limits
+                result.output.disparity, left, result.output.uncertainty, calibration, options.max_uncertainty, limits
             )
             frame = IMAGE_FRAME if calibration is None else METRIC_FRAME
             return encode_ply(points, colors, frame), "application/x-ply"

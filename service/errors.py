@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 import uuid
 from collections.abc import Mapping
+from typing import Any
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
@@ -66,7 +67,7 @@ def client_gone(message: str) -> ApiError:
     return ApiError(499, "client_disconnected", message, reject_reason="disconnect")
 
 
-def batching_answer(exc: BatchingError, batcher: Batcher, model: str) -> ApiError:
+def batching_answer(exc: BatchingError, batcher: Batcher[Any, Any, Any], model: str) -> ApiError:
     """The answer to a request of `model` that `batcher` could not compute."""
     match exc:
         case QueueFull():

@@ -12,7 +12,7 @@ from pathlib import Path
 from types import FrameType
 from typing import Any
 
-from service.batching import Batcher, Draining, Predictor
+from service.batching import Batcher, Draining
 from service.cpu import configure_torch_threads, usable_cpus
 from service.decoding import DecoderLimits, DecoderPool
 from service.errors import ApiError, bad_input, draining
@@ -20,11 +20,16 @@ from service.metrics import Metrics
 from service.rigs import RectifierCache
 from service.schemas import BatchingConfig, HealthResponse, ModelStatus, ServiceState
 from service.settings import Settings
+from service.stereo_batches import Maps, Predictor, StereoBatches, StereoKey, StereoPair
 from service.worker import DaemonWorker
 
 logger = logging.getLogger(__name__)
 
 ModelLoader = Callable[..., Predictor]  # called as loader(name, weights=..., device=..., precision=...)
+
+
+StereoBatcher = Batcher[StereoKey, StereoPair, Maps]
+"""The service's batcher: stereo pairs in, their maps out."""
 
 
 def weights_identity(predictor: Predictor) -> str:
@@ -43,7 +48,7 @@ class ServiceRuntime:
         self.state: ServiceState = "loading"
         self.torch_threads = settings.threads or usable_cpus()
         self.predictors: dict[str, Predictor] = {}
-        self.batcher: Batcher | None = None
+        self.batcher: StereoBatcher | None = None
         self.decoders = DecoderPool(
             DecoderLimits(settings.decode_workers, settings.decode_memory_mb << 20, settings.decode_cpu_s)
         )
@@ -84,7 +89,7 @@ class ServiceRuntime:
             self.batcher.begin_drain()
             self._spawn(self._expire_drain(self.batcher))
 
-    def batcher_for(self, model: str) -> Batcher:
+    def batcher_for(self, model: str) -> StereoBatcher:
         """The batcher that computes `model`'s requests; the error to answer where there is none
         (503 while loading, draining or failed; 422 for a model this server did not load)."""
         if self.state == "failed":
@@ -167,14 +172,14 @@ class ServiceRuntime:
             self.state = "failed"
             return
         assert self._executor is not None
-        self.batcher = Batcher(self.settings, self.predictors, self._executor, self.metrics)
+        self.batcher = Batcher(self.settings, StereoBatches(self.predictors), self._executor, self.metrics)
         self.batcher.start()
         if self.state == "loading":
             self.state = "ready"
         else:  # SIGTERM came while loading
             self.batcher.begin_drain()
 
-    async def _expire_drain(self, batcher: Batcher) -> None:
+    async def _expire_drain(self, batcher: StereoBatcher) -> None:
         await asyncio.sleep(self.settings.drain_timeout_s)
         self.drain_over.set()
         batcher.abandon(Draining("drain timeout reached before this request was computed"))

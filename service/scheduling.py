@@ -1,38 +1,25 @@
-"""The batch scheduler's decisions, apart from its queues and the event loop (`service.batching`):
-which requests may share a batch (`batch_key`), which batch runs next (`choose_batch`), and the
-measured compute times that estimate the work ahead (`ComputeTimes`)."""
+"""The batch scheduler's decisions, apart from its queues and the event loop (`service.batching`),
+for requests of any kind: which batch runs next (`choose_batch`) and the measured compute times
+that estimate the work ahead (`ComputeTimes`). Which requests may share a batch is their key's
+business (`BatchKey`; the stereo one is `service.stereo_batches.StereoKey`)."""
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Hashable, Sequence
 from dataclasses import dataclass
 from typing import Protocol, TypeVar
 
-from model import InferenceOptions, StageCounts, padded_size
 
-
-@dataclass(frozen=True)
-class BatchKey:
-    """Requests with equal keys may share a batch."""
-
-    model: str
-    options: InferenceOptions
-    height: int  # input shape of the batch: padded to a multiple of 32, or exact (see batch_key)
-    width: int
-    warm_start: bool = False  # each request starts from its own previous disparity (a stream's frames)
+class BatchKey(Hashable, Protocol):
+    """What the batcher knows of a request's kind: requests with equal keys may share a batch,
+    `model` names the queue (and the compute-time statistics) they go to, `pixels` the size
+    of one request (the batch pixel limit)."""
 
     @property
-    def pixels(self) -> int:
-        return self.height * self.width
+    def model(self) -> str: ...
 
-
-def batch_key(model: str, options: InferenceOptions, height: int, width: int, warm_start: bool = False) -> BatchKey:
-    """Plain requests batch by padded shape: padding them to it is what the network does anyway.
-    Two-pass and scaled requests batch by exact shape, since their resized passes see the
-    unpadded image. Warm-started requests batch only with warm-started ones (another graph)."""
-    if options.two_pass or options.scale != 1.0:
-        return BatchKey(model, options, height, width, warm_start)
-    return BatchKey(model, options, padded_size(height), padded_size(width), warm_start)
+    @property
+    def pixels(self) -> int: ...
 
 
 @dataclass(frozen=True)
@@ -96,35 +83,10 @@ def choose_batch(
     return [], oldest[0].enqueued_at + limits.max_wait_s - now
 
 
-# The cost model, fitted to lite on a 2-core CPU at 256x384 (measured / modelled time relative to
-# the default 2,4,6: iterations 1,1,1 0.43 / 0.44; 8,8,16 1.88 / 2.13; 2,4,20 2.07 / 2.17;
-# scale 0.5 0.22 / 0.25; two-pass 0.91 / 1.0). Coarse iterations cost more than their pixels
-# suggest: per-operation overheads dominate at small sizes.
-FIXED_COST = 3.5
-"""What a forward costs besides its ARM iterations (feature extraction, upsampling), in ARM
-iterations at 1/4 resolution."""
-STAGE_WEIGHTS = (0.25, 0.5, 1.0)
-"""The cost of one ARM iteration at 1/16, 1/8 and 1/4 resolution, relative to one at 1/4."""
-TWO_PASS_COST = 1.0
-"""Two-pass inference adds a pass at half resolution, and its warm start saves about as much."""
-
-
-def relative_cost(counts: StageCounts, default_counts: StageCounts, scale: float, two_pass: bool) -> float:
-    """Compute of a request relative to a plain one of the same size (the model's own iteration
-    counts `default_counts`, scale 1, one pass): its iterations `counts` (at 1/16, 1/8, 1/4),
-    `scale` (the network sees scale^2 of the pixels) and `two_pass`."""
-
-    def forward(iterations: tuple[int, int, int]) -> float:
-        return FIXED_COST + sum(weight * n for weight, n in zip(STAGE_WEIGHTS, iterations, strict=True))
-
-    cost = forward(counts) / forward(default_counts) * scale**2
-    return cost * TWO_PASS_COST if two_pass else cost
-
-
 @dataclass(frozen=True)
 class ComputeTime:
-    """Running means over the batches of one model. A unit of work is one padded pixel of a plain
-    request; a request with other options counts its `relative_cost` per pixel."""
+    """Running means over the batches of one model, in units of work (what the adapter's `work`
+    counts: for stereo, padded pixels of a plain request, see `service.stereo_batches`)."""
 
     seconds_per_work: float  # compute seconds per unit of work of a batch
     work_per_request: float  # units of work of one request

@@ -18,7 +18,7 @@ from fastapi import APIRouter, Depends, Header, Query, Request, Response
 from starlette.concurrency import run_in_threadpool
 from starlette.requests import ClientDisconnect
 
-from service.batching import ClientDisconnected, DeadlineExceeded, Draining, JobResult, Predictor
+from service.batching import ClientDisconnected, DeadlineExceeded, Draining, JobResult
 from service.dependencies import RuntimeDep, require_api_key
 from service.disparity_docs import RESPONSES, UPLOAD_BODY
 from service.encoding import render
@@ -26,8 +26,8 @@ from service.errors import ApiError, bad_input, client_gone
 from service.images import ImageHeader
 from service.logs import request_id_var
 from service.runtime import ServiceRuntime, weights_identity
-from service.scheduling import batch_key
 from service.schemas import DisparityOptions, DisparityResponse
+from service.stereo_batches import Maps, Predictor, StereoPair, stereo_key
 from service.uploads import ImageLimits, boundary_of
 
 router = APIRouter(tags=["disparity"])
@@ -89,15 +89,14 @@ async def estimate_disparity(
     problem = options.scale_problem(header.height, header.width)
     if problem is not None:
         raise bad_input(422, "scale_too_small", problem)
-    key = batch_key(options.model, inference, header.height, header.width)
+    key = stereo_key(options.model, inference, header.height, header.width)
     async with batcher.admit(options.model, key, deadline=deadline) as admission:
         left, right = await runtime.decoders.decode_pair(upload.left, upload.right, header, stop)
         if rectifier is not None:  # a raw pair: the network sees it rectified
             left, right = await run_in_threadpool(rectifier.rectify, left, right)
         result = await admission.run(
-            left,
-            right,
-            options=inference,
+            key,
+            StereoPair(left, right),
             deadline=deadline,
             is_disconnected=request.is_disconnected,
             request_id=request_id_var.get(),
@@ -158,7 +157,7 @@ def _refuse_repeated_options(request: Request) -> None:
         raise bad_input(422, "invalid_request", f"query.{repeated[0]}: given more than once")
 
 
-def _result_headers(predictor: Predictor, weights: str, size: ImageHeader, result: JobResult) -> dict[str, str]:
+def _result_headers(predictor: Predictor, weights: str, size: ImageHeader, result: JobResult[Maps]) -> dict[str, str]:
     """The result facts every answer carries as headers."""
     return {
         "X-Model": predictor.name,

@@ -7,11 +7,11 @@ from typing import Any
 
 from fastapi import APIRouter
 
-from service.batching import Predictor
 from service.dependencies import RuntimeDep
 from service.errors import ApiError
 from service.runtime import ServiceRuntime, weights_identity
 from service.schemas import ErrorResponse, ModelInfo, ModelList, TensorMetadata, TrainingSummary
+from service.stereo_batches import Predictor
 
 router = APIRouter(tags=["models"])
 

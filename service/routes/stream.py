@@ -29,8 +29,8 @@ from service.encoding import render
 from service.errors import ApiError, bad_input, batching_answer
 from service.images import ImageHeader
 from service.runtime import ServiceRuntime, weights_identity
-from service.scheduling import batch_key
 from service.schemas import DisparityOptions, OutputFormat
+from service.stereo_batches import StereoPair, stereo_key
 from service.uploads import ImageLimits, UploadError
 
 logger = logging.getLogger(__name__)
@@ -152,13 +152,13 @@ async def _answer(
     if problem is not None:
         raise bad_input(422, "scale_too_small", problem)
     inference, init = frames.next(header.height, header.width)
-    key = batch_key(options.model, inference, header.height, header.width, warm_start=init is not None)
+    key = stereo_key(options.model, inference, header.height, header.width, warm_start=init is not None)
     async with batcher.admit(options.model, key) as admission:
         left, right = await runtime.decoders.decode_pair(left_bytes, right_bytes, header, never)
         result = await admission.run(
-            left, right, options=inference, deadline=None, is_disconnected=_gone(websocket), init=init
+            key, StereoPair(left, right, init), deadline=None, is_disconnected=_gone(websocket)
         )
-    frames.record(result.disparity)
+    frames.record(result.output.disparity)
     weights = weights_identity(runtime.predictors[options.model])
     content, _ = await run_in_threadpool(render, options, result, left, weights, header)
     if options.format is OutputFormat.json:

@@ -22,9 +22,9 @@ from fastapi import FastAPI
 
 from model import load_model
 from service.app import create_app
-from service.batching import Predictor
 from service.local import start_service
 from service.settings import Settings
+from service.stereo_batches import Predictor
 from shared_data import STEREO_DEV  # noqa: F401  (re-exported for the server tests)
 
 REPO = Path(__file__).resolve().parents[2]

@@ -14,7 +14,8 @@ import pytest
 from model import InferenceOptions
 from service.batching import Batcher, JobResult
 from service.metrics import Metrics
-from service.scheduling import BatchKey, BatchLimits, ComputeTimes, batch_key, choose_batch, relative_cost
+from service.scheduling import BatchLimits, ComputeTimes, choose_batch
+from service.stereo_batches import Maps, StereoBatches, StereoKey, StereoPair, relative_cost, stereo_key
 from service_helpers import GatedPredictor, lite_settings, quiet_load_model, stereo_pair
 
 pytestmark = pytest.mark.anyio  # the async tests; the sync ones ignore it
@@ -23,17 +24,17 @@ LEFT, RIGHT = stereo_pair()
 # --- the choice of the next batch (pure) -------------------------------------------------------
 
 LIMITS = BatchLimits(max_batch_size=3, max_batch_pixels=64 * 96 * 3, max_wait_s=0.010)
-SMALL = batch_key("lite", InferenceOptions(), 64, 96)
-LARGE = batch_key("lite", InferenceOptions(), 128, 192)  # twice as large each way: one per batch
+SMALL = stereo_key("lite", InferenceOptions(), 64, 96)
+LARGE = stereo_key("lite", InferenceOptions(), 128, 192)  # twice as large each way: one per batch
 
 
 @dataclass(frozen=True)
 class QueuedRequest:
-    key: BatchKey
+    key: StereoKey
     enqueued_at: float
 
 
-def queue(*requests: tuple[BatchKey, float]) -> list[QueuedRequest]:
+def queue(*requests: tuple[StereoKey, float]) -> list[QueuedRequest]:
     return [QueuedRequest(key, at) for key, at in requests]
 
 
@@ -54,7 +55,7 @@ def test_a_partial_batch_waits_for_incoming_requests_until_its_oldest_has_waited
 
 
 def test_a_full_group_runs_before_an_older_partial_one_that_has_not_waited_long():
-    older = queue((batch_key("lite", InferenceOptions(two_pass=True), 64, 96), 1.0))
+    older = queue((stereo_key("lite", InferenceOptions(two_pass=True), 64, 96), 1.0))
     full = queue((SMALL, 1.001), (SMALL, 1.002), (SMALL, 1.003))
     assert choose_batch(older + full, incoming=1, now=1.004, limits=LIMITS) == (full, None)
     # ... but once the older group has waited max_wait it goes first
@@ -69,7 +70,7 @@ def test_a_batch_takes_the_oldest_requests_of_its_group_up_to_its_capacity():
 
 def test_the_pixel_limit_caps_a_batch_and_a_larger_image_runs_alone():
     assert LIMITS.capacity(SMALL) == 3
-    assert LIMITS.capacity(batch_key("lite", InferenceOptions(), 64, 192)) == 1  # the pixel limit: 1.5 fit
+    assert LIMITS.capacity(stereo_key("lite", InferenceOptions(), 64, 192)) == 1  # the pixel limit: 1.5 fit
     assert LIMITS.capacity(LARGE) == 1  # beyond the pixel limit: alone, never refused
     queued = queue((LARGE, 1.0), (LARGE, 1.001))
     assert choose_batch(queued, incoming=0, now=1.002, limits=LIMITS) == (queued[:1], None)
@@ -77,9 +78,9 @@ def test_the_pixel_limit_caps_a_batch_and_a_larger_image_runs_alone():
 
 def test_models_options_and_shapes_never_share_a_batch():
     others = [
-        batch_key("full", InferenceOptions(), 64, 96),
-        batch_key("lite", InferenceOptions(iters=4), 64, 96),
-        batch_key("lite", InferenceOptions(), 96, 64),
+        stereo_key("full", InferenceOptions(), 64, 96),
+        stereo_key("lite", InferenceOptions(iters=4), 64, 96),
+        stereo_key("lite", InferenceOptions(), 96, 64),
     ]
     queued = queue((SMALL, 1.0), *((key, 1.001 + i / 1000) for i, key in enumerate(others)), (SMALL, 1.005))
     batch, _ = choose_batch(queued, incoming=0, now=1.006, limits=LIMITS)
@@ -87,11 +88,11 @@ def test_models_options_and_shapes_never_share_a_batch():
 
 
 def test_plain_requests_batch_by_padded_shape_two_pass_and_scaled_ones_by_exact_shape():
-    plain = batch_key("lite", InferenceOptions(), 50, 90)
-    assert plain == batch_key("lite", InferenceOptions(), 64, 96) and (plain.height, plain.width) == (64, 96)
+    plain = stereo_key("lite", InferenceOptions(), 50, 90)
+    assert plain == stereo_key("lite", InferenceOptions(), 64, 96) and (plain.height, plain.width) == (64, 96)
     for options in (InferenceOptions(two_pass=True), InferenceOptions(scale=0.5)):
-        assert batch_key("lite", options, 50, 90) != batch_key("lite", options, 64, 96)
-        assert batch_key("lite", options, 50, 90).pixels == 50 * 90
+        assert stereo_key("lite", options, 50, 90) != stereo_key("lite", options, 64, 96)
+        assert stereo_key("lite", options, 50, 90).pixels == 50 * 90
 
 
 # --- compute-time statistics (pure) ------------------------------------------------------------
@@ -147,10 +148,10 @@ async def connected() -> bool:
 
 
 @asynccontextmanager
-async def batcher(**settings: float) -> AsyncIterator[tuple[Batcher, GatedPredictor]]:
+async def batcher(**settings: float) -> AsyncIterator[tuple[Batcher[StereoKey, StereoPair, Maps], GatedPredictor]]:
     predictor = GatedPredictor(quiet_load_model("lite"))
     with ThreadPoolExecutor(max_workers=1) as executor:
-        batcher = Batcher(lite_settings(**settings), {"lite": predictor}, executor, Metrics(8))
+        batcher = Batcher(lite_settings(**settings), StereoBatches({"lite": predictor}), executor, Metrics(8))
         batcher.start()
         try:
             yield batcher, predictor
@@ -158,15 +159,16 @@ async def batcher(**settings: float) -> AsyncIterator[tuple[Batcher, GatedPredic
             await batcher.close()
 
 
-async def run(batcher: Batcher, results: list[JobResult]) -> None:
+PLAIN = stereo_key("lite", InferenceOptions(), *LEFT.shape[:2])
+
+
+async def run(batcher: Batcher[StereoKey, StereoPair, Maps], results: list[JobResult[Maps]]) -> None:
     async with batcher.admit("lite") as admission:
-        results.append(
-            await admission.run(LEFT, RIGHT, options=InferenceOptions(), deadline=None, is_disconnected=connected)
-        )
+        results.append(await admission.run(PLAIN, StereoPair(LEFT, RIGHT), deadline=None, is_disconnected=connected))
 
 
 async def test_an_idle_server_runs_a_lone_request_at_once_whatever_the_max_wait():
-    results: list[JobResult] = []
+    results: list[JobResult[Maps]] = []
     async with batcher(max_wait_ms=600_000) as (b, predictor):
         with anyio.fail_after(60):
             await run(b, results)
@@ -174,7 +176,7 @@ async def test_an_idle_server_runs_a_lone_request_at_once_whatever_the_max_wait(
 
 
 async def test_a_partial_batch_waits_for_requests_still_being_decoded():
-    results: list[JobResult] = []
+    results: list[JobResult[Maps]] = []
     async with batcher(max_wait_ms=600_000) as (b, predictor):
         with anyio.fail_after(60):
             async with b.admit("lite") as decoding, anyio.create_task_group() as tg:
@@ -182,15 +184,13 @@ async def test_a_partial_batch_waits_for_requests_still_being_decoded():
                 await anyio.sleep(0.2)
                 assert predictor.calls == []  # held back: another request is on its way
                 results.append(
-                    await decoding.run(
-                        LEFT, RIGHT, options=InferenceOptions(), deadline=None, is_disconnected=connected
-                    )
+                    await decoding.run(PLAIN, StereoPair(LEFT, RIGHT), deadline=None, is_disconnected=connected)
                 )
     assert predictor.calls == [2] and [r.batch_size for r in results] == [2, 2]
 
 
 async def test_a_partial_batch_runs_once_it_has_waited_max_wait():
-    results: list[JobResult] = []
+    results: list[JobResult[Maps]] = []
     async with batcher(max_wait_ms=50) as (b, predictor):
         with anyio.fail_after(60):
             async with b.admit("lite"):  # admitted, but never queued
@@ -203,7 +203,7 @@ async def test_a_request_that_leaves_while_queued_frees_its_place():
         predictor.gate.clear()
         with anyio.fail_after(60):
             async with anyio.create_task_group() as tg:
-                results: list[JobResult] = []
+                results: list[JobResult[Maps]] = []
                 tg.start_soon(run, b, results)
                 while predictor.calls != [1]:
                     await anyio.sleep(0.005)

@@ -1,0 +1,151 @@
+"""The stereo side of batching, the adapter `service.batching.Batcher` runs: which requests may
+share a batch (`StereoKey`, `stereo_key`), what a request costs (`relative_cost`), and how a batch
+of pairs is computed (`StereoBatches`)."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import numpy as np
+
+from model import InferenceOptions, Iterations, ModelConfig, Prediction, StageCounts, padded_size
+from model.calibration import UncertaintyCalibration
+from model.inference import Backend, Precision
+
+
+class Predictor(Protocol):
+    """What the service needs from `model.load_model(...)` (a `model.StereoPredictor`)."""
+
+    name: str
+    weights_sha256: str | None
+    calibration: UncertaintyCalibration | None
+    training: dict[str, Any] | None
+    backend: Backend
+    precision: Precision
+
+    @property
+    def num_parameters(self) -> int: ...
+
+    @property
+    def trained(self) -> bool: ...
+
+    @property
+    def config(self) -> ModelConfig: ...
+
+    def iterations(self, iters: Iterations) -> StageCounts: ...
+
+    def ready(self, iters: Iterations = None, *, warm_start: bool = False) -> bool: ...
+
+    def predict_batch(
+        self,
+        lefts: Sequence[np.ndarray],
+        rights: Sequence[np.ndarray],
+        *,
+        iters: Iterations = None,
+        two_pass: bool = False,
+        scale: float = 1.0,
+        raw_uncertainty: bool = False,
+        init_disparities: Sequence[np.ndarray] | None = None,
+    ) -> list[Prediction]: ...
+
+
+@dataclass(frozen=True)
+class StereoKey:
+    """Requests with equal keys may share a batch."""
+
+    model: str
+    options: InferenceOptions
+    height: int  # input shape of the batch: padded to a multiple of 32, or exact (see stereo_key)
+    width: int
+    warm_start: bool = False  # each request starts from its own previous disparity (a stream's frames)
+
+    @property
+    def pixels(self) -> int:
+        return self.height * self.width
+
+
+def stereo_key(model: str, options: InferenceOptions, height: int, width: int, warm_start: bool = False) -> StereoKey:
+    """Plain requests batch by padded shape: padding them to it is what the network does anyway.
+    Two-pass and scaled requests batch by exact shape, since their resized passes see the
+    unpadded image. Warm-started requests batch only with warm-started ones (another graph)."""
+    if options.two_pass or options.scale != 1.0:
+        return StereoKey(model, options, height, width, warm_start)
+    return StereoKey(model, options, padded_size(height), padded_size(width), warm_start)
+
+
+# The cost model, fitted to lite on a 2-core CPU at 256x384 (measured / modelled time relative to
+# the default 2,4,6: iterations 1,1,1 0.43 / 0.44; 8,8,16 1.88 / 2.13; 2,4,20 2.07 / 2.17;
+# scale 0.5 0.22 / 0.25; two-pass 0.91 / 1.0). Coarse iterations cost more than their pixels
+# suggest: per-operation overheads dominate at small sizes.
+FIXED_COST = 3.5
+"""What a forward costs besides its ARM iterations (feature extraction, upsampling), in ARM
+iterations at 1/4 resolution."""
+STAGE_WEIGHTS = (0.25, 0.5, 1.0)
+"""The cost of one ARM iteration at 1/16, 1/8 and 1/4 resolution, relative to one at 1/4."""
+TWO_PASS_COST = 1.0
+"""Two-pass inference adds a pass at half resolution, and its warm start saves about as much."""
+
+
+def relative_cost(counts: StageCounts, default_counts: StageCounts, scale: float, two_pass: bool) -> float:
+    """Compute of a request relative to a plain one of the same size (the model's own iteration
+    counts `default_counts`, scale 1, one pass): its iterations `counts` (at 1/16, 1/8, 1/4),
+    `scale` (the network sees scale^2 of the pixels) and `two_pass`."""
+
+    def forward(iterations: tuple[int, int, int]) -> float:
+        return FIXED_COST + sum(weight * n for weight, n in zip(STAGE_WEIGHTS, iterations, strict=True))
+
+    cost = forward(counts) / forward(default_counts) * scale**2
+    return cost * TWO_PASS_COST if two_pass else cost
+
+
+@dataclass(frozen=True)
+class StereoPair:
+    """One request's input: a decoded pair (uint8 HxWx3 RGB) and its warm start (float32 HxW px,
+    the previous frame of a stream), or None."""
+
+    left: np.ndarray
+    right: np.ndarray
+    init: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class Maps:
+    """One request's output: disparity (float32 HxW, px of the left image) and uncertainty
+    (float32 HxW in [0, 1])."""
+
+    disparity: np.ndarray
+    uncertainty: np.ndarray
+
+
+class StereoBatches:
+    """The batcher's adapter for stereo pairs: the cost of a request and the computation of a
+    batch, by the model its key names."""
+
+    def __init__(self, predictors: Mapping[str, Predictor]) -> None:
+        self.predictors = predictors
+
+    @property
+    def models(self) -> list[str]:
+        return list(self.predictors)
+
+    def work(self, key: StereoKey) -> float:
+        """Units of compute of one request of `key`: its padded pixels times `relative_cost`."""
+        predictor = self.predictors[key.model]
+        counts = predictor.iterations(key.options.iters)
+        cost = relative_cost(counts, predictor.config.iters, key.options.scale, key.options.two_pass)
+        return key.pixels * cost
+
+    def compute(self, key: StereoKey, pairs: Sequence[StereoPair]) -> list[Maps]:
+        """Run one batch on the calling (worker) thread: `StereoPredictor.predict_batch`, which pads
+        every pair (and warm start) to the batch shape the way the network pads one and returns
+        host arrays."""
+        inits = [pair.init for pair in pairs if pair.init is not None] if key.warm_start else None
+        predictions = self.predictors[key.model].predict_batch(
+            [pair.left for pair in pairs],
+            [pair.right for pair in pairs],
+            init_disparities=inits,
+            **key.options.keywords(),
+        )
+        return [Maps(p.disparity, p.uncertainty) for p in predictions]
