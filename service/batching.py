@@ -48,7 +48,12 @@ class Draining(BatchingError):
 
 
 class DeadlineExceeded(BatchingError):
-    """The request's deadline passed, or would pass before its batch could finish."""
+    """The request's deadline passed, or would pass before its batch could finish; a retry
+    likely finds the queue worked off after `retry_after_s` seconds."""
+
+    def __init__(self, message: str, retry_after_s: int) -> None:
+        super().__init__(message)
+        self.retry_after_s = retry_after_s
 
 
 class ClientDisconnected(BatchingError):
@@ -130,14 +135,18 @@ class Admission(Generic[KeyT, PayloadT, OutputT]):
             raise ValueError(f"a request of model {key.model!r} in an admission for {self.model!r}")
         job: _Job[KeyT, PayloadT, OutputT] = _Job(key, payload, deadline, is_disconnected, request_id)
         if deadline is not None and deadline <= job.enqueued_at:
-            raise DeadlineExceeded("deadline passed before the request was queued")
+            raise DeadlineExceeded(
+                "deadline passed before the request was queued", self._batcher.retry_after(self.model)
+            )
         self.job = job
         self._batcher.enqueue(job)
         timeout = None if deadline is None else deadline - job.enqueued_at
         try:
             return await asyncio.wait_for(asyncio.shield(job.future), timeout)
         except TimeoutError:
-            raise DeadlineExceeded("deadline passed while waiting for the result") from None
+            raise DeadlineExceeded(
+                "deadline passed while waiting for the result", self._batcher.retry_after(self.model)
+            ) from None
 
 
 class Batcher(Generic[KeyT, PayloadT, OutputT]):
@@ -250,7 +259,8 @@ class Batcher(Generic[KeyT, PayloadT, OutputT]):
             finish = time.monotonic() + self._work_ahead_s(model, times) + times.seconds(self.work(key))
             if finish > deadline:
                 raise DeadlineExceeded(
-                    f"deadline cannot be met: about {finish - time.monotonic():.1f} s of compute would be needed"
+                    f"deadline cannot be met: about {finish - time.monotonic():.1f} s of compute would be needed",
+                    self.retry_after(model),
                 )
         admission: Admission[KeyT, PayloadT, OutputT] = Admission(self, model)
         self._set_pending(model, +1)
@@ -308,7 +318,7 @@ class Batcher(Generic[KeyT, PayloadT, OutputT]):
         finish = time.monotonic() + estimate
         for job in batch:
             if job.deadline is not None and finish > job.deadline and not job.future.done():
-                self._drop(job, DeadlineExceeded("deadline cannot be met"))
+                self._drop(job, DeadlineExceeded("deadline cannot be met", self.retry_after(job.key.model)))
                 changed = True
         # Requests can also leave while the disconnect checks above await.
         return changed or any(job.future.done() for job in batch)

@@ -5,7 +5,6 @@ from __future__ import annotations
 import logging
 import uuid
 from collections.abc import Mapping
-from typing import Any
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
@@ -13,7 +12,6 @@ from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from service.batching import (
-    Batcher,
     BatchingError,
     ClientDisconnected,
     DeadlineExceeded,
@@ -67,8 +65,8 @@ def client_gone(message: str) -> ApiError:
     return ApiError(499, "client_disconnected", message, reject_reason="disconnect")
 
 
-def batching_answer(exc: BatchingError, batcher: Batcher[Any, Any, Any], model: str) -> ApiError:
-    """The answer to a request of `model` that `batcher` could not compute."""
+def batching_answer(exc: BatchingError) -> ApiError:
+    """The answer to a request that the batcher could not compute."""
     match exc:
         case QueueFull():
             return ApiError(
@@ -82,7 +80,7 @@ def batching_answer(exc: BatchingError, batcher: Batcher[Any, Any, Any], model: 
                 "deadline_exceeded",
                 str(exc),
                 reject_reason="deadline",
-                headers={"Retry-After": str(batcher.retry_after(model))},
+                headers={"Retry-After": str(exc.retry_after_s)},
             )
         case ClientDisconnected():
             return client_gone(str(exc))
@@ -112,9 +110,7 @@ def install_error_handlers(app: FastAPI, metrics: Metrics) -> None:
 
     @app.exception_handler(BatchingError)
     async def batching_error(request: Request, exc: BatchingError) -> JSONResponse:
-        # Raised by `POST /disparity`, which set `request.state.model`, from the app's batcher.
-        answer = batching_answer(exc, request.app.state.runtime.batcher, request.state.model)
-        return await api_error(request, answer)
+        return await api_error(request, batching_answer(exc))
 
     @app.exception_handler(RequestValidationError)
     async def validation_error(_: Request, exc: RequestValidationError) -> JSONResponse:

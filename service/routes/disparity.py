@@ -11,6 +11,7 @@ from __future__ import annotations
 import asyncio
 import time
 from collections import Counter
+from collections.abc import Callable
 from functools import partial
 from typing import Annotated
 
@@ -67,7 +68,7 @@ async def estimate_disparity(
     request ran in and its timings (in the JSON body for `format=json`, and as `X-*` headers).
     """
     deadline = None if timeout_ms is None else time.monotonic() + timeout_ms / 1000
-    request.state.model = options.model  # also read by the batching error handler
+    request.state.model = options.model  # for the access log and the metrics
     _refuse_repeated_options(request)
     _refuse_repeated_headers(request)
     batcher = runtime.batcher_for(options.model)
@@ -75,7 +76,7 @@ async def estimate_disparity(
     content_type = request.headers.get("content-type", "")
     boundary_of(content_type)  # 415 before the body is read
     body = await _read_body(request, settings.body_timeout_s)
-    stop = partial(_abandoned, request, deadline, runtime)
+    stop = partial(_abandoned, request, deadline, runtime, partial(batcher.retry_after, options.model))
     limits = ImageLimits(options.model, settings.pixel_limit(options.model), settings.min_image_side)
     # Parsing and decoding untrusted bytes happen in the decoder processes, never here.
     upload = await runtime.decoders.read_pair(body, content_type, limits, stop)
@@ -129,14 +130,17 @@ async def _read_body(request: Request, timeout_s: float) -> bytes:
     return b"".join(chunks)
 
 
-async def _abandoned(request: Request, deadline: float | None, runtime: ServiceRuntime) -> Exception:
+async def _abandoned(
+    request: Request, deadline: float | None, runtime: ServiceRuntime, retry_after: Callable[[], int]
+) -> Exception:
     """Resolves, with the error to answer, once the request's images need no longer be read: its
-    client has gone, its deadline has passed or the drain is over."""
+    client has gone, its deadline has passed (a retry likely succeeds after `retry_after()` s) or
+    the drain is over."""
     while True:
         if runtime.drain_over.is_set():
             return Draining("drain timeout reached while this request's images were read")
         if deadline is not None and time.monotonic() >= deadline:
-            return DeadlineExceeded("the deadline passed while this request's images were read")
+            return DeadlineExceeded("the deadline passed while this request's images were read", retry_after())
         if await request.is_disconnected():
             return ClientDisconnected("client disconnected while its images were read")
         await asyncio.sleep(_ABANDON_POLL_S)

@@ -111,7 +111,7 @@ async def _serve(websocket: WebSocket, runtime: ServiceRuntime, options: Dispari
         try:
             await _answer(websocket, runtime, options, frames, limits, left, right)
         except (UploadError, ApiError, BatchingError) as error:
-            status, code, message = _error(error, runtime, options.model)
+            status, code, message = _error(error)
             await websocket.send_text(json.dumps({"error": {"code": code, "message": message}, "frame": index}))
             logger.info("stream frame refused", extra={"status": status, "code": code, "frame": index})
             if code in ("draining", "unavailable"):  # no later frame can be computed here
@@ -176,12 +176,11 @@ def _gone(websocket: WebSocket) -> Callable[[], Awaitable[bool]]:
     return is_disconnected
 
 
-def _error(error: Exception, runtime: ServiceRuntime, model: str) -> tuple[int, str, str]:
+def _error(error: Exception) -> tuple[int, str, str]:
     """(HTTP status it would have, code, message) of a frame's error."""
     if isinstance(error, UploadError):
         return error.status, error.code, error.message
     if isinstance(error, BatchingError):
-        assert runtime.batcher is not None  # only a batcher raises these
-        error = batching_answer(error, runtime.batcher, model)
+        error = batching_answer(error)
     assert isinstance(error, ApiError)
     return error.status, error.code, error.message
