@@ -343,13 +343,66 @@ class SceneGenerator:
 
     def _sample_scene(self, batch_size: int, draw: _Draw) -> Scene:
         cfg = self.config
-        assert cfg.max_disparity is not None  # __post_init__ resolved it
-        height, width, max_disparity = cfg.height, cfg.width, float(cfg.max_disparity)
         shape = (batch_size, cfg.surfaces + 1)  # surface 0 is the background
-
         scale = 2 ** draw.uniform((batch_size, 1), *cfg.log2_scale)  # magnification s
+        shapes, road = _Shapes.draw(shape, scale, cfg, draw)
+        plane, curvature = _disparity_planes(shapes, road, cfg, draw)
+        look = _Appearance.draw(shapes, road, scale, cfg, draw)
+        lighting = (
+            _Lighting.draw(shape, cfg, draw) if cfg.lighting_probability > 0 else _Lighting.none(shape, cfg, draw)
+        )
+        return Scene(
+            plane=plane,
+            curvature=curvature,
+            apex=torch.stack([shapes.centre_x, shapes.centre_y], dim=-1),
+            to_shape=shapes.to_shape,
+            sides=shapes.sides,
+            phase=shapes.phase,
+            radii=shapes.radii,
+            hole=shapes.hole,
+            has_hole=shapes.has_hole,
+            present=shapes.present,
+            texture=look.texture,
+            to_texture=look.to_texture,
+            projective=look.projective,
+            fade_disparity=look.fade_disparity,
+            base=look.base,
+            contrast=look.contrast,
+            ramp=look.ramp,
+            specular=lighting.specular,
+            shininess=lighting.shininess,
+            light=lighting.light,
+            ambient=lighting.ambient,
+            relief=lighting.relief,
+            camera=lighting.camera,
+            textures=_texture_bank(batch_size, cfg, draw, self._photos),
+        )
 
-        # Shapes, in output px.
+
+@dataclass
+class _Shapes:
+    """Where each surface is and what outline it has (see `Scene`), in output px; `extent`
+    (B, S): the shape lies within this distance of its centre (centre_x, centre_y) (B, S)."""
+
+    centre_x: torch.Tensor
+    centre_y: torch.Tensor
+    extent: torch.Tensor
+    to_shape: torch.Tensor
+    sides: torch.Tensor
+    phase: torch.Tensor
+    radii: torch.Tensor
+    hole: torch.Tensor
+    has_hole: torch.Tensor
+    present: torch.Tensor
+
+    @staticmethod
+    def draw(
+        shape: tuple[int, int], scale: torch.Tensor, cfg: SceneConfig, draw: _Draw
+    ) -> tuple[_Shapes, _Road | None]:
+        """The shapes of B scenes of S surfaces magnified by `scale` (B, 1), and the road layout
+        where the config has roads (it reshapes surfaces 0 and 1)."""
+        height, width = cfg.height, cfg.width
+        batch_size = shape[0]
         centre_x = draw.uniform(shape, -0.1 * width, 1.1 * width)
         centre_y = draw.uniform(shape, -0.1 * height, 1.1 * height)
         radius = scale * width * draw.log_uniform(shape, *cfg.size)
@@ -377,7 +430,7 @@ class SceneGenerator:
         )
         has_hole = draw.chance(shape, cfg.hole_probability) & ~bar
         surface_count = draw.integers((batch_size, 1), cfg.min_surfaces, cfg.surfaces)
-        present = torch.arange(shape[1], device=self.device) <= surface_count  # and the background
+        present = torch.arange(shape[1], device=draw.device) <= surface_count  # and the background
 
         # The background (surface 0) is centred on the frame and covers everything.
         centre_x[:, 0], centre_y[:, 0] = (width - 1) / 2, (height - 1) / 2
@@ -402,50 +455,80 @@ class SceneGenerator:
         if road is not None:
             to_shape[:, 1] = torch.where(road.present[:, None, None], 0.0, to_shape[:, 1])
         has_hole[:, 0] = False
+        shapes = _Shapes(centre_x, centre_y, extent, to_shape, sides, phase, radii, hole, has_hole, present)
+        return shapes, road
 
-        # Disparity planes: the background spans at most [0, background_max_fraction * max], the
-        # foreground surfaces at most [the background's lowest disparity, max].
-        gradient = torch.where(draw.chance(shape, cfg.slant_probability), draw.uniform(shape, 0, cfg.max_slope), 0.0)
-        gradient_angle = draw.uniform(shape, 0, 2 * math.pi)
-        position = draw.uniform(shape, 0, 1)
-        curve = _Curve.draw(shape, cfg, draw) if cfg.curve_probability > 0 else None
-        background_low = torch.zeros(batch_size, 1, device=self.device)
-        background_gradient, background_disparity = _fit_plane(
-            gradient[:, :1],
-            extent[:, :1],
-            position[:, :1],
-            background_low,
-            background_low + cfg.background_max_fraction * max_disparity,
-        )
-        foreground_low = background_disparity - background_gradient * extent[:, :1]
-        if road is not None:  # the sky is far; things stand on the ground: nearer than it at their centre row
-            on_ground = road.disparity(centre_x[:, 1:], centre_y[:, 1:]).clamp(0, 0.9 * max_disparity)
-            foreground_low = torch.where(road.present[:, None], on_ground, foreground_low)
-        foreground_high = torch.full_like(foreground_low, max_disparity)
-        bulge = torch.zeros_like(gradient[:, 1:])  # px: the curved term's reach within the shape
-        if curve is not None:  # room for the bulge: less slope for the plane, a narrower span
-            if road is not None:
-                curve.present[:, 1] &= ~road.present  # the ground stays a plane
-            bulge = curve.bulge(extent[:, 1:], foreground_high - foreground_low, cfg.max_slope)
-            gradient[:, 1:] = torch.minimum(gradient[:, 1:], cfg.max_slope - 2 * bulge / extent[:, 1:])
-        foreground_gradient, foreground_disparity = _fit_plane(
-            gradient[:, 1:],
-            extent[:, 1:],
-            position[:, 1:],
-            foreground_low + bulge,
-            foreground_high - bulge,
-        )
-        gradient = torch.cat([background_gradient, foreground_gradient], dim=1)
-        centre_disparity = torch.cat([background_disparity, foreground_disparity], dim=1)
-        slope_x, slope_y = gradient * torch.cos(gradient_angle), gradient * torch.sin(gradient_angle)
-        plane = torch.stack([slope_x, slope_y, centre_disparity - slope_x * centre_x - slope_y * centre_y], dim=-1)
+
+def _disparity_planes(
+    shapes: _Shapes, road: _Road | None, cfg: SceneConfig, draw: _Draw
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Each surface's disparity (`Scene.plane`, `Scene.curvature`): the background spans at most
+    [0, background_max_fraction * max], the foreground surfaces at most [the background's lowest
+    disparity, max] (in road scenes, from the ground under them); curved ones keep room for their
+    bulge."""
+    assert cfg.max_disparity is not None  # __post_init__ resolved it
+    max_disparity = float(cfg.max_disparity)
+    centre_x, centre_y, extent = shapes.centre_x, shapes.centre_y, shapes.extent
+    shape = (extent.shape[0], extent.shape[1])
+    gradient = torch.where(draw.chance(shape, cfg.slant_probability), draw.uniform(shape, 0, cfg.max_slope), 0.0)
+    gradient_angle = draw.uniform(shape, 0, 2 * math.pi)
+    position = draw.uniform(shape, 0, 1)
+    curve = _Curve.draw(shape, cfg, draw) if cfg.curve_probability > 0 else None
+    background_low = torch.zeros(shape[0], 1, device=draw.device)
+    background_gradient, background_disparity = _fit_plane(
+        gradient[:, :1],
+        extent[:, :1],
+        position[:, :1],
+        background_low,
+        background_low + cfg.background_max_fraction * max_disparity,
+    )
+    foreground_low = background_disparity - background_gradient * extent[:, :1]
+    if road is not None:  # the sky is far; things stand on the ground: nearer than it at their centre row
+        on_ground = road.disparity(centre_x[:, 1:], centre_y[:, 1:]).clamp(0, 0.9 * max_disparity)
+        foreground_low = torch.where(road.present[:, None], on_ground, foreground_low)
+    foreground_high = torch.full_like(foreground_low, max_disparity)
+    bulge = torch.zeros_like(gradient[:, 1:])  # px: the curved term's reach within the shape
+    if curve is not None:  # room for the bulge: less slope for the plane, a narrower span
         if road is not None:
-            plane[:, :2] = torch.where(road.present[:, None, None], road.planes, plane[:, :2])
-        curvature = torch.zeros((*shape, 3), device=self.device)
-        if curve is not None:
-            curvature[:, 1:] = curve.curvature(bulge, extent[:, 1:])
+            curve.present[:, 1] &= ~road.present  # the ground stays a plane
+        bulge = curve.bulge(extent[:, 1:], foreground_high - foreground_low, cfg.max_slope)
+        gradient[:, 1:] = torch.minimum(gradient[:, 1:], cfg.max_slope - 2 * bulge / extent[:, 1:])
+    foreground_gradient, foreground_disparity = _fit_plane(
+        gradient[:, 1:],
+        extent[:, 1:],
+        position[:, 1:],
+        foreground_low + bulge,
+        foreground_high - bulge,
+    )
+    gradient = torch.cat([background_gradient, foreground_gradient], dim=1)
+    centre_disparity = torch.cat([background_disparity, foreground_disparity], dim=1)
+    slope_x, slope_y = gradient * torch.cos(gradient_angle), gradient * torch.sin(gradient_angle)
+    plane = torch.stack([slope_x, slope_y, centre_disparity - slope_x * centre_x - slope_y * centre_y], dim=-1)
+    if road is not None:
+        plane[:, :2] = torch.where(road.present[:, None, None], road.planes, plane[:, :2])
+    curvature = torch.zeros((*shape, 3), device=draw.device)
+    if curve is not None:
+        curvature[:, 1:] = curve.curvature(bulge, extent[:, 1:])
+    return plane, curvature
 
-        # Appearance.
+
+@dataclass
+class _Appearance:
+    """What each surface shows (see `Scene`): its texture and how it is mapped, its colour,
+    contrast and shading ramp."""
+
+    texture: torch.Tensor
+    to_texture: torch.Tensor
+    projective: torch.Tensor
+    fade_disparity: torch.Tensor
+    base: torch.Tensor
+    contrast: torch.Tensor
+    ramp: torch.Tensor
+
+    @staticmethod
+    def draw(shapes: _Shapes, road: _Road | None, scale: torch.Tensor, cfg: SceneConfig, draw: _Draw) -> _Appearance:
+        centre_x, centre_y, extent = shapes.centre_x, shapes.centre_y, shapes.extent
+        shape = (extent.shape[0], extent.shape[1])
         texel = scale * draw.log_uniform(shape, *cfg.texel_size)  # output px per texel
         texture_angle = draw.uniform(shape, 0, 2 * math.pi)
         cos, sin = torch.cos(texture_angle) / texel, torch.sin(texture_angle) / texel
@@ -455,8 +538,8 @@ class SceneGenerator:
             centre_y,
         )
         to_texture[..., 2] += draw.uniform((*shape, 2), 0, cfg.texture_size)
-        projective = torch.zeros(shape, dtype=torch.bool, device=self.device)
-        fade_disparity = torch.zeros(shape, device=self.device)
+        projective = torch.zeros(shape, dtype=torch.bool, device=draw.device)
+        fade_disparity = torch.zeros(shape, device=draw.device)
         grey = draw.uniform((*shape, 1), 20, 235)
         base = grey + draw.uniform((*shape, 3), -30, 30)
         contrast = draw.log_uniform(shape, *cfg.contrast)
@@ -470,36 +553,7 @@ class SceneGenerator:
             projective[:, 1] = road.present
             fade_disparity[:, 1] = road.fade_disparity
             contrast[:, 0] = torch.where(road.present, road.sky_contrast, contrast[:, 0])
-
-        lighting = (
-            _Lighting.draw(shape, cfg, draw) if cfg.lighting_probability > 0 else _Lighting.none(shape, cfg, draw)
-        )
-        return Scene(
-            plane=plane,
-            curvature=curvature,
-            apex=torch.stack([centre_x, centre_y], dim=-1),
-            to_shape=to_shape,
-            sides=sides,
-            phase=phase,
-            radii=radii,
-            hole=hole,
-            has_hole=has_hole,
-            present=present,
-            texture=texture,
-            to_texture=to_texture,
-            projective=projective,
-            fade_disparity=fade_disparity,
-            base=base,
-            contrast=contrast,
-            ramp=ramp,
-            specular=lighting.specular,
-            shininess=lighting.shininess,
-            light=lighting.light,
-            ambient=lighting.ambient,
-            relief=lighting.relief,
-            camera=lighting.camera,
-            textures=_texture_bank(batch_size, cfg, draw, self._photos),
-        )
+        return _Appearance(texture, to_texture, projective, fade_disparity, base, contrast, ramp)
 
 
 @dataclass
