@@ -16,6 +16,9 @@ os.environ["CRESTEREO_BACKEND"] = "torch"
 
 import pytest  # noqa: E402  (after the environment above, as the docstring says)
 
+# The fixtures of the shared helpers, for every folder: servers (and asyncio for anyio), browsers.
+pytest_plugins = ["service_helpers", "web_helpers"]
+
 SLOW_FIXTURES = {"default_server", "browser", "web"}  # a real uvicorn process, Chromium
 SLOW_FOLDERS = ("container",)  # a Docker engine and image
 SLOW_MODULES = {"test_train_distributed.py", "test_gpu_check.py", "test_service_schemathesis.py"}

@@ -25,7 +25,6 @@ from service.app import create_app
 from service.local import start_service
 from service.settings import Settings
 from service.stereo_batches import Predictor
-from shared_data import STEREO_DEV  # noqa: F401  (re-exported for the server tests)
 
 REPO = Path(__file__).resolve().parents[2]
 HEIGHT, WIDTH = 64, 96

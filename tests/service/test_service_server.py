@@ -14,7 +14,6 @@ import numpy as np
 import pytest
 
 from service_helpers import (
-    STEREO_DEV,
     Server,
     assert_same_maps,
     metric_total,
@@ -23,6 +22,7 @@ from service_helpers import (
     run_uvicorn,
     stereo_pair,
 )
+from shared_data import STEREO_DEV
 from stereo_data.formats import read_image, read_pfm
 
 REAL_PAIR = STEREO_DEV / "middlebury2003_teddy"

@@ -9,7 +9,6 @@ without the `playwright` package (the `test` extra), the browser tests are skipp
 from __future__ import annotations
 
 import os
-import sys
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -17,9 +16,7 @@ from typing import Any
 
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "service"))
-
-from service_helpers import Server, default_server  # noqa: E402,F401  (fixtures, by name)
+from service_helpers import Server
 
 CHROMIUM = Path(os.environ.get("CRESTEREO_TEST_CHROMIUM", "/usr/bin/chromium"))
 CHROMIUM_FLAGS = [
