@@ -6,8 +6,9 @@ import contextlib
 import os
 import warnings
 from collections.abc import Iterable, Iterator, Sequence
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal, NamedTuple, overload
+from typing import Any, Literal, NamedTuple, TypeVar, overload
 
 import numpy as np
 import torch
@@ -184,17 +185,34 @@ def shrink(images: Tensor, size: tuple[int, int]) -> Tensor:
     return F.interpolate(images, size=size, mode="bilinear", antialias=True, align_corners=False)
 
 
-def pad_to_multiple(x: Tensor) -> Tensor:
-    """Replicate-pad (B, C, H, W) on the bottom and right to multiples of INPUT_MULTIPLE."""
-    height, width = x.shape[-2:]
-    return pad_to_size(x, padded_size(height), padded_size(width))
+T = TypeVar("T", Tensor, np.ndarray)
 
 
-def pad_to_size(x: Tensor, height: int, width: int) -> Tensor:
-    """Replicate-pad (B, C, h, w) on the bottom and right to (height, width) >= (h, w)."""
-    if (height, width) == tuple(x.shape[-2:]):
-        return x
-    return F.pad(x, (0, width - x.shape[-1], 0, height - x.shape[-2]), mode="replicate")
+@dataclass(frozen=True)
+class Padding:
+    """Replicate padding of an image of (height, width) px on the bottom and right to
+    (padded_height, padded_width), and the crop that takes a map of the padded image back."""
+
+    height: int
+    width: int
+    padded_height: int
+    padded_width: int
+
+    @staticmethod
+    def to_multiple(height: int, width: int) -> Padding:
+        """The padding the network needs: to multiples of INPUT_MULTIPLE."""
+        return Padding(height, width, padded_size(height), padded_size(width))
+
+    def pad(self, x: Tensor) -> Tensor:
+        """(B, C, height, width) -> (B, C, padded_height, padded_width), edges replicated."""
+        if (self.padded_height, self.padded_width) == tuple(x.shape[-2:]):
+            return x
+        return F.pad(x, (0, self.padded_width - x.shape[-1], 0, self.padded_height - x.shape[-2]), mode="replicate")
+
+    def crop(self, x: T) -> T:
+        """A map of the padded image (..., padded_height, padded_width), tensor or array, cut back
+        to (..., height, width)."""
+        return x[..., : self.height, : self.width]
 
 
 def to_host(disparity: Tensor, uncertainty: Tensor) -> tuple[np.ndarray, np.ndarray]:
@@ -400,21 +418,23 @@ class StereoPredictor:
         if len(set(sizes)) > 1:
             height, width = padded_size(height), padded_size(width)
 
-        def stack(images: Sequence[np.ndarray]) -> Tensor:
-            batches = [as_image_batch(image, self.device) for image in images]
-            return torch.cat([pad_to_size(b, height, width) for b in batches])
+        paddings = [Padding(h, w, height, width) for h, w in sizes]
+
+        def stack(images: Sequence[Tensor]) -> Tensor:
+            return torch.cat([padding.pad(image) for padding, image in zip(paddings, images, strict=True)])
 
         init: Tensor | None = None
         if init_disparities is not None:
             if len(init_disparities) != len(lefts):
                 raise ValueError(f"need one warm start per pair, got {len(init_disparities)} for {len(lefts)}")
-            maps = [torch.as_tensor(d, dtype=torch.float32, device=self.device)[None, None] for d in init_disparities]
-            init = torch.cat([pad_to_size(m, height, width) for m in maps])[:, 0]
+            init = stack(
+                [torch.as_tensor(d, dtype=torch.float32, device=self.device)[None, None] for d in init_disparities]
+            )[:, 0]
 
         disparity, uncertainty = to_host(
             *self.predict_tensors(
-                stack(lefts),
-                stack(rights),
+                stack([as_image_batch(image, self.device) for image in lefts]),
+                stack([as_image_batch(image, self.device) for image in rights]),
                 iters=iters,
                 init_disparity=init,
                 two_pass=two_pass,
@@ -424,8 +444,10 @@ class StereoPredictor:
             )
         )
         return [
-            Prediction(np.ascontiguousarray(disparity[i, :h, :w]), np.ascontiguousarray(uncertainty[i, :h, :w]))
-            for i, (h, w) in enumerate(sizes)
+            Prediction(
+                np.ascontiguousarray(padding.crop(disparity[i])), np.ascontiguousarray(padding.crop(uncertainty[i]))
+            )
+            for i, padding in enumerate(paddings)
         ]
 
     def stream(self, options: InferenceOptions | None = None, warm_iters: Iterations = None) -> FrameStream:
@@ -501,15 +523,15 @@ class StereoPredictor:
     ) -> tuple[Tensor, Tensor]:
         """Pad (B,3,H,W) inputs to multiples of 32, run `forward` (default ``self.forward``),
         crop back. Returns disparity (clipped at 0) and uncertainty, each (B, 1, H, W)."""
-        height, width = left.shape[-2:]
+        padding = Padding.to_multiple(*left.shape[-2:])
         disparity, uncertainty = (forward or self.forward)(
-            pad_to_multiple(left),
-            pad_to_multiple(right),
-            None if init is None else pad_to_multiple(init),
+            padding.pad(left),
+            padding.pad(right),
+            None if init is None else padding.pad(init),
             iters,
             self.precision == "bf16",
         )
-        return disparity[..., :height, :width].clamp(min=0.0), uncertainty[..., :height, :width]
+        return padding.crop(disparity).clamp(min=0.0), padding.crop(uncertainty)
 
     def forward(
         self, left: Tensor, right: Tensor, init: Tensor | None, iters: StageCounts, bf16: bool
