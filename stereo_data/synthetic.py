@@ -26,6 +26,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from functools import reduce
 
+import cv2
 import torch
 import torch.nn.functional as F
 
@@ -42,7 +43,8 @@ _SURFACES_PER_PASS = 8  # the z-buffer evaluates this many surfaces at once (mem
 @dataclass(frozen=True)
 class PhotometricConfig:
     """Random photometric changes, drawn independently for each view and applied after rendering,
-    in this order: Gaussian blur, gamma, gain, offset, Gaussian noise, clipping to [0, 255]."""
+    in this order: Gaussian blur, gamma, vignetting, gain, offset, Gaussian noise, clipping to
+    [0, 255], JPEG compression."""
 
     blur_probability: float = 0.3
     blur_sigma: tuple[float, float] = (0.3, 1.2)  # px
@@ -51,6 +53,17 @@ class PhotometricConfig:
     channel_gain: tuple[float, float] = (0.9, 1.1)  # multiplies each channel on top of gain
     offset: tuple[float, float] = (-15.0, 15.0)  # grey levels added
     noise_sigma: tuple[float, float] = (0.0, 4.0)  # grey levels, per pixel and channel
+    vignetting: float = 0.0  # at most this share of the light lost at the frame's corners (off: 0)
+    jpeg_probability: float = 0.0  # views saved as JPEG and read back (compression artefacts)
+    jpeg_quality: tuple[int, int] = (40, 95)  # JPEG quality, uniform
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.vignetting < 1.0:
+            raise ValueError(f"vignetting must be in [0, 1), got {self.vignetting}")
+        if not 0.0 <= self.jpeg_probability <= 1.0:
+            raise ValueError(f"jpeg_probability must be in [0, 1], got {self.jpeg_probability}")
+        if not 1 <= self.jpeg_quality[0] <= self.jpeg_quality[1] <= 100:
+            raise ValueError(f"jpeg_quality must be 1 <= low <= high <= 100, got {self.jpeg_quality}")
 
 
 @dataclass(frozen=True)
@@ -1072,9 +1085,45 @@ def _photometric(image: torch.Tensor, cfg: PhotometricConfig, draw: _Draw) -> to
     gamma = draw.uniform(per_sample, *cfg.gamma)
     gain = draw.uniform(per_sample, *cfg.gain) * draw.uniform((batch, 3, 1, 1), *cfg.channel_gain)
     offset = draw.uniform(per_sample, *cfg.offset)
+    if cfg.vignetting > 0:  # a lens: light falls off with the square of the distance from its centre
+        gain = gain * _vignette(image.shape, draw.uniform(per_sample, 0, cfg.vignetting), draw)
     noise = draw.uniform(per_sample, *cfg.noise_sigma) * draw.normal(tuple(image.shape))
     image = 255 * (image / 255).clamp(0, 1).pow(gamma)
-    return (gain * image + offset + noise).clamp(0, 255)
+    image = (gain * image + offset + noise).clamp(0, 255)
+    if cfg.jpeg_probability > 0:
+        compressed = draw.chance((batch,), cfg.jpeg_probability)
+        quality = draw.integers((batch,), *cfg.jpeg_quality)
+        image = _jpeg(image, compressed, quality)
+    return image
+
+
+def _vignette(shape: torch.Size, strength: torch.Tensor, draw: _Draw) -> torch.Tensor:
+    """(B, 1, H, W) gains: 1 - strength * (r / r_corner)^2, r the distance from a centre drawn
+    within 10 % of the frame's centre, strength (B, 1, 1, 1) the share lost at a corner."""
+    batch, _, height, width = shape
+    centre = draw.uniform((batch, 2, 1, 1), -0.1, 0.1) * torch.tensor([width, height], device=draw.device).view(
+        1, 2, 1, 1
+    )
+    x = torch.arange(width, device=draw.device).view(1, 1, -1) - (width - 1) / 2 - centre[:, 0]
+    y = torch.arange(height, device=draw.device).view(1, -1, 1) - (height - 1) / 2 - centre[:, 1]
+    corner = (width**2 + height**2) / 4
+    return (1 - strength[:, 0] * (x.square() + y.square()) / corner).clamp_min(0)[:, None]
+
+
+def _jpeg(image: torch.Tensor, compressed: torch.Tensor, quality: torch.Tensor) -> torch.Tensor:
+    """The views `compressed` (B,) saved as JPEG at `quality` (B,) and decoded again (on the host)."""
+    if not compressed.any():
+        return image
+    result = image.clone()
+    for index in torch.nonzero(compressed).flatten().tolist():
+        rgb = image[index].permute(1, 2, 0).round().to(torch.uint8).cpu().numpy()
+        ok, data = cv2.imencode(".jpg", rgb[:, :, ::-1], [cv2.IMWRITE_JPEG_QUALITY, int(quality[index])])
+        if not ok:
+            raise RuntimeError("JPEG encoding failed")
+        decoded = cv2.imdecode(data, cv2.IMREAD_COLOR)
+        assert decoded is not None  # OpenCV just wrote it
+        result[index] = torch.from_numpy(decoded[:, :, ::-1].copy()).to(image).permute(2, 0, 1)
+    return result
 
 
 def _gaussian_blur(image: torch.Tensor, sigma: torch.Tensor, radius: int = 3) -> torch.Tensor:

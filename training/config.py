@@ -6,7 +6,7 @@ from dataclasses import asdict, dataclass, field, fields, replace
 from typing import Any, Literal
 
 from model.config import ModelName
-from stereo_data.synthetic import SceneConfig
+from stereo_data.synthetic import PhotometricConfig, SceneConfig
 
 SYNTHETIC = "synthetic"
 """The `path` of a DataSource that stands for the procedural scene generator."""
@@ -85,6 +85,12 @@ class TrainConfig:
         0.0,
         "procedural scenes: fraction of foreground surfaces that are curved (domes, bowls, saddles, cylinders) "
         "instead of planar",
+    )
+    vignetting: float = _knob(
+        0.0, "procedural scenes: at most this share of the light lost at the frame's corners, drawn per view"
+    )
+    jpeg_probability: float = _knob(
+        0.0, "procedural scenes: fraction of the views saved as JPEG (quality 40-95) and read back"
     )
     lighting_probability: float = _knob(
         0.0, "procedural scenes: fraction lit by a directional light (shading by the surfaces' orientation)"
@@ -176,6 +182,7 @@ class TrainConfig:
             supersample=self.supersample,
             road_probability=self.road_probability,
             curve_probability=self.curve_probability,
+            photometric=PhotometricConfig(vignetting=self.vignetting, jpeg_probability=self.jpeg_probability),
             lighting_probability=self.lighting_probability,
             specular_probability=self.specular_probability,
         )

@@ -8,7 +8,7 @@ import torch
 import torch.nn.functional as F
 
 from stereo_data.photos import PHOTOS, load_photos
-from stereo_data.synthetic import MAX_SIDES, Scene, SceneConfig, SceneGenerator
+from stereo_data.synthetic import MAX_SIDES, PhotometricConfig, Scene, SceneConfig, SceneGenerator
 
 
 @pytest.fixture(autouse=True, scope="module")
@@ -448,3 +448,39 @@ def test_highlights_differ_between_the_views_while_matte_surfaces_match() -> Non
 
     assert mismatch(glossy) > 3 * mismatch(matte)  # the views disagree where a highlight is
     assert (glossy.left - matte.left).abs().amax() > 100  # and highlights are bright
+
+
+def test_vignetting_darkens_the_corners_of_each_view_by_its_own_amount() -> None:
+    identity = PhotometricConfig(
+        blur_probability=0.0,
+        gamma=(1.0, 1.0),
+        gain=(1.0, 1.0),
+        channel_gain=(1.0, 1.0),
+        offset=(0.0, 0.0),
+        noise_sigma=(0.0, 0.0),
+    )  # changes nothing but what is under test
+    plain = replace(SMALL, height=96, width=192, photometric=identity)
+    vignetted = replace(plain, photometric=replace(identity, vignetting=0.6))
+    before, after = (SceneGenerator(config).generate(batch_size=4, seed=14) for config in (plain, vignetted))
+    for view in ("left", "right"):
+        ratio = (getattr(after, view) / getattr(before, view).clamp_min(1.0)).mean(dim=1)  # (B, H, W)
+        centre, corner = ratio[:, 40:56, 88:104].mean(dim=(1, 2)), ratio[:, :8, :8].mean(dim=(1, 2))
+        assert (corner <= centre + 1e-3).all() and (corner < 0.9 * centre).any()
+    assert not torch.equal(after.left / before.left.clamp_min(1), after.right / before.right.clamp_min(1))
+
+
+def test_jpeg_views_carry_compression_artefacts_and_stay_deterministic() -> None:
+    plain = replace(SMALL, height=96, width=192)
+    jpeg = replace(plain, photometric=replace(PhotometricConfig(), jpeg_probability=1.0))
+    before, after = (
+        SceneGenerator(plain).generate(batch_size=2, seed=15),
+        SceneGenerator(jpeg).generate(batch_size=2, seed=15),
+    )
+    change = (after.left - before.left).abs()
+    assert 0.5 < change.mean() < 12  # lossy, but the same picture
+    assert torch.equal(after.left, after.left.round())  # decoded 8-bit values
+    assert torch.equal(SceneGenerator(jpeg).generate(batch_size=2, seed=15).right, after.right)
+    with pytest.raises(ValueError):
+        PhotometricConfig(jpeg_quality=(0, 50))
+    with pytest.raises(ValueError):
+        PhotometricConfig(vignetting=1.0)
