@@ -22,7 +22,6 @@ import warnings
 from pathlib import Path
 
 import numpy as np
-import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a checkout without installing
 from model import InferenceOptions, StereoPredictor, load_model  # noqa: E402
@@ -30,15 +29,9 @@ from stereo_data.synthetic import SceneConfig, SceneGenerator, SyntheticBatch  #
 
 
 def sequence(frames: int, height: int, width: int, pan: tuple[float, float], seed: int) -> list[SyntheticBatch]:
-    """`frames` renders of one static scene by a camera panning `pan` px per frame (photometric
-    changes drawn once per view and kept, as one camera's would be)."""
+    """`frames` renders of one static scene by a camera panning `pan` px per frame (no photometric changes)."""
     generator = SceneGenerator(SceneConfig(height=height, width=width, max_disparity=width / 4, photometric=None))
-    scene = generator.sample_scene(batch_size=1, seed=seed)
-    return [generator.render(scene.translated(pan[0] * t, pan[1] * t)) for t in range(frames)]
-
-
-def as_image(view: torch.Tensor) -> np.ndarray:
-    return view[0].permute(1, 2, 0).round().clamp(0, 255).to(torch.uint8).numpy()
+    return generator.pan(seed, frames, pan)
 
 
 def run_mode(
@@ -51,7 +44,7 @@ def run_mode(
         if warm_iters is None:
             stream.restart()
         start = time.perf_counter()
-        prediction = stream.predict(as_image(batch.left), as_image(batch.right))
+        prediction = stream.predict(*batch.pair())
         times.append(time.perf_counter() - start)
         truth = batch.disparity[0, 0].numpy()
         error = np.abs(prediction.disparity - truth)

@@ -91,8 +91,14 @@ def _encode(image: Image) -> bytes:
     return encoded.tobytes()
 
 
+def _query(response_format: str, options: dict[str, Any]) -> dict[str, str]:
+    """The query string of a request: `format` and the options given (None and False left out)."""
+    given = {k: _query_value(v) for k, v in options.items() if v is not None and v is not False}
+    return {"format": response_format, **given}
+
+
 def _request(left: Image, right: Image, calibration: Calibration | None, options: dict[str, Any]) -> dict[str, Any]:
-    params = {"format": "npz", **{k: _query_value(v) for k, v in options.items() if v is not None and v is not False}}
+    params = _query("npz", options)
     files = [("left", ("left.png", _encode(left))), ("right", ("right.png", _encode(right)))]
     if calibration is not None:
         parts = [calibration] if isinstance(calibration, bytes | str | os.PathLike) else list(calibration)
@@ -224,11 +230,7 @@ class StereoClient:
             focal_px=focal_px,
             baseline_m=baseline_m,
         )
-        params = {
-            "format": "json",
-            **{k: _query_value(v) for k, v in options.items() if v is not None and v is not False},
-        }
-        url = httpx.URL(str(self._http.base_url)).join("disparity/stream").copy_merge_params(params)
+        url = httpx.URL(str(self._http.base_url)).join("disparity/stream").copy_merge_params(_query("json", options))
         ws_url = str(url).replace("http://", "ws://", 1).replace("https://", "wss://", 1)
         return DisparityStream(ws_url, self._http.headers.get("Authorization"), self._http.timeout.read)
 

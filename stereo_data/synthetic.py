@@ -27,6 +27,7 @@ from dataclasses import dataclass, field, replace
 from functools import reduce
 
 import cv2
+import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -273,6 +274,14 @@ class SyntheticBatch:
     valid: torch.Tensor
     occluded: torch.Tensor
 
+    def pair(self, index: int = 0) -> tuple[np.ndarray, np.ndarray]:
+        """Pair `index` as images: (left, right) uint8 HxWx3 RGB, on the host."""
+        left, right = (
+            view[index].permute(1, 2, 0).round().clamp(0, 255).to(torch.uint8).cpu().numpy()
+            for view in (self.left, self.right)
+        )
+        return left, right
+
 
 class _Draw:
     """Random tensors on one device from one generator (the only source of randomness)."""
@@ -317,6 +326,12 @@ class SceneGenerator:
             batch.left = _photometric(batch.left, self.config.photometric, draw)
             batch.right = _photometric(batch.right, self.config.photometric, draw)
         return batch
+
+    def pan(self, seed: int, frames: int, step: tuple[float, float]) -> list[SyntheticBatch]:
+        """A video with exact ground truth: `frames` renders (batches of one, without photometric
+        changes) of one static scene seen by a camera panning `step` (dx, dy) px per frame."""
+        scene = self.sample_scene(batch_size=1, seed=seed)
+        return [self.render(scene.translated(step[0] * t, step[1] * t)) for t in range(frames)]
 
     def sample_scene(self, batch_size: int, seed: int) -> Scene:
         """The scenes that ``generate(batch_size, seed)`` renders."""

@@ -332,9 +332,7 @@ def test_a_real_pair_made_raw_gives_its_true_depth_about_as_well_as_the_rectifie
 def panned_frames(count: int) -> list[tuple[np.ndarray, np.ndarray]]:
     """Consecutive RGB pairs (64x128) of a static procedural scene seen by a panning camera."""
     generator = SceneGenerator(SceneConfig(height=64, width=128, surfaces=6, min_surfaces=3, photometric=None))
-    scene = generator.sample_scene(batch_size=1, seed=5)
-    views = [generator.render(scene.translated(4.0 * t, 0.0)) for t in range(count)]
-    return [tuple(v[0].permute(1, 2, 0).round().byte().numpy() for v in (b.left, b.right)) for b in views]
+    return [batch.pair() for batch in generator.pan(seed=5, frames=count, step=(4.0, 0.0))]
 
 
 def test_a_sequence_of_frames_warm_starts_each_frame_and_a_stereo_video_is_read_frame_by_frame(tmp_path, capsys):

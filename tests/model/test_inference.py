@@ -200,14 +200,7 @@ def test_a_scale_that_leaves_the_network_too_few_pixels_is_refused_not_extrapola
 def panned_frames(count: int, height: int = 64, width: int = 128) -> list[tuple[np.ndarray, np.ndarray]]:
     """Consecutive pairs of a static procedural scene seen by a camera panning 4 px per frame."""
     generator = SceneGenerator(SceneConfig(height=height, width=width, surfaces=6, min_surfaces=3, photometric=None))
-    scene = generator.sample_scene(batch_size=1, seed=11)
-    frames = []
-    for t in range(count):
-        batch = generator.render(scene.translated(4.0 * t, 0.0))
-        frames.append(
-            tuple(view[0].permute(1, 2, 0).round().to(torch.uint8).numpy() for view in (batch.left, batch.right))
-        )
-    return frames
+    return [batch.pair() for batch in generator.pan(seed=11, frames=count, step=(4.0, 0.0))]
 
 
 def test_a_sequence_starts_cold_and_warm_starts_every_next_frame_from_the_previous_one(lite):

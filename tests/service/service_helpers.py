@@ -3,6 +3,7 @@ ASGI, and real uvicorn processes on a free loopback port."""
 
 from __future__ import annotations
 
+import base64
 import itertools
 import subprocess
 import threading
@@ -48,6 +49,12 @@ def stereo_pair(
         interpolation=cv2.INTER_CUBIC,
     )
     return np.ascontiguousarray(texture[:, shift:]), np.ascontiguousarray(texture[:, :width])
+
+
+def decode_array(payload: dict[str, Any]) -> np.ndarray:
+    """A map of a `format=json` answer: base64 of little-endian float32, with its shape."""
+    assert payload["dtype"] == "float32" and payload["byte_order"] == "little"
+    return np.frombuffer(base64.b64decode(payload["data"]), "<f4").reshape(payload["shape"])
 
 
 def assert_same_maps(actual: np.ndarray, expected: np.ndarray) -> None:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import base64
 import io
 import json
 import logging
@@ -18,6 +17,7 @@ from service_helpers import (
     HEIGHT,
     WIDTH,
     assert_same_maps,
+    decode_array,
     encode,
     lite_settings,
     pair_files,
@@ -27,11 +27,6 @@ from service_helpers import (
 from stereo_data.visualize import BAR_HEIGHT, PREVIEW_GAP
 
 pytestmark = pytest.mark.anyio
-
-
-def decode_array(payload: dict) -> np.ndarray:
-    assert payload["dtype"] == "float32" and payload["byte_order"] == "little"
-    return np.frombuffer(base64.b64decode(payload["data"]), "<f4").reshape(payload["shape"])
 
 
 async def test_json_answer_has_maps_equal_to_the_predictor_and_says_how_it_was_computed():

@@ -4,7 +4,6 @@ field named) before anything is computed."""
 
 from __future__ import annotations
 
-import base64
 import io
 
 import cv2
@@ -31,13 +30,9 @@ from raw_camera import (
 )
 
 from client import ServiceError, StereoClient
-from service_helpers import pair_files, serve_asgi, stereo_pair
+from service_helpers import decode_array, pair_files, serve_asgi, stereo_pair
 
 MIDDLE = (slice(60, -60), slice(100, -60))  # the plane, away from the borders rectification leaves black
-
-
-def decode_array(payload: dict) -> np.ndarray:
-    return np.frombuffer(base64.b64decode(payload["data"]), "<f4").reshape(payload["shape"])
 
 
 @pytest.fixture(scope="module")

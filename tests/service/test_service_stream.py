@@ -9,7 +9,6 @@ import json
 
 import numpy as np
 import pytest
-import torch
 from websockets.exceptions import ConnectionClosed, InvalidStatus
 from websockets.sync.client import connect
 
@@ -22,9 +21,7 @@ from stereo_data.synthetic import SceneConfig, SceneGenerator
 def panned_frames(count: int) -> list[tuple[np.ndarray, np.ndarray]]:
     """Consecutive RGB pairs (64x96) of a static procedural scene seen by a panning camera."""
     generator = SceneGenerator(SceneConfig(height=64, width=96, surfaces=6, min_surfaces=3, photometric=None))
-    scene = generator.sample_scene(batch_size=1, seed=7)
-    views = [generator.render(scene.translated(3.0 * t, 0.0)) for t in range(count)]
-    return [tuple(v[0].permute(1, 2, 0).round().to(torch.uint8).numpy() for v in (b.left, b.right)) for b in views]
+    return [batch.pair() for batch in generator.pan(seed=7, frames=count, step=(3.0, 0.0))]
 
 
 def ws_url(base_url: str, query: str = "") -> str:

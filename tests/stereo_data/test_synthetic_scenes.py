@@ -3,6 +3,7 @@
 import math
 from dataclasses import replace
 
+import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
@@ -484,3 +485,13 @@ def test_jpeg_views_carry_compression_artefacts_and_stay_deterministic() -> None
         PhotometricConfig(jpeg_quality=(0, 50))
     with pytest.raises(ValueError):
         PhotometricConfig(vignetting=1.0)
+
+
+def test_a_pan_is_one_scene_rendered_frame_by_frame_and_its_pairs_are_8_bit_images() -> None:
+    generator = SceneGenerator(replace(CLEAN, height=64, width=128))
+    frames = generator.pan(seed=16, frames=3, step=(5.0, 1.0))
+    scene = generator.sample_scene(batch_size=1, seed=16)
+    assert torch.equal(frames[2].left, generator.render(scene.translated(10.0, 2.0)).left)
+    left, right = frames[0].pair()
+    assert left.dtype == right.dtype == np.uint8 and left.shape == (64, 128, 3)
+    assert np.array_equal(left, frames[0].left[0].permute(1, 2, 0).round().to(torch.uint8).numpy())
