@@ -13,7 +13,6 @@ as to `POST /disparity`.
 from __future__ import annotations
 
 import asyncio
-import hmac
 import json
 import logging
 from collections.abc import Awaitable, Callable
@@ -25,6 +24,7 @@ from starlette.websockets import WebSocketState
 
 from model import WarmStart, parse_iterations
 from service.batching import BatchingError
+from service.dependencies import bearer_accepted
 from service.encoding import render
 from service.errors import ApiError, bad_input, batching_answer
 from service.images import ImageHeader
@@ -52,9 +52,8 @@ class _Closing(Exception):
 @router.websocket("/disparity/stream")
 async def stream_disparity(websocket: WebSocket) -> None:
     runtime: ServiceRuntime = websocket.app.state.runtime
-    api_key = runtime.settings.api_key
-    given = websocket.headers.get("authorization", "").removeprefix("Bearer ").encode()
-    if api_key is not None and not hmac.compare_digest(given, api_key.encode()):
+    scheme, _, token = websocket.headers.get("authorization", "").partition(" ")
+    if not bearer_accepted(runtime.settings, token if scheme.lower() == "bearer" else None):
         await websocket.close(code=POLICY_VIOLATION, reason="missing or wrong bearer token")  # HTTP 403
         return
     await websocket.accept()
