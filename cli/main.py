@@ -6,16 +6,16 @@ import argparse
 import sys
 from collections.abc import Sequence
 
-from . import calibrate, evaluate, export, predict, train
+from . import calibrate, evaluate, export, predict, serve, train
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="crestereo-pp",
-        description="CREStereo++ / Lite-CREStereo++ stereo disparity: train, eval, predict, export, calibrate.",
+        description="CREStereo++ / Lite-CREStereo++ stereo disparity: serve, predict, train, eval, export, calibrate.",
     )
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for command in (train, evaluate, predict, export, calibrate):
+    for command in (serve, predict, train, evaluate, export, calibrate):
         command.add_parser(commands)
     return parser
 

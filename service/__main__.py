@@ -58,12 +58,17 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--host", default=os.environ.get("UVICORN_HOST", "127.0.0.1"))
     parser.add_argument("--port", type=int, default=int(os.environ.get("UVICORN_PORT", "8000")))
     args = parser.parse_args(argv)
+    serve(args.host, args.port)
+
+
+def serve(host: str, port: int) -> None:
+    """Serve the app under uvicorn on host:port until SIGTERM or SIGINT (then drain)."""
     shutdown_s = math.ceil(Settings.from_env().drain_timeout_s) + SHUTDOWN_MARGIN_S
     uvicorn.run(
         "service.app:create_app",
         factory=True,
-        host=args.host,
-        port=args.port,
+        host=host,
+        port=port,
         timeout_graceful_shutdown=shutdown_s,
         **SERVER_LIMITS,
     )

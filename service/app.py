@@ -18,11 +18,16 @@ from service.settings import Settings
 API_VERSION = "1.0.0"  # version of the HTTP contract in openapi.yaml
 
 
-def create_app(settings: Settings | None = None, loader: ModelLoader = load_model) -> FastAPI:
+def create_app(
+    settings: Settings | None = None, loader: ModelLoader = load_model, load_before_serving: bool = False
+) -> FastAPI:
     """Build the app; its lifespan loads the models once and runs the batching worker.
 
     settings: defaults to `Settings.from_env()` (the `CRESTEREO_*` variables).
     loader: `model.load_model`, or a wrapper of it (tests inject faults through it).
+    load_before_serving: the lifespan's startup returns only once the models are loaded (and
+        fails where they cannot be), for a host that routes to an instance only after its startup
+        (a Ray Serve replica); by default the app starts at once and answers 503 `loading` meanwhile.
     """
     settings = settings or Settings.from_env()
     configure_logging(settings.log_level)
@@ -32,6 +37,8 @@ def create_app(settings: Settings | None = None, loader: ModelLoader = load_mode
     async def lifespan(_: FastAPI) -> AsyncIterator[None]:
         await runtime.start()
         try:
+            if load_before_serving:
+                await runtime.models_loaded()
             yield
         finally:
             await runtime.stop()

@@ -54,6 +54,7 @@ class ServiceRuntime:
         )
         self.rectifiers = RectifierCache()  # raw pairs: one rectifier per recent calibration
         self.drain_over = asyncio.Event()  # set when the drain timeout has passed
+        self._load_finished = asyncio.Event()  # set when the models loaded, or failed to
         self._loader = loader
         self._executor: DaemonWorker | None = None
         self._tasks: set[asyncio.Task[None]] = set()
@@ -77,6 +78,12 @@ class ServiceRuntime:
         await self.decoders.close()
         if self._executor is not None:  # a batch abandoned at the drain timeout is not waited for
             await asyncio.to_thread(self._executor.shutdown, wait=not self._executor.busy, cancel_futures=True)
+
+    async def models_loaded(self) -> None:
+        """Return once the models are loaded (RuntimeError where they failed to load)."""
+        await self._load_finished.wait()
+        if self.state == "failed":
+            raise RuntimeError("models failed to load; see the log above")
 
     def begin_drain(self) -> None:
         """Stop admitting work; after `drain_timeout_s`, answer what is still queued or computing
@@ -170,6 +177,7 @@ class ServiceRuntime:
         except Exception:
             logger.exception("model loading failed; the service stays unready")
             self.state = "failed"
+            self._load_finished.set()
             return
         assert self._executor is not None
         self.batcher = Batcher(self.settings, StereoBatches(self.predictors), self._executor, self.metrics)
@@ -178,6 +186,7 @@ class ServiceRuntime:
             self.state = "ready"
         else:  # SIGTERM came while loading
             self.batcher.begin_drain()
+        self._load_finished.set()
 
     async def _expire_drain(self, batcher: StereoBatcher) -> None:
         await asyncio.sleep(self.settings.drain_timeout_s)

@@ -1,0 +1,218 @@
+"""The service as a Ray Serve application: the same FastAPI app in each replica, replicas across a
+Ray cluster, Ray's HTTP proxy in front (`crestereo-pp serve --ray`).
+
+Each replica is one `create_app(...)` with its own batcher, decoder processes, limits and
+metrics; it joins the routing only once its models are loaded, and Ray replaces it where its
+liveness fails. Ray is an optional dependency (`pip install 'crestereo-pp[ray]'`): nothing else in
+the service imports this module.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import threading
+from collections.abc import Mapping
+from dataclasses import dataclass
+from types import FrameType
+from typing import Any
+
+from fastapi import FastAPI
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from service.app import create_app
+from service.settings import ENV_PREFIX, Settings
+
+try:
+    import ray
+    from ray import serve
+
+    HAVE_RAY = True
+except ImportError:  # the `ray` extra is not installed
+    HAVE_RAY = False
+
+APP_NAME = "crestereo-pp"
+REPLICA_HEADER = "X-Replica"
+PROXY_CALLBACK = "service.ray_proxy.proxy_middlewares"
+"""Import path of the callback that gives Ray's HTTP proxy its middleware."""
+
+logger = logging.getLogger(__name__)
+
+
+def require_ray() -> None:
+    """Raise a clear error where the `ray` extra is not installed."""
+    if not HAVE_RAY:
+        raise ValueError("--ray needs Ray Serve: pip install 'crestereo-pp[ray]' (or 'ray[serve]')")
+
+
+@dataclass(frozen=True)
+class Scale:
+    """How many replicas, and each one's CPU share (its torch threads).
+
+    replicas: a fixed count (None: 1), or min_replicas..max_replicas for autoscaling on ongoing
+    requests. cpus: CPUs reserved per replica in the Ray cluster; None: the cluster's CPUs over
+    the most replicas, capped by the largest node's.
+    """
+
+    replicas: int | None = None
+    min_replicas: int | None = None
+    max_replicas: int | None = None
+    cpus: int | None = None
+
+    def __post_init__(self) -> None:
+        autoscaled = self.min_replicas is not None or self.max_replicas is not None
+        if autoscaled and self.replicas is not None:
+            raise ValueError("give --replicas, or --min-replicas and --max-replicas, not both")
+        if autoscaled and (self.min_replicas is None or self.max_replicas is None):
+            raise ValueError("autoscaling needs both --min-replicas and --max-replicas")
+        if self.min_replicas is not None and self.max_replicas is not None:
+            if not 0 <= self.min_replicas <= self.max_replicas or self.max_replicas < 1:
+                raise ValueError("need 0 <= --min-replicas <= --max-replicas and --max-replicas >= 1")
+        if self.replicas is not None and self.replicas < 1:
+            raise ValueError("--replicas must be at least 1")
+        if self.cpus is not None and self.cpus < 1:
+            raise ValueError("--replica-cpus must be at least 1")
+
+    @property
+    def autoscaled(self) -> bool:
+        return self.max_replicas is not None
+
+    @property
+    def most_replicas(self) -> int:
+        return self.max_replicas if self.max_replicas is not None else self.replicas or 1
+
+    def cpus_per_replica(self, cluster_cpus: float, largest_node_cpus: float) -> int:
+        """The CPU share of one replica on a cluster of this size (at least 1)."""
+        if self.cpus is not None:
+            return self.cpus
+        return max(1, min(int(cluster_cpus) // self.most_replicas, int(largest_node_cpus)))
+
+
+class ReplicaHeaderMiddleware:
+    """Names the replica that computed each HTTP answer in `X-Replica`."""
+
+    def __init__(self, app: ASGIApp, replica: str) -> None:
+        self.app = app
+        self.header = (REPLICA_HEADER.lower().encode(), replica.encode())
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+
+        async def send_with_replica(message: Message) -> None:
+            if message["type"] == "http.response.start":
+                message["headers"] = [*message.get("headers", []), self.header]
+            await send(message)
+
+        await self.app(scope, receive, send_with_replica)
+
+
+def _deployment() -> Any:
+    """The Ray Serve deployment class (defined where Ray is installed)."""
+
+    @serve.ingress()
+    class StereoReplica:
+        """One replica: the service's FastAPI app, its models loaded before it joins the routing."""
+
+        def __init__(self, settings: Settings) -> None:
+            self.settings = settings
+            self.replica = serve.get_replica_context().replica_id.unique_id
+            self.fastapi: FastAPI | None = None
+
+        def __serve_build_asgi_app__(self) -> FastAPI:
+            self.fastapi = create_app(self.settings, load_before_serving=True)
+            self.fastapi.add_middleware(ReplicaHeaderMiddleware, replica=self.replica)
+            return self.fastapi
+
+        def check_health(self) -> None:
+            """Ray's liveness check: a replica whose worker died is replaced."""
+            if self.fastapi is not None and not self.fastapi.state.runtime.is_alive:
+                raise RuntimeError("the inference worker stopped; this replica is replaced")
+
+    return StereoReplica
+
+
+def build_application(settings: Settings, scale: Scale, cpus: int, environment: Mapping[str, str]) -> Any:
+    """The bound Ray Serve application: `scale` replicas of `cpus` CPUs each, whose threads are
+    those CPUs. `environment`: the `CRESTEREO_*` variables the replicas get (logging, cache)."""
+    settings = settings.model_copy(update={"threads": cpus})
+    options: dict[str, Any] = {
+        "ray_actor_options": {"num_cpus": cpus, "runtime_env": {"env_vars": dict(environment)}},
+        # Each replica admits up to its own limit and answers its own 503s beyond it; Ray's proxy
+        # queues at most `max_queue` more per replica and answers 503 with Retry-After beyond.
+        "max_ongoing_requests": settings.max_requests,
+        "max_queued_requests": settings.max_queue * scale.most_replicas,
+        "graceful_shutdown_timeout_s": settings.drain_timeout_s,
+        "health_check_period_s": 5,
+    }
+    if not scale.autoscaled:
+        options["num_replicas"] = scale.most_replicas
+    else:
+        options["autoscaling_config"] = {
+            "min_replicas": scale.min_replicas,
+            "max_replicas": scale.max_replicas,
+            "target_ongoing_requests": settings.max_batch_size,
+        }
+    return serve.deployment(name="StereoReplica", **options)(_deployment()).bind(settings)
+
+
+def service_environment(environ: Mapping[str, str] | None = None) -> dict[str, str]:
+    """The `CRESTEREO_*` variables of this process (the replicas get the same)."""
+    environ = os.environ if environ is None else environ
+    return {name: value for name, value in environ.items() if name.startswith(ENV_PREFIX)}
+
+
+def cluster_cpus() -> tuple[float, float]:
+    """CPUs of the connected Ray cluster: in all, and on its largest node."""
+    nodes = [node for node in ray.nodes() if node.get("Alive")]  # type: ignore[no-untyped-call]
+    per_node = [float(node["Resources"].get("CPU", 0)) for node in nodes]
+    return sum(per_node), max(per_node, default=0.0)
+
+
+def serve_on_ray(host: str, port: int, scale: Scale, address: str | None = None) -> None:
+    """Run the service on Ray until SIGTERM or SIGINT, answering on host:port (Ray's proxy).
+
+    address: an existing cluster (`ray start --head` printed it; `auto` finds a local one), left
+    running afterwards with this application removed; None: a local cluster of this machine's
+    CPUs, started here and stopped again.
+    """
+    require_ray()
+    settings = Settings.from_env()  # checked here, before any cluster starts
+    stop = threading.Event()
+
+    def on_signal(signum: int, frame: FrameType | None) -> None:
+        stop.set()
+
+    # Read from the environment by the processes Ray starts: the proxy's middleware, and time for
+    # the proxy to start on a busy machine (Ray's default of 5 s fails it there).
+    os.environ["RAY_SERVE_HTTP_PROXY_CALLBACK_IMPORT_PATH"] = PROXY_CALLBACK
+    os.environ.setdefault("RAY_SERVE_PROXY_READY_CHECK_TIMEOUT_S", "30")
+    if address is None:
+        from service.cpu import usable_cpus
+
+        ray.init(num_cpus=usable_cpus(), include_dashboard=False, logging_level=logging.WARNING)
+    else:
+        ray.init(address=address, logging_level=logging.WARNING)
+    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}  # after Ray's own
+    try:
+        cpus = scale.cpus_per_replica(*cluster_cpus())
+        serve.start(http_options={"host": host, "port": port})
+        application = build_application(settings, scale, cpus, service_environment())
+        serve.run(application, name=APP_NAME, route_prefix="/")
+        logger.info(
+            "serving on ray",
+            extra={"url": f"http://{host}:{port}", "replicas": scale.most_replicas, "cpus_per_replica": cpus},
+        )
+        print(f"crestereo-pp: serving on http://{host}:{port} (Ray Serve, {cpus} CPU(s) per replica)", flush=True)
+        while not stop.wait(0.5):
+            pass
+        print("crestereo-pp: stopping", flush=True)
+        serve.delete(APP_NAME)
+        if address is None:
+            serve.shutdown()  # type: ignore[no-untyped-call]
+    finally:
+        ray.shutdown()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
