@@ -13,6 +13,7 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
+from model import FrameStream
 from model.options import parse_iterations
 from stereo_data.formats import encode_png, read_image, write_depth, write_disparity, write_uncertainty
 from stereo_data.pointcloud import (
@@ -146,6 +147,20 @@ def add_parser(commands: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         help="write the paper's raw U instead of the calibrated P(error > 2 px) the weights define",
     )
     add_model_options(parser)
+    ray = parser.add_argument_group("Ray (many pairs over a cluster)")
+    ray.add_argument(
+        "--ray",
+        action="store_true",
+        help="folders or globs of pairs as a Ray job: a pool of workers, each loading the model once; pairs whose "
+        "outputs all exist are skipped (a re-run finishes an interrupted job); a pair that fails is reported and "
+        "the others go on (needs the `ray` extra)",
+    )
+    ray.add_argument(
+        "--address", help="--ray: an existing Ray cluster (`auto`, or the head's host:port) [a local one, started here]"
+    )
+    ray.add_argument(
+        "--workers", type=int, metavar="N", help="--ray: workers, each with an equal share of the CPUs [one per CPU]"
+    )
     parser.set_defaults(run=run)
 
 
@@ -283,7 +298,21 @@ def check_outputs(targets: list[Output], single: bool, mkdir: bool) -> None:
             )
 
 
-def run(args: argparse.Namespace) -> int:
+@dataclass(frozen=True)
+class Job:
+    """What the command computes for each pair and where it writes it (from its arguments)."""
+
+    args: argparse.Namespace
+    targets: list[Output]
+    single: bool
+    rectifier: Rectifier | None
+    calibration: Calibration | None
+    limits: DepthRange
+
+
+def plan(args: argparse.Namespace) -> Job:
+    """The job the arguments describe; ValueError, before any model is loaded, where they are
+    inconsistent or an output could not be written."""
     if (args.focal_px is None) != (args.baseline_m is None):
         raise ValueError("give both --focal-px and --baseline-m, or neither")
     if args.calibration is not None and args.focal_px is not None:
@@ -292,18 +321,12 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError("--frame original needs --calibration (a rectified pair has no other frame)")
     if args.depth is not None and args.focal_px is None and args.calibration is None:
         raise ValueError("--depth needs --calibration, or --focal-px and --baseline-m")
-    rectifier = None if args.calibration is None else Rectifier(read_rig(args.calibration))
-    limits = DepthRange(args.min_disparity, args.max_depth_m)
     if args.warm_iters is not None and not args.sequence:
         raise ValueError("--warm-iters needs --sequence (only a sequence's frames start warm)")
-    warm_iters = parse_iterations(args.warm_iters)
-    count, frames = read_frames(args.left, args.right)
+    rectifier = None if args.calibration is None else Rectifier(read_rig(args.calibration))
     single = is_single_pair(args.left, args.right)
     targets = outputs(args)
     check_outputs(targets, single, args.mkdir)
-    predictor = load_predictor(args)
-    options = inference_options(args)
-    stream = predictor.stream(options, warm_iters)
     calibration = (
         rectifier.depth_calibration
         if rectifier is not None
@@ -311,43 +334,73 @@ def run(args: argparse.Namespace) -> int:
         if args.focal_px is None
         else Calibration(args.focal_px, args.baseline_m, args.cx, args.cy)
     )
+    return Job(args, targets, single, rectifier, calibration, DepthRange(args.min_disparity, args.max_depth_m))
+
+
+def is_complete(job: Job, pair: PairPaths) -> bool:
+    """Whether every output of `pair` exists (each is written whole or not at all)."""
+    return all(output.file(pair, job.single).is_file() for output in job.targets)
+
+
+def predict_and_write(job: Job, stream: FrameStream, frame: Frame) -> None:
+    """Compute one pair (rectified first where the job has a calibration; warm-started from the
+    stream's previous pair only with --sequence) and write its outputs, each to a temporary name
+    first and then renamed: an interrupted run leaves no partial file."""
+    args, pair, left, right = job.args, frame.pair, frame.left, frame.right
+    if not args.sequence:
+        stream.restart()  # every pair on its own
+    if job.rectifier is not None:
+        left, right = job.rectifier.rectify(left, right)
+    prediction = stream.predict(left, right)
+    disparity, uncertainty = prediction.disparity, prediction.uncertainty
+    depth = None if job.calibration is None else metric_depth(disparity, job.calibration, job.limits)
+    if job.rectifier is not None and args.frame == "original":
+        disparity = job.rectifier.to_original(disparity, np.inf)
+        uncertainty = job.rectifier.to_original(uncertainty, 1.0)
+        depth = None if depth is None else job.rectifier.to_original_depth(depth)
+    for output in job.targets:
+        path = output.file(pair, job.single)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        partial = path.with_name(f".{path.stem}.partial{path.suffix}")
+        if output.flag == "--output":
+            write_disparity(partial, disparity)
+        elif output.flag == "--uncertainty":
+            write_uncertainty(partial, uncertainty)
+        elif output.flag == "--depth":
+            assert depth is not None  # checked in plan()
+            write_depth(partial, depth)
+        elif output.flag == "--color":
+            shown = np.where(np.isfinite(disparity), disparity, 0.0)
+            scale = scale_range(shown, args.color_min, args.color_max)
+            partial.write_bytes(encode_png(disparity_picture(shown, scale)))
+        else:  # points in the (rectified) left camera's frame, coloured by the image the network saw
+            points, colors = point_cloud(
+                prediction.disparity, left, prediction.uncertainty, job.calibration, args.max_uncertainty, job.limits
+            )
+            frame_name = IMAGE_FRAME if job.calibration is None else METRIC_FRAME
+            partial.write_bytes(encode_ply(points, colors, frame_name))
+        os.replace(partial, path)
+        if job.single:
+            print(f"wrote {output.what} {path}")
+
+
+def run(args: argparse.Namespace) -> int:
+    job = plan(args)
+    if args.ray:
+        from .ray_predict import run_on_ray
+
+        return run_on_ray(job)
+    if args.address is not None or args.workers is not None:
+        raise ValueError("--address and --workers only apply with --ray")
+    warm_iters = parse_iterations(args.warm_iters)
+    count, frames = read_frames(args.left, args.right)
+    predictor = load_predictor(args)
+    stream = predictor.stream(inference_options(args), warm_iters)
     written = 0
-    for frame in tqdm(frames, total=count, desc=f"predict {args.model}", unit="pair", disable=single):
-        pair, left, right = frame.pair, frame.left, frame.right
-        if rectifier is not None:
-            left, right = rectifier.rectify(left, right)
-        if not args.sequence:
-            stream.restart()  # every pair on its own
-        prediction = stream.predict(left, right)
-        disparity, uncertainty = prediction.disparity, prediction.uncertainty
-        depth = None if calibration is None else metric_depth(disparity, calibration, limits)
-        if rectifier is not None and args.frame == "original":
-            disparity = rectifier.to_original(disparity, np.inf)
-            uncertainty = rectifier.to_original(uncertainty, 1.0)
-            depth = None if depth is None else rectifier.to_original_depth(depth)
-        for output in targets:
-            path = output.file(pair, single)
-            path.parent.mkdir(parents=True, exist_ok=True)
-            if output.flag == "--output":
-                write_disparity(path, disparity)
-            elif output.flag == "--uncertainty":
-                write_uncertainty(path, uncertainty)
-            elif output.flag == "--depth":
-                assert depth is not None  # checked above
-                write_depth(path, depth)
-            elif output.flag == "--color":
-                shown = np.where(np.isfinite(disparity), disparity, 0.0)
-                scale = scale_range(shown, args.color_min, args.color_max)
-                path.write_bytes(encode_png(disparity_picture(shown, scale)))
-            else:  # points in the (rectified) left camera's frame, coloured by the image the network saw
-                points, colors = point_cloud(
-                    prediction.disparity, left, prediction.uncertainty, calibration, args.max_uncertainty, limits
-                )
-                path.write_bytes(encode_ply(points, colors, IMAGE_FRAME if calibration is None else METRIC_FRAME))
-            if single:
-                print(f"wrote {output.what} {path}")
+    for frame in tqdm(frames, total=count, desc=f"predict {args.model}", unit="pair", disable=job.single):
+        predict_and_write(job, stream, frame)
         written += 1
-    if not single:  # every output was written once per pair (any failure stops the command)
-        for output in targets:
+    if not job.single:  # every output was written once per pair (any failure stops the command)
+        for output in job.targets:
             print(f"wrote {written} {output.what} files to {output.path}")
     return 0

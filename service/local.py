@@ -10,7 +10,7 @@ import socket
 import subprocess
 import sys
 import time
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -47,14 +47,18 @@ class LocalService:
 
 
 def start_service(
-    settings: Mapping[str, str], log: IO[bytes] | None = None, ready_timeout_s: float = 90
+    settings: Mapping[str, str],
+    log: IO[bytes] | None = None,
+    ready_timeout_s: float = 90,
+    command: Sequence[str] = ("-m", "service"),
 ) -> LocalService:
-    """`python -m service` from this tree on a free loopback port, with the environment plus
+    """`python -m service` (or `python COMMAND`, a command that takes --host and --port, such as
+    `-m cli.main serve --ray`) from this tree on a free loopback port, with the environment plus
     `settings` (`CRESTEREO_*` variables), its output to `log`; returns once `/health/ready` answers
     200. Raises RuntimeError (the process stopped) when it exits or is not ready in time."""
     port = free_port()
     process = subprocess.Popen(
-        [sys.executable, "-m", "service", "--host", "127.0.0.1", "--port", str(port)],
+        [sys.executable, *command, "--host", "127.0.0.1", "--port", str(port)],
         cwd=REPO,
         env={**os.environ, **settings},
         stdout=log,

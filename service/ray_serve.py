@@ -9,6 +9,7 @@ the service imports this module.
 
 from __future__ import annotations
 
+import importlib.util
 import logging
 import os
 import signal
@@ -22,15 +23,10 @@ from fastapi import FastAPI
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service.app import create_app
+from service.cpu import usable_cpus
 from service.settings import ENV_PREFIX, Settings
 
-try:
-    import ray
-    from ray import serve
-
-    HAVE_RAY = True
-except ImportError:  # the `ray` extra is not installed
-    HAVE_RAY = False
+HAVE_RAY = importlib.util.find_spec("ray") is not None  # imported where used: it takes seconds
 
 APP_NAME = "crestereo-pp"
 REPLICA_HEADER = "X-Replica"
@@ -82,11 +78,9 @@ class Scale:
     def most_replicas(self) -> int:
         return self.max_replicas if self.max_replicas is not None else self.replicas or 1
 
-    def cpus_per_replica(self, cluster_cpus: float, largest_node_cpus: float) -> int:
-        """The CPU share of one replica on a cluster of this size (at least 1)."""
-        if self.cpus is not None:
-            return self.cpus
-        return max(1, min(int(cluster_cpus) // self.most_replicas, int(largest_node_cpus)))
+    def cpus_per_replica(self) -> int:
+        """The CPU share of one replica on the connected cluster."""
+        return self.cpus if self.cpus is not None else cpu_share(self.most_replicas)[1]
 
 
 class ReplicaHeaderMiddleware:
@@ -111,6 +105,7 @@ class ReplicaHeaderMiddleware:
 
 def _deployment() -> Any:
     """The Ray Serve deployment class (defined where Ray is installed)."""
+    from ray import serve
 
     @serve.ingress()
     class StereoReplica:
@@ -137,6 +132,8 @@ def _deployment() -> Any:
 def build_application(settings: Settings, scale: Scale, cpus: int, environment: Mapping[str, str]) -> Any:
     """The bound Ray Serve application: `scale` replicas of `cpus` CPUs each, whose threads are
     those CPUs. `environment`: the `CRESTEREO_*` variables the replicas get (logging, cache)."""
+    from ray import serve
+
     settings = settings.model_copy(update={"threads": cpus})
     options: dict[str, Any] = {
         "ray_actor_options": {"num_cpus": cpus, "runtime_env": {"env_vars": dict(environment)}},
@@ -164,11 +161,27 @@ def service_environment(environ: Mapping[str, str] | None = None) -> dict[str, s
     return {name: value for name, value in environ.items() if name.startswith(ENV_PREFIX)}
 
 
-def cluster_cpus() -> tuple[float, float]:
-    """CPUs of the connected Ray cluster: in all, and on its largest node."""
+def connect(address: str | None) -> None:
+    """Join the Ray cluster at `address` (`auto`, or the head's host:port), or start a local one
+    of this machine's usable CPUs (stopped again by `ray.shutdown()`)."""
+    import ray
+
+    if address is None:
+        ray.init(num_cpus=usable_cpus(), include_dashboard=False, logging_level=logging.WARNING)
+    else:
+        ray.init(address=address, logging_level=logging.WARNING)
+
+
+def cpu_share(count: int | None) -> tuple[int, int]:
+    """`count` workers' equal shares of the connected cluster's CPUs, as (count, CPUs each): at
+    least 1 CPU, and no more than its largest node has. None: one worker per CPU."""
+    import ray
+
     nodes = [node for node in ray.nodes() if node.get("Alive")]  # type: ignore[no-untyped-call]
-    per_node = [float(node["Resources"].get("CPU", 0)) for node in nodes]
-    return sum(per_node), max(per_node, default=0.0)
+    per_node = [int(node["Resources"].get("CPU", 0)) for node in nodes]
+    if count is None:
+        return max(1, sum(per_node)), 1
+    return count, max(1, min(sum(per_node) // count, max(per_node, default=1)))
 
 
 def serve_on_ray(host: str, port: int, scale: Scale, address: str | None = None) -> None:
@@ -179,6 +192,9 @@ def serve_on_ray(host: str, port: int, scale: Scale, address: str | None = None)
     CPUs, started here and stopped again.
     """
     require_ray()
+    import ray
+    from ray import serve
+
     settings = Settings.from_env()  # checked here, before any cluster starts
     stop = threading.Event()
 
@@ -189,15 +205,10 @@ def serve_on_ray(host: str, port: int, scale: Scale, address: str | None = None)
     # the proxy to start on a busy machine (Ray's default of 5 s fails it there).
     os.environ["RAY_SERVE_HTTP_PROXY_CALLBACK_IMPORT_PATH"] = PROXY_CALLBACK
     os.environ.setdefault("RAY_SERVE_PROXY_READY_CHECK_TIMEOUT_S", "30")
-    if address is None:
-        from service.cpu import usable_cpus
-
-        ray.init(num_cpus=usable_cpus(), include_dashboard=False, logging_level=logging.WARNING)
-    else:
-        ray.init(address=address, logging_level=logging.WARNING)
+    connect(address)
     previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}  # after Ray's own
     try:
-        cpus = scale.cpus_per_replica(*cluster_cpus())
+        cpus = scale.cpus_per_replica()
         serve.start(http_options={"host": host, "port": port})
         application = build_application(settings, scale, cpus, service_environment())
         serve.run(application, name=APP_NAME, route_prefix="/")

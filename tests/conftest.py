@@ -21,7 +21,13 @@ pytest_plugins = ["service_helpers", "web_helpers"]
 
 SLOW_FIXTURES = {"default_server", "browser", "web"}  # a real uvicorn process, Chromium
 SLOW_FOLDERS = ("container",)  # a Docker engine and image
-SLOW_MODULES = {"test_train_distributed.py", "test_gpu_check.py", "test_service_schemathesis.py"}
+SLOW_MODULES = {
+    "test_train_distributed.py",
+    "test_gpu_check.py",
+    "test_service_schemathesis.py",
+    "test_ray_serve.py",  # a local Ray cluster
+    "test_ray_predict.py",
+}
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:

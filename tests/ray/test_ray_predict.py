@@ -1,0 +1,82 @@
+"""`crestereo-pp predict --ray`: folders of real pairs as a Ray job on a local cluster (lite on
+torch, two workers), against the plain command."""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from ray_helpers import write_pairs
+
+from cli.main import main
+from service_helpers import REPO, assert_same_maps
+from stereo_data.formats import read_pfm
+
+pytest.importorskip("ray", reason="the `ray` extra is not installed")
+
+
+def ray_job(lefts: Path, rights: Path, out: Path, *extra: str) -> subprocess.Popen[str]:
+    command = [sys.executable, "-m", "cli.main", "predict", str(lefts), str(rights), "-o", str(out / "disparity")]
+    command += ["--uncertainty", str(out / "uncertainty"), "--mkdir", "--backend", "torch", "--ray", "--workers", "2"]
+    environment = {**os.environ, "PYTHONWARNINGS": "ignore::RuntimeWarning"}
+    return subprocess.Popen(
+        [*command, *extra], cwd=REPO, env=environment, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+    )
+
+
+def finished(job: subprocess.Popen[str]) -> tuple[int, str]:
+    output, _ = job.communicate(timeout=600)
+    return job.returncode, output
+
+
+def test_the_ray_job_writes_the_plain_commands_maps_and_reports_a_bad_pair_without_stopping(tmp_path: Path):
+    lefts, rights = write_pairs(tmp_path / "pairs", 4)
+    plain = tmp_path / "plain"
+    assert main(["predict", str(lefts), str(rights), "-o", str(plain), "--mkdir", "--backend", "torch"]) == 0
+    (lefts / "pair_99.png").write_bytes(b"not an image")
+    (rights / "pair_99.png").write_bytes(b"not an image")
+
+    status, output = finished(ray_job(lefts, rights, tmp_path / "ray"))
+
+    assert status == 1, output  # a pair failed
+    assert "computed 4 pair(s)" in output and "failed 1" in output
+    assert re.search(r"failed \S*pair_99\.png \S*pair_99\.png: FormatError: .*not a readable image", output), output
+    for index in range(4):
+        computed = read_pfm(tmp_path / "ray" / "disparity" / f"pair_{index:02d}.pfm")
+        assert_same_maps(computed, read_pfm(plain / f"pair_{index:02d}.pfm"))
+        assert (tmp_path / "ray" / "uncertainty" / f"pair_{index:02d}.pfm").is_file()
+    assert not (tmp_path / "ray" / "disparity" / "pair_99.pfm").exists()
+
+
+def test_an_interrupted_job_run_again_computes_only_the_pairs_it_had_not_finished(tmp_path: Path):
+    count = 12
+    lefts, rights = write_pairs(tmp_path / "pairs", count)
+    out = tmp_path / "out"
+    job = ray_job(lefts, rights, out)
+    deadline = time.monotonic() + 300
+    while not list((out / "uncertainty").glob("*.pfm")):
+        assert job.poll() is None and time.monotonic() < deadline, "no pair was written"
+        time.sleep(0.05)
+    job.send_signal(signal.SIGINT)
+    status, output = finished(job)
+    done = [
+        index
+        for index in range(count)
+        if all((out / kind / f"pair_{index:02d}.pfm").is_file() for kind in ("disparity", "uncertainty"))
+    ]
+    assert status == 130 and "interrupted" in output, output
+    assert 0 < len(done) < count, output
+
+    status, output = finished(ray_job(lefts, rights, out))
+
+    assert status == 0, output
+    assert f"skipping {len(done)} pair(s)" in output
+    assert f"computed {count - len(done)} pair(s)" in output
+    for kind in ("disparity", "uncertainty"):
+        assert sorted(path.name for path in (out / kind).iterdir()) == [f"pair_{i:02d}.pfm" for i in range(count)]
