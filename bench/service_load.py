@@ -82,22 +82,25 @@ def server_settings(backend: str, max_batch_size: int, threads: int) -> dict[str
 
 def run_cell(
     base_url: str, files: dict[str, Any], concurrency: int, requests: int
-) -> tuple[float, list[float], list[int]]:
-    """Send `requests` requests from `concurrency` threads; wall seconds, latencies, batch sizes."""
+) -> tuple[float, list[float], list[int], set[str]]:
+    """Send `requests` requests from `concurrency` threads; wall seconds, latencies, batch sizes,
+    and the replicas that answered (`X-Replica`, behind Ray Serve; else none)."""
     limits = httpx.Limits(max_connections=concurrency)
     with httpx.Client(base_url=base_url, timeout=600, limits=limits) as client:
 
-        def one(_: int) -> tuple[float, int]:
+        def one(_: int) -> tuple[float, int, str | None]:
             started = time.perf_counter()
             response = client.post("/disparity", params={"format": "npz"}, files=files)
             response.raise_for_status()
-            return (time.perf_counter() - started) * 1000, int(response.headers["x-batch-size"])
+            headers = response.headers
+            return (time.perf_counter() - started) * 1000, int(headers["x-batch-size"]), headers.get("x-replica")
 
         started = time.perf_counter()
         with ThreadPoolExecutor(concurrency) as pool:
             results = list(pool.map(one, range(requests)))
         seconds = time.perf_counter() - started
-    return seconds, [latency for latency, _ in results], [batch for _, batch in results]
+    replicas = {replica for *_, replica in results if replica is not None}
+    return seconds, [latency for latency, *_ in results], [batch for _, batch, _ in results], replicas
 
 
 def wait_compiled(base_url: str, files: dict[str, Any], timeout_s: float = 600.0) -> None:
@@ -125,7 +128,7 @@ def measure(backend: str, batching: bool, args: argparse.Namespace, log_dir: Pat
             run_cell(base_url, files, top, max(2, 2 * top if batching else 2))  # warm-up: compiles the batch shapes
             for concurrency in args.concurrency:
                 requests = max(args.requests, 2 * concurrency)
-                seconds, latencies, batches = run_cell(base_url, files, concurrency, requests)
+                seconds, latencies, batches, _ = run_cell(base_url, files, concurrency, requests)
                 cell = Cell(backend, batching, (height, width), concurrency, requests, seconds, latencies, batches)
                 cells.append(cell)
                 print(row(cell), flush=True)

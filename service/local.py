@@ -82,10 +82,13 @@ def start_service(
 
 @contextmanager
 def local_service(
-    settings: Mapping[str, str], log: IO[bytes] | None = None, ready_timeout_s: float = 90
+    settings: Mapping[str, str],
+    log: IO[bytes] | None = None,
+    ready_timeout_s: float = 90,
+    command: Sequence[str] = ("-m", "service"),
 ) -> Iterator[LocalService]:
     """`start_service` for the duration of a `with` block, stopped at its end."""
-    service = start_service(settings, log, ready_timeout_s)
+    service = start_service(settings, log, ready_timeout_s, command)
     try:
         yield service
     finally:
