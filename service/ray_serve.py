@@ -155,6 +155,21 @@ def build_application(settings: Settings, scale: Scale, cpus: int, environment: 
     return serve.deployment(name="StereoReplica", **options)(_deployment()).bind(settings)
 
 
+def app(args: dict[str, str]) -> Any:
+    """Ray Serve's application builder, for `serve run service.ray_serve:app replicas=2` and for a
+    config file (KubeRay's RayService: `import_path: service.ray_serve:app`). Arguments, all
+    optional: `replicas`, or `min_replicas` and `max_replicas`; `replica_cpus`. The `CRESTEREO_*`
+    variables of the process that builds it configure the replicas."""
+    known = {"replicas", "min_replicas", "max_replicas", "replica_cpus"}
+    if set(args) - known:
+        raise ValueError(f"unknown arguments {sorted(set(args) - known)}; known: {sorted(known)}")
+    numbers = {name: int(value) for name, value in args.items()}
+    scale = Scale(
+        numbers.get("replicas"), numbers.get("min_replicas"), numbers.get("max_replicas"), numbers.get("replica_cpus")
+    )
+    return build_application(Settings.from_env(), scale, scale.cpus_per_replica(), service_environment())
+
+
 def service_environment(environ: Mapping[str, str] | None = None) -> dict[str, str]:
     """The `CRESTEREO_*` variables of this process (the replicas get the same)."""
     environ = os.environ if environ is None else environ
