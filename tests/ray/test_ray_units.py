@@ -104,3 +104,10 @@ def test_ray_jobs_refuse_a_video_or_a_sequence(tmp_path: Path, capsys):
         main(["predict", str(lefts), str(rights), "-o", str(tmp_path / "out"), "--mkdir", "--sequence", "--ray"]) == 2
     )
     assert "--ray takes folders or globs of pairs" in capsys.readouterr().err
+
+
+def test_the_application_builder_refuses_unknown_arguments():
+    from service.ray_serve import app
+
+    with pytest.raises(ValueError, match="unknown arguments \\['replica'\\]"):
+        app({"replica": "2"})
