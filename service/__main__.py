@@ -70,6 +70,11 @@ def serve(host: str, port: int) -> None:
         host=host,
         port=port,
         timeout_graceful_shutdown=shutdown_s,
+        # h11 and asyncio, named: uvicorn picks httptools and uvloop wherever they are installed
+        # (Ray Serve installs both), and the head-size limit above is h11's (httptools answers a
+        # long request line with its own text 400 before the app can answer its JSON 414).
+        http="h11",
+        loop="asyncio",
         **SERVER_LIMITS,
     )
     # Only reached where SIGTERM does not end the process (uvicorn re-raises it; PID 1 ignores
