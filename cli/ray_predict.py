@@ -15,6 +15,7 @@ from typing import Any
 
 from tqdm import tqdm
 
+from service.cpu import configure_torch_threads
 from service.ray_serve import connect, cpu_share, require_ray
 
 from .options import inference_options, load_predictor
@@ -35,9 +36,7 @@ class PairWorker:
     """One worker of the pool: the command's job and a loaded model (a Ray actor's body)."""
 
     def __init__(self, args: argparse.Namespace, threads: int) -> None:
-        import torch
-
-        torch.set_num_threads(threads)
+        configure_torch_threads(threads)
         self.job = plan(args)
         self.stream = load_predictor(args).stream(inference_options(args), None)
 
@@ -117,13 +116,11 @@ def _run_pool(pool: list[Any], todo: list[PairPaths], model: str) -> tuple[list[
                 results.append(ray.get(done))
             except ray.exceptions.RayActorError as error:
                 results.append(PairResult(pair, f"its worker died: {error.__class__.__name__}"))
-                progress.update(1)
-                if not running and waiting:  # no worker left alive to take the rest
-                    results += [PairResult(p, "no worker left to compute it") for p in reversed(waiting)]
-                    waiting.clear()
-                continue
+            else:
+                give(worker)
             progress.update(1)
-            give(worker)
+    # Left over only where every worker died.
+    results += [PairResult(pair, "no worker left to compute it") for pair in reversed(waiting)]
     return results, time.perf_counter() - started
 
 

@@ -14,7 +14,6 @@ import logging
 import os
 import signal
 import threading
-from collections.abc import Mapping
 from dataclasses import dataclass
 from types import FrameType
 from typing import Any
@@ -129,14 +128,14 @@ def _deployment() -> Any:
     return StereoReplica
 
 
-def build_application(settings: Settings, scale: Scale, cpus: int, environment: Mapping[str, str]) -> Any:
+def build_application(settings: Settings, scale: Scale, cpus: int) -> Any:
     """The bound Ray Serve application: `scale` replicas of `cpus` CPUs each, whose threads are
-    those CPUs. `environment`: the `CRESTEREO_*` variables the replicas get (logging, cache)."""
+    those CPUs; the replicas get this process's `CRESTEREO_*` variables (logging, cache)."""
     from ray import serve
 
     settings = settings.model_copy(update={"threads": cpus})
     options: dict[str, Any] = {
-        "ray_actor_options": {"num_cpus": cpus, "runtime_env": {"env_vars": dict(environment)}},
+        "ray_actor_options": {"num_cpus": cpus, "runtime_env": {"env_vars": service_environment()}},
         # Each replica admits up to its own limit and answers its own 503s beyond it; Ray's proxy
         # queues at most `max_queue` more per replica and answers 503 with Retry-After beyond.
         "max_ongoing_requests": settings.max_requests,
@@ -167,13 +166,12 @@ def app(args: dict[str, str]) -> Any:
     scale = Scale(
         numbers.get("replicas"), numbers.get("min_replicas"), numbers.get("max_replicas"), numbers.get("replica_cpus")
     )
-    return build_application(Settings.from_env(), scale, scale.cpus_per_replica(), service_environment())
+    return build_application(Settings.from_env(), scale, scale.cpus_per_replica())
 
 
-def service_environment(environ: Mapping[str, str] | None = None) -> dict[str, str]:
+def service_environment() -> dict[str, str]:
     """The `CRESTEREO_*` variables of this process (the replicas get the same)."""
-    environ = os.environ if environ is None else environ
-    return {name: value for name, value in environ.items() if name.startswith(ENV_PREFIX)}
+    return {name: value for name, value in os.environ.items() if name.startswith(ENV_PREFIX)}
 
 
 def connect(address: str | None) -> None:
@@ -225,7 +223,7 @@ def serve_on_ray(host: str, port: int, scale: Scale, address: str | None = None)
     try:
         cpus = scale.cpus_per_replica()
         serve.start(http_options={"host": host, "port": port})
-        application = build_application(settings, scale, cpus, service_environment())
+        application = build_application(settings, scale, cpus)
         serve.run(application, name=APP_NAME, route_prefix="/")
         logger.info(
             "serving on ray",
