@@ -4,7 +4,7 @@ import math
 
 import torch
 
-from model.warping import ContentAwareWarp, bilinear_warp, deformable_sample
+from model.warping import ContentAwareWarp, bilinear_warp, deformable_sample, sampling_grid
 
 
 def bilinear_at(feature: torch.Tensor, x: float, y: float) -> torch.Tensor:
@@ -116,3 +116,19 @@ def test_content_aware_warp_with_zero_offsets_and_uniform_weights_is_eq2_mean_of
     warped_big = bilinear_warp(big, padded_d)  # plain warp evaluated on the 1-pixel larger grid
     expected = torch.nn.functional.avg_pool2d(warped_big, 3, stride=1)
     assert torch.allclose(out, expected, atol=1e-5)
+
+
+class _Grid(torch.nn.Module):
+    def forward(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+        return sampling_grid(x, y)
+
+
+def test_exported_sampling_grid_has_no_concatenation_and_equals_the_eager_stack():
+    x = torch.rand(1, 8, 9, 6, 10) * 2 - 1
+    y = torch.rand(1, 8, 9, 6, 10) * 2 - 1
+    program = torch.export.export(_Grid(), (x, y))
+    targets = {str(node.target) for node in program.graph.nodes if node.op == "call_function"}
+    assert not any("cat" in target or "stack" in target for target in targets), targets
+    exported = program.module()(x, y)
+    assert torch.equal(exported, sampling_grid(x, y))
+    assert torch.equal(sampling_grid(x, y)[..., 0], x) and torch.equal(sampling_grid(x, y)[..., 1], y)
