@@ -95,6 +95,12 @@ class SceneConfig:
     above it, and the foreground surfaces standing on the ground (each at least as near as the
     ground at its centre row); the ground's texture is seen in perspective (see `_Road`).
 
+    Room scenes: with ``room_probability`` a scene is laid out as indoor scenes are: a back wall
+    (fronto-parallel, at 10-45 % of the maximum disparity, textured as any surface) and a floor
+    meeting it along a line a quarter to nine tenths down the frame, nearing the camera below it;
+    the floor's texture is seen in perspective as a road's ground is, and the foreground surfaces
+    stand on the floor in front of the wall.
+
     Scale/crop augmentation: each scene is magnified by a random ``s = 2**U(log2_scale)``: every
     length (shape sizes, bar widths, texel sizes) is its unscaled length times s. A random crop of a
     procedural scene is distributed like the scene itself, so the crop is implicit: shapes are
@@ -128,6 +134,7 @@ class SceneConfig:
     lighting_probability: float = 0.0  # scenes lit by a directional light (shading by surface orientation)
     specular_probability: float = 0.0  # surfaces of lit scenes with highlights, which differ between the views
     road_probability: float = 0.0  # scenes laid out as a road under a sky (see `_Road`); the others as before
+    room_probability: float = 0.0  # scenes laid out as a room: a floor meeting a back wall (not road scenes)
     supersample: int = 1  # anti-aliasing: images are the mean of supersample x supersample samples per pixel
     photometric: PhotometricConfig | None = field(default_factory=PhotometricConfig)
 
@@ -146,7 +153,8 @@ class SceneConfig:
             raise ValueError("ranges must be (low, high)")
         if self.texture_count < 1:
             raise ValueError("need at least one texture")
-        for name in ("road_probability", "curve_probability", "lighting_probability", "specular_probability"):
+        probabilities = ("road_probability", "room_probability", "curve_probability", "lighting_probability")
+        for name in (*probabilities, "specular_probability"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)}")
         if self.supersample < 1:
@@ -464,7 +472,7 @@ class _Shapes:
         centre_x[:, 0], centre_y[:, 0] = (width - 1) / 2, (height - 1) / 2
         extent = torch.maximum(radius_x, radius_y) * radii.amax(-1)  # shape within this of its centre
         extent[:, 0] = math.hypot(width, height) / 2
-        road = _Road.draw(batch_size, cfg, draw) if cfg.road_probability > 0 else None
+        road = _Road.draw(batch_size, cfg, draw) if cfg.road_probability > 0 or cfg.room_probability > 0 else None
         if road is not None:  # the ground (surface 1) covers the whole plane, as the background does
             centre_x[:, 1] = torch.where(road.present, centre_x[:, 0], centre_x[:, 1])
             centre_y[:, 1] = torch.where(road.present, centre_y[:, 0], centre_y[:, 1])
@@ -511,8 +519,9 @@ def _disparity_planes(
         background_low + cfg.background_max_fraction * max_disparity,
     )
     foreground_low = background_disparity - background_gradient * extent[:, :1]
-    if road is not None:  # the sky is far; things stand on the ground: nearer than it at their centre row
+    if road is not None:  # things stand on the ground (nearer than it at their centre row), before the sky or wall
         on_ground = road.disparity(centre_x[:, 1:], centre_y[:, 1:]).clamp(0, 0.9 * max_disparity)
+        on_ground = torch.maximum(on_ground, road.planes[:, 0, 2:])
         foreground_low = torch.where(road.present[:, None], on_ground, foreground_low)
     foreground_high = torch.full_like(foreground_low, max_disparity)
     bulge = torch.zeros_like(gradient[:, 1:])  # px: the curved term's reach within the shape
@@ -580,7 +589,7 @@ class _Appearance:
             to_texture[:, 1] = torch.where(road.present[:, None, None], road.to_texture, to_texture[:, 1])
             projective[:, 1] = road.present
             fade_disparity[:, 1] = road.fade_disparity
-            contrast[:, 0] = torch.where(road.present, road.sky_contrast, contrast[:, 0])
+            contrast[:, 0] = torch.where(road.sky, road.sky_contrast, contrast[:, 0])
         return _Appearance(texture, to_texture, projective, fade_disparity, base, contrast, ramp)
 
 
@@ -668,25 +677,29 @@ class _Curve:
 
 @dataclass
 class _Road:
-    """The layout of road scenes: surface 0 becomes a far sky, surface 1 the ground.
+    """The layout of road and room scenes: surface 0 becomes a far sky (roads) or a back wall
+    (rooms), surface 1 the ground (a floor, in rooms).
 
     The ground is the plane d = a*(x - cx) + b*(y - horizon) px (cx the frame's centre column): zero
     at the horizon, growing downwards by b px per row (b = baseline / camera height), tilted by a
-    small camera roll (a). Above the horizon it is behind the sky, so the z-buffer cuts it there.
+    small camera roll (a). Above the horizon it is behind the sky, so the z-buffer cuts it there. In
+    a room the horizon lies above the row where the floor meets the back wall (the floor's
+    disparity there is the wall's), and the wall cuts the floor above that row.
     Its texture is fixed to the ground and seen through a pinhole of focal length f px: texel
     coordinates (u, v) = (q * (x - cx) / d, f * q / d) plus offsets, square on the ground, q chosen
     so that texels are ``ground_texel`` px wide at the bottom row; so rows nearer the horizon show
     the texture smaller and squashed, and it fades out where its texels get finer than the
     sample.
 
-    present: (B,) bool, which scenes are road scenes.
-    planes: (B, 2, 3) the (a, b, c) planes of surfaces 0 (the sky, fronto-parallel) and 1 (the ground).
+    present: (B,) bool, which scenes are road or room scenes; sky: (B,) bool, the road scenes.
+    planes: (B, 2, 3) the (a, b, c) planes of surfaces 0 (the sky or wall, fronto-parallel) and 1 (the ground).
     to_texture: (B, 2, 3) the ground's texture map, to be divided by its disparity (projective).
     fade_disparity: (B,) px, see `Scene.fade_disparity`.
     sky_contrast: (B,) grey levels: the sky is weakly textured.
     """
 
     present: torch.Tensor
+    sky: torch.Tensor
     planes: torch.Tensor
     to_texture: torch.Tensor
     fade_disparity: torch.Tensor
@@ -697,7 +710,7 @@ class _Road:
         assert cfg.max_disparity is not None
         height, width, max_disparity = cfg.height, cfg.width, float(cfg.max_disparity)
         shape = (batch_size,)
-        present = draw.chance(shape, cfg.road_probability)
+        sky = draw.chance(shape, cfg.road_probability)
         horizon = height * draw.uniform(shape, -0.5, 0.6)  # may lie above the frame
         roll = draw.uniform(shape, -0.08, 0.08)  # a / b, about +-4.5 degrees
         # The ground's nearest point in the frame (a bottom corner) stays within 0.95 * max.
@@ -708,12 +721,23 @@ class _Road:
         offset_u, offset_v = draw.uniform((2, batch_size), 0, cfg.texture_size)
         sky_disparity = draw.uniform(shape, 0, 0.02 * max_disparity)
         sky_contrast = draw.log_uniform(shape, 1.0, 6.0)
+        present = sky
+        if cfg.room_probability > 0:  # drawn only then: road scenes stay as they were without rooms
+            room = draw.chance(shape, cfg.room_probability) & ~sky
+            present = sky | room
+            junction = height * draw.uniform(shape, 0.25, 0.9)  # the row where the floor meets the wall
+            wall = max_disparity * draw.uniform(shape, 0.1, 0.45)
+            reach_below = height - 1 - junction + roll.abs() * (width - 1) / 2
+            room_slope = torch.minimum(draw.log_uniform(shape, 0.15, 0.8), (0.95 * max_disparity - wall) / reach_below)
+            horizon = torch.where(room, junction - wall / room_slope, horizon)
+            slope = torch.where(room, room_slope, slope)
+            sky_disparity = torch.where(room, wall, sky_disparity)
 
         centre = (width - 1) / 2
         a, b = roll * slope, slope
         c = -a * centre - b * horizon
         zero = torch.zeros_like(a)
-        sky = torch.stack([zero, zero, sky_disparity], dim=-1)
+        background = torch.stack([zero, zero, sky_disparity], dim=-1)
         ground = torch.stack([a, b, c], dim=-1)
         q = b * (height - 1 - horizon) / ground_texel  # texel width d / q px at disparity d
         # Numerators of u and v, each an affine function of (x, y); the offsets ride on d itself.
@@ -727,7 +751,7 @@ class _Road:
         # Texels are d / q px wide and d^2 / (f q b) px tall: both at least a sample (1 / supersample px).
         smallest = 1 / cfg.supersample
         fade = torch.maximum(q * smallest, torch.sqrt(focal * q * b * smallest))
-        return _Road(present, torch.stack([sky, ground], dim=1), to_texture, fade, sky_contrast)
+        return _Road(present, sky, torch.stack([background, ground], dim=1), to_texture, fade, sky_contrast)
 
     def disparity(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
         """The ground's disparity (px) at points x, y (B, n) px; negative above the horizon."""

@@ -104,6 +104,10 @@ class TrainConfig:
         "procedural scenes: fraction laid out as a road scene (a ground plane receding to a horizon under a far, "
         "weakly textured sky, things standing on the ground)",
     )
+    room_probability: float = _knob(
+        0.0,
+        "procedural scenes: fraction laid out as a room (a floor meeting a back wall, things standing on the floor)",
+    )
     real_scale_range: tuple[float, float] = _knob(
         (0.8, 1.25), "random rescale range of real pairs before cropping (raised where a pair is smaller than the crop)"
     )
@@ -181,6 +185,7 @@ class TrainConfig:
             texel_size=self.texel_size,
             supersample=self.supersample,
             road_probability=self.road_probability,
+            room_probability=self.room_probability,
             curve_probability=self.curve_probability,
             photometric=PhotometricConfig(vignetting=self.vignetting, jpeg_probability=self.jpeg_probability),
             lighting_probability=self.lighting_probability,

@@ -62,6 +62,7 @@ def test_default_max_disparity_is_192_at_512_px_and_scales_with_width() -> None:
         {"supersample": 0},
         {"texel_size": (0.6, 2.0)},  # under a pixel: needs supersample 2
         {"road_probability": 1.5},
+        {"room_probability": -0.5},
         {"curve_probability": -0.1},
         {"lighting_probability": 2.0},
         {"specular_probability": -1.0},
@@ -131,6 +132,7 @@ def test_different_seeds_give_different_scenes() -> None:
     [
         {},
         {"road_probability": 1.0},
+        {"room_probability": 1.0},
         {"curve_probability": 1.0},
         {"lighting_probability": 1.0, "curve_probability": 0.5},
     ],
@@ -271,6 +273,42 @@ def test_things_in_road_scenes_stand_on_the_ground_at_least_as_near_as_it() -> N
     ground_there = (ground_a * x + ground_b * y + ground_c).clamp(0, 0.9 * ROADS.max_disparity)
     assert (thing_a * x + thing_b * y + thing_c >= ground_there - 1e-3).all()
     assert scene.projective[:, 1].all() and not scene.projective[:, 2:].any()
+
+
+ROOMS = replace(CLEAN, height=96, width=192, room_probability=1.0)
+
+
+def test_room_scenes_have_a_floor_meeting_a_textured_back_wall() -> None:
+    generator = SceneGenerator(ROOMS)
+    scene = generator.sample_scene(batch_size=6, seed=2)
+    scene.present[:, 2:] = False  # only the wall and the floor
+    disparity = generator.render(scene).disparity[:, 0]  # (B, H, W)
+    assert ROOMS.max_disparity is not None
+    wall = scene.plane[:, 0, 2]  # (B,) px, fronto-parallel
+    assert (scene.plane[:, 0, :2] == 0).all()
+    assert ((wall >= 0.1 * ROOMS.max_disparity) & (wall <= 0.45 * ROOMS.max_disparity)).all()
+    # The top rows are the wall; down each column the disparity never falls; the floor nears the camera.
+    assert torch.allclose(disparity[:, 0], wall[:, None].expand(-1, ROOMS.width))
+    assert (disparity[:, 1:] - disparity[:, :-1] >= -1e-4).all()
+    floor = disparity > wall[:, None, None] + 1e-3
+    assert floor[:, -1].all() and (floor.flatten(1).float().mean(1) > 0.05).all()
+    assert disparity.max() <= 0.95 * ROOMS.max_disparity + 1e-3
+    # The floor meets the wall: at the row where it starts, its disparity is the wall's.
+    first = floor.float().argmax(1)  # (B, W) the floor's first row in each column
+    at_junction = disparity.gather(1, first[:, None]).squeeze(1)
+    step = scene.plane[:, 1, 1]  # px of disparity per row
+    assert ((at_junction - wall[:, None]) <= step[:, None] + 1e-3).all()
+    # A wall is textured as any surface is; only skies are weakly textured.
+    assert (scene.contrast[:, 0] >= ROOMS.contrast[0]).all()
+    assert scene.projective[:, 1].all()
+
+
+def test_things_in_room_scenes_stand_in_front_of_the_wall() -> None:
+    scene = SceneGenerator(ROOMS).sample_scene(batch_size=6, seed=3)
+    centre = -torch.linalg.solve(scene.to_shape[:, 2:, :, :2], scene.to_shape[:, 2:, :, 2:])[..., 0]  # (B, S-2, 2) px
+    x, y = centre.unbind(-1)
+    thing_a, thing_b, thing_c = scene.plane[:, 2:].unbind(-1)
+    assert (thing_a * x + thing_b * y + thing_c >= scene.plane[:, :1, 2] - 1e-3).all()
 
 
 def test_the_ground_texture_is_seen_in_perspective_twice_as_fine_at_half_the_disparity() -> None:
