@@ -1,6 +1,6 @@
 """Inference speed of lite and full per backend and precision on this machine, beside SGBM.
 
-    python bench/model_speed.py [--runs 5] [--models lite full] [--sizes 384x1248 480x640 256x512]
+    python bench/model_speed.py [--runs 5] [--rounds 1] [--models lite full] [--sizes 384x1248 480x640 256x512]
                                 [--backends torch openvino] [--precisions fp32 bf16] [--profile]
 
 Prints the CPU's bf16 support and the measured fp32 matmul GFLOP/s, then per model, size,
@@ -11,6 +11,11 @@ GFLOP/s they make, the OpenVINO graph's preparation time (its export, or reading
 cache) and the first call's time (OpenVINO compiles the shape there), and peak memory; then
 OpenCV SGBM on the same pairs. Each row runs in a fresh child process, so that its peak RSS is its
 own. torch rows with bf16 run under autocast. --profile adds the torch rows' top operators.
+
+--rounds R runs a model and size's rows R times, interleaved (torch fp32, torch bf16, OpenVINO
+fp32, OpenVINO bf16, then again), each time in a fresh process; the median is then over all R x
+runs timings of a row, so that a machine whose speed drifts (a shared VM) moves every row alike
+and the ratios stay fair. Prepare and first call are the first round's, peak RSS the largest.
 """
 
 from __future__ import annotations
@@ -82,7 +87,7 @@ def measure(
         predictor.predict(left, right)
         times.append(time.perf_counter() - start)
     result = {
-        "median_s": statistics.median(times),
+        "times_s": times,
         "gflop": gflop,
         "prepare_s": prepare_s,
         "first_call_s": first_call_s,
@@ -112,6 +117,7 @@ def sgbm_seconds(height: int, width: int, runs: int) -> float:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--runs", type=int, default=5)
+    parser.add_argument("--rounds", type=int, default=1)
     parser.add_argument("--models", nargs="+", default=list(MODEL_NAMES))
     parser.add_argument("--sizes", nargs="+", default=["384x1248", "480x640", "256x512"])
     parser.add_argument("--backends", nargs="+", choices=["torch", "openvino"], default=["torch", "openvino"])
@@ -137,25 +143,33 @@ def main() -> None:
     profiles = []
     for name in args.models:
         for size in args.sizes:
-            reference: float | None = None
-            gflop: float | None = None
-            for backend in args.backends:
-                for precision in args.precisions:
+            rows = [(backend, precision) for backend in args.backends for precision in args.precisions]
+            results: dict[tuple[str, str], list[dict[str, Any]]] = {row: [] for row in rows}
+            for _ in range(args.rounds):
+                for backend, precision in rows:
                     command = [sys.executable, __file__, "--one", f"{name}:{size}:{backend}:{precision}"]
                     command += ["--runs", str(args.runs)] + (["--profile"] if args.profile else [])
-                    r = json.loads(subprocess.run(command, check=True, capture_output=True, text=True).stdout)
-                    gflop = r["gflop"] or gflop
-                    if (backend, precision) == ("torch", "fp32"):
-                        reference = r["median_s"]
-                    ratio = f"{reference / r['median_s']:.2f}x" if reference else "-"
-                    achieved = f"{gflop / r['median_s']:.1f}" if gflop else "-"
-                    print(
-                        f"| {name} | {size} | {backend} | {precision} | {r['median_s']:.3f} | {ratio} | {achieved} | "
-                        f"{r['prepare_s']:.1f} | {r['first_call_s']:.2f} | {r['peak_rss_mib']:.0f} |",
-                        flush=True,
-                    )
-                    if "profile" in r:
-                        profiles.append((f"{name} {size}", r["profile"]))
+                    done = subprocess.run(command, check=True, capture_output=True, text=True)
+                    results[backend, precision].append(json.loads(done.stdout))
+            reference: float | None = None
+            gflop: float | None = None
+            for backend, precision in rows:
+                rounds = results[backend, precision]
+                first = rounds[0]
+                median_s = statistics.median(t for r in rounds for t in r["times_s"])
+                gflop = first["gflop"] or gflop
+                if (backend, precision) == ("torch", "fp32"):
+                    reference = median_s
+                ratio = f"{reference / median_s:.2f}x" if reference else "-"
+                achieved = f"{gflop / median_s:.1f}" if gflop else "-"
+                peak = max(r["peak_rss_mib"] for r in rounds)
+                print(
+                    f"| {name} | {size} | {backend} | {precision} | {median_s:.3f} | {ratio} | {achieved} | "
+                    f"{first['prepare_s']:.1f} | {first['first_call_s']:.2f} | {peak:.0f} |",
+                    flush=True,
+                )
+                if "profile" in first:
+                    profiles.append((f"{name} {size}", first["profile"]))
     for size in args.sizes:
         height, width = map(int, size.split("x"))
         print(f"| SGBM | {size} | OpenCV | - | {sgbm_seconds(height, width, args.runs):.3f} | | | | | |", flush=True)
