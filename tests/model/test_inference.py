@@ -34,7 +34,10 @@ def test_output_has_the_input_size_for_any_size(lite, height, width):
 
 
 def test_a_batch_of_two_pairs_equals_the_two_pairs_run_alone(lite):
-    pairs = [random_pair(48, 80, seed) for seed in (1, 2)]
+    # procedural scenes, not noise: on noise a pixel's match is arbitrary, and a rounding difference
+    # between the batched and the single convolutions can tip it (seen: 0.005 px on one pixel)
+    scenes = SceneGenerator(SceneConfig(height=48, width=80, max_disparity=24.0)).generate(batch_size=2, seed=5)
+    pairs = [scenes.pair(i) for i in range(2)]
     batch_left = torch.from_numpy(np.stack([p[0] for p in pairs])).permute(0, 3, 1, 2)
     batch_right = torch.from_numpy(np.stack([p[1] for p in pairs])).permute(0, 3, 1, 2)
     batched = lite.predict(batch_left, batch_right)
