@@ -153,8 +153,13 @@ class SceneConfig:
             raise ValueError("ranges must be (low, high)")
         if self.texture_count < 1:
             raise ValueError("need at least one texture")
-        probabilities = ("road_probability", "room_probability", "curve_probability", "lighting_probability")
-        for name in (*probabilities, "specular_probability"):
+        for name in (
+            "road_probability",
+            "room_probability",
+            "curve_probability",
+            "lighting_probability",
+            "specular_probability",
+        ):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)}")
         if self.supersample < 1:
@@ -721,7 +726,7 @@ class _Road:
         offset_u, offset_v = draw.uniform((2, batch_size), 0, cfg.texture_size)
         sky_disparity = draw.uniform(shape, 0, 0.02 * max_disparity)
         sky_contrast = draw.log_uniform(shape, 1.0, 6.0)
-        present = sky
+        present, far_disparity = sky, sky_disparity  # far: the sky's disparity, or the wall's in rooms
         if cfg.room_probability > 0:  # drawn only then: road scenes stay as they were without rooms
             room = draw.chance(shape, cfg.room_probability) & ~sky
             present = sky | room
@@ -731,13 +736,13 @@ class _Road:
             room_slope = torch.minimum(draw.log_uniform(shape, 0.15, 0.8), (0.95 * max_disparity - wall) / reach_below)
             horizon = torch.where(room, junction - wall / room_slope, horizon)
             slope = torch.where(room, room_slope, slope)
-            sky_disparity = torch.where(room, wall, sky_disparity)
+            far_disparity = torch.where(room, wall, sky_disparity)
 
         centre = (width - 1) / 2
         a, b = roll * slope, slope
         c = -a * centre - b * horizon
         zero = torch.zeros_like(a)
-        background = torch.stack([zero, zero, sky_disparity], dim=-1)
+        background = torch.stack([zero, zero, far_disparity], dim=-1)
         ground = torch.stack([a, b, c], dim=-1)
         q = b * (height - 1 - horizon) / ground_texel  # texel width d / q px at disparity d
         # Numerators of u and v, each an affine function of (x, y); the offsets ride on d itself.

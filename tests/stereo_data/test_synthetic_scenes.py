@@ -264,14 +264,21 @@ def test_road_scenes_recede_to_a_horizon_under_a_far_sky() -> None:
     assert disparity.max() <= ROADS.max_disparity
 
 
+def things_at_their_centres(scene: Scene) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The foreground things (surfaces 2 on) of layout scenes: their shapes' centres x, y (B, S-2) px
+    and their planes' disparity there (B, S-2) px."""
+    centre = -torch.linalg.solve(scene.to_shape[:, 2:, :, :2], scene.to_shape[:, 2:, :, 2:])[..., 0]
+    x, y = centre.unbind(-1)
+    a, b, c = scene.plane[:, 2:].unbind(-1)
+    return x, y, a * x + b * y + c
+
+
 def test_things_in_road_scenes_stand_on_the_ground_at_least_as_near_as_it() -> None:
     scene = SceneGenerator(ROADS).sample_scene(batch_size=6, seed=3)
     ground_a, ground_b, ground_c = scene.plane[:, 1:2].unbind(-1)  # (B, 1) each
-    centre = -torch.linalg.solve(scene.to_shape[:, 2:, :, :2], scene.to_shape[:, 2:, :, 2:])[..., 0]  # (B, S-2, 2) px
-    x, y = centre.unbind(-1)
-    thing_a, thing_b, thing_c = scene.plane[:, 2:].unbind(-1)
+    x, y, thing_disparity = things_at_their_centres(scene)
     ground_there = (ground_a * x + ground_b * y + ground_c).clamp(0, 0.9 * ROADS.max_disparity)
-    assert (thing_a * x + thing_b * y + thing_c >= ground_there - 1e-3).all()
+    assert (thing_disparity >= ground_there - 1e-3).all()
     assert scene.projective[:, 1].all() and not scene.projective[:, 2:].any()
 
 
@@ -305,10 +312,8 @@ def test_room_scenes_have_a_floor_meeting_a_textured_back_wall() -> None:
 
 def test_things_in_room_scenes_stand_in_front_of_the_wall() -> None:
     scene = SceneGenerator(ROOMS).sample_scene(batch_size=6, seed=3)
-    centre = -torch.linalg.solve(scene.to_shape[:, 2:, :, :2], scene.to_shape[:, 2:, :, 2:])[..., 0]  # (B, S-2, 2) px
-    x, y = centre.unbind(-1)
-    thing_a, thing_b, thing_c = scene.plane[:, 2:].unbind(-1)
-    assert (thing_a * x + thing_b * y + thing_c >= scene.plane[:, :1, 2] - 1e-3).all()
+    _, _, thing_disparity = things_at_their_centres(scene)
+    assert (thing_disparity >= scene.plane[:, :1, 2] - 1e-3).all()
 
 
 def test_the_ground_texture_is_seen_in_perspective_twice_as_fine_at_half_the_disparity() -> None:
