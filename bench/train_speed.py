@@ -75,9 +75,9 @@ def measure(row: Row, steps: int, profile: bool) -> dict[str, Any]:
     from training.trainer import Trainer
 
     if not row.wide_transposed:
-        import model.update
+        import model.convolution
 
-        model.update.WIDE_KERNEL = sys.maxsize  # every 1xk conv a plain nn.Conv2d, as before
+        model.convolution.WIDE_KERNEL = sys.maxsize  # every 1xk conv a plain nn.Conv2d, as before
     overrides = {**BASE, **row.overrides, "max_steps": steps + 2, "out_dir": "runs/bench-train-speed"}
     config = preset("pretrain", schedule="constant", **overrides)
     device = torch.device("cpu")

@@ -99,12 +99,15 @@ class CREStereoPP(nn.Module):
                 disparity = resize_disparity(disparity, *pyramid[stage][0].shape[-2:])
             f_left, f_right = pyramid[stage]
             hidden, context = split_hidden_context(f_left)
+            # what the left features and the context contribute is the same at every iteration
+            left_response = self.ugac.left_response(f_left)
+            context_terms = self.update.context_terms(context)
             uncertainty: Tensor | None = None  # U = 1 at the start of every stage
             stage_predictions: list[Tensor] = []
             for n in range(iters[stage]):
                 disparity = disparity.detach()
-                volume, next_uncertainty = self.ugac(f_left, f_right, disparity, uncertainty, n)
-                hidden, delta = self.update(hidden, context, volume, disparity)
+                volume, next_uncertainty = self.ugac(f_left, left_response, f_right, disparity, uncertainty, n)
+                hidden, delta = self.update(hidden, context_terms, volume, disparity)
                 disparity = disparity + delta.float()
                 uncertainty = next_uncertainty
                 if self.training:

@@ -41,7 +41,7 @@ from .options import StageCounts
 
 logger = logging.getLogger(__name__)
 
-EXPORT_VERSION = 3
+EXPORT_VERSION = 4
 """Bumped whenever the exported graph changes for the same weights (part of the cache key)."""
 
 MAX_BATCH = 64

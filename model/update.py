@@ -7,6 +7,7 @@ from torch import Tensor, nn
 from torch.nn import functional as F
 
 from .config import GruKernels, ModelConfig
+from .convolution import conv1xk, input_response
 from .correlation import CANDIDATES
 from .upsample import UPSAMPLE_FACTOR
 
@@ -19,36 +20,6 @@ GATE_KERNEL_CHAINS: dict[str, tuple[int, ...]] = {
 """Horizontal z/r gate of the separable GRU: widths of the 1xk convs applied in sequence."""
 
 
-WIDE_KERNEL = 9
-"""Horizontal kernels at least this wide run as the transposed (kx1) convolution: oneDNN computes a
-1x15 conv 1.8x faster forward and 2x faster forward + backward that way (bench/train_speed.py)."""
-
-
-class WideHorizontalConv(nn.Conv2d):
-    """A 'same'-padded 1xk convolution (weight (out, in/groups, 1, k), as nn.Conv2d) computed on
-    the transposed map as a kx1 convolution; the result is the same up to float rounding."""
-
-    def forward(self, x: Tensor) -> Tensor:
-        padding = self.padding
-        assert not isinstance(padding, str)  # always built with a (0, k // 2) tuple
-        out = F.conv2d(
-            x.transpose(2, 3),
-            self.weight.transpose(2, 3),
-            self.bias,
-            padding=(padding[1], padding[0]),
-            groups=self.groups,
-        )
-        return out.transpose(2, 3)
-
-
-def conv1xk(in_channels: int, out_channels: int, k: int, vertical: bool = False, groups: int = 1) -> nn.Conv2d:
-    """A 'same'-padded 1xk (or kx1 when ``vertical``) convolution."""
-    if not vertical and k >= WIDE_KERNEL:
-        return WideHorizontalConv(in_channels, out_channels, (1, k), padding=(0, k // 2), groups=groups)
-    size, pad = ((k, 1), (k // 2, 0)) if vertical else ((1, k), (0, k // 2))
-    return nn.Conv2d(in_channels, out_channels, size, padding=pad, groups=groups)
-
-
 def zr_gates(in_channels: int, hidden: int, widths: tuple[int, ...], vertical: bool = False) -> nn.Sequential:
     """The z and r gates computed together: convs of the given widths in sequence, in -> 2*hidden
     first, then grouped 2*hidden -> 2*hidden so that z (first half) and r (second half) stay two
@@ -58,11 +29,33 @@ def zr_gates(in_channels: int, hidden: int, widths: tuple[int, ...], vertical: b
     return nn.Sequential(*convs)
 
 
-def gru_step(h: Tensor, x: Tensor, conv_zr: nn.Module, conv_q: nn.Module) -> Tensor:
-    """One ConvGRU update: h (B,Ch,h,w) with input x (B,Cx,h,w) -> new h (B,Ch,h,w)."""
-    z, r = torch.sigmoid(conv_zr(torch.cat((h, x), dim=1))).chunk(2, dim=1)
-    q = torch.tanh(conv_q(torch.cat((r * h, x), dim=1)))
-    return (1 - z) * h + z * q
+ContextTerms = tuple[Tensor, ...]
+"""The GRU's gate convolutions' responses to the context (each (B, gate channels, h, w), no bias):
+constant over a stage's iterations, computed once per stage (``input_response``)."""
+
+
+def gru_step(
+    h: Tensor, motion: Tensor, context_zr: Tensor, context_q: Tensor, zr: nn.Sequential, q: nn.Conv2d
+) -> Tensor:
+    """One ConvGRU update: h (B,Ch,h,w) -> new h (B,Ch,h,w), with input x = [motion, context].
+
+    The gates read [h, x] and [r * h, x]; the context's share of their first convolutions is
+    given precomputed (``context_zr``, ``context_q``), so only [h, motion] is convolved here.
+    ``zr``: the z/r gate's convs in sequence, the first reading the input."""
+    first, rest = zr[0], zr[1:]
+    assert isinstance(first, nn.Conv2d)
+    gates = rest(input_response(first, torch.cat((h, motion), dim=1), 0, True) + context_zr)
+    z, r = torch.sigmoid(gates).chunk(2, dim=1)
+    candidate = torch.tanh(input_response(q, torch.cat((r * h, motion), dim=1), 0, True) + context_q)
+    return (1 - z) * h + z * candidate
+
+
+def context_response(conv: nn.Module, context: Tensor) -> Tensor:
+    """A gate's (first) convolution's response to the context, the last third of the gate input
+    [h, motion, context]."""
+    first = conv[0] if isinstance(conv, nn.Sequential) else conv
+    assert isinstance(first, nn.Conv2d)
+    return input_response(first, context, first.in_channels - context.shape[1], False)
 
 
 class ConvGRU(nn.Module):
@@ -71,11 +64,14 @@ class ConvGRU(nn.Module):
     def __init__(self, hidden: int, input_dim: int) -> None:
         super().__init__()
         c = hidden + input_dim
-        self.zr = nn.Conv2d(c, 2 * hidden, 3, padding=1)
+        self.zr = nn.Sequential(nn.Conv2d(c, 2 * hidden, 3, padding=1))
         self.q = nn.Conv2d(c, hidden, 3, padding=1)
 
-    def forward(self, h: Tensor, x: Tensor) -> Tensor:
-        return gru_step(h, x, self.zr, self.q)
+    def context_terms(self, context: Tensor) -> ContextTerms:
+        return context_response(self.zr, context), context_response(self.q, context)
+
+    def forward(self, h: Tensor, motion: Tensor, terms: ContextTerms) -> Tensor:
+        return gru_step(h, motion, terms[0], terms[1], self.zr, self.q)
 
 
 class SeparableConvGRU(nn.Module):
@@ -93,9 +89,12 @@ class SeparableConvGRU(nn.Module):
         self.zr2 = zr_gates(c, hidden, (5,), vertical=True)
         self.q2 = conv1xk(c, hidden, 5, vertical=True)
 
-    def forward(self, h: Tensor, x: Tensor) -> Tensor:
-        h = gru_step(h, x, self.zr1, self.q1)
-        return gru_step(h, x, self.zr2, self.q2)
+    def context_terms(self, context: Tensor) -> ContextTerms:
+        return tuple(context_response(conv, context) for conv in (self.zr1, self.q1, self.zr2, self.q2))
+
+    def forward(self, h: Tensor, motion: Tensor, terms: ContextTerms) -> Tensor:
+        h = gru_step(h, motion, terms[0], terms[1], self.zr1, self.q1)
+        return gru_step(h, motion, terms[2], terms[3], self.zr2, self.q2)
 
 
 class MotionEncoder(nn.Module):
@@ -136,7 +135,7 @@ class UpdateBlock(nn.Module):
         hidden = config.hidden_dim
         self.encoder = MotionEncoder(config)
         input_dim = 2 * hidden  # motion features + context
-        self.gru: nn.Module = (
+        self.gru: ConvGRU | SeparableConvGRU = (
             ConvGRU(hidden, input_dim)
             if config.gru_kernels == "3x3"
             else SeparableConvGRU(hidden, input_dim, config.gru_kernels)
@@ -144,16 +143,21 @@ class UpdateBlock(nn.Module):
         self.disparity_head = head(hidden, config.head_hidden, 1, 3)
         self.mask_head = head(hidden, config.head_hidden, 9 * UPSAMPLE_FACTOR**2, 1)
 
-    def forward(self, hidden: Tensor, context: Tensor, volume: Tensor, disparity: Tensor) -> tuple[Tensor, Tensor]:
+    def context_terms(self, context: Tensor) -> ContextTerms:
+        """The GRU's per-stage constants from the context (B, Ch, h, w) of this scale."""
+        return self.gru.context_terms(context)
+
+    def forward(
+        self, hidden: Tensor, context: ContextTerms, volume: Tensor, disparity: Tensor
+    ) -> tuple[Tensor, Tensor]:
         """
         Args:
-            hidden, context: (B, Ch, h, w) GRU state and context of this scale.
+            hidden: (B, Ch, h, w) GRU state. context: ``context_terms`` of this scale's context.
             volume: (B, 36, h, w) cost volume V_n. disparity: (B, 1, h, w) d_{n-1}, pixels.
         Returns:
             new hidden state (B, Ch, h, w) and the disparity update Δd (B, 1, h, w), pixels.
         """
-        x = torch.cat((self.encoder(volume, disparity), context), dim=1)
-        hidden = self.gru(hidden, x)
+        hidden = self.gru(hidden, self.encoder(volume, disparity), context)
         return hidden, self.disparity_head(hidden)
 
     def upsample_mask(self, hidden: Tensor) -> Tensor:

@@ -11,6 +11,8 @@ import torch
 from torch import Tensor, nn
 from torch.nn import functional as F
 
+from .convolution import input_response
+
 KERNEL_POINTS = 9
 """K: the 3x3 sampling points of the content-aware warp, row-major (ky, kx) in {-1,0,1}^2."""
 
@@ -116,8 +118,20 @@ class OffsetNet(nn.Module):
         nn.init.zeros_(head.weight)
         nn.init.zeros_(head.bias)
 
-    def forward(self, left: Tensor, coarse_warp: Tensor, disparity: Tensor) -> Tensor:
-        raw = self.layers(torch.cat((left, coarse_warp, disparity), dim=1))
+    def left_response(self, left: Tensor) -> Tensor:
+        """The first conv's response to F_L (B, C, h, w) with its bias: (B, hidden, h, w),
+        constant over a stage's iterations (computed once per stage)."""
+        first = self.layers[0]
+        assert isinstance(first, nn.Conv2d)
+        return input_response(first, left, 0, True)
+
+    def forward(self, left_response: Tensor, coarse_warp: Tensor, disparity: Tensor) -> Tensor:
+        """left_response: ``left_response(F_L)``; coarse_warp: S(F_R, d) (B, C, h, w); disparity
+        (B, 1, h, w) pixels. Returns the offsets (B, G, 9, h, w) in pixels."""
+        first = self.layers[0]
+        assert isinstance(first, nn.Conv2d)
+        own = input_response(first, torch.cat((coarse_warp, disparity), dim=1), coarse_warp.shape[1], False)
+        raw = self.layers[1:](left_response + own)
         b, _, h, w = raw.shape
         return (self.max_offset * torch.tanh(raw)).view(b, self.groups, KERNEL_POINTS, h, w)
 
@@ -141,10 +155,15 @@ class ContentAwareWarp(nn.Module):
         self.weight = nn.Parameter(conv.weight.detach().clone())  # (C_out, C_in, 3, 3)
         self.bias = nn.Parameter(conv.bias.detach().clone())  # (C_out,)
 
-    def forward(self, left: Tensor, right: Tensor, disparity: Tensor, uncertainty: Tensor | None) -> Tensor:
-        """left, right: (B,C,h,w) features; disparity: (B,1,h,w) pixels; uncertainty: (B,1,h,w)
-        in [0,1] or None (unscaled offsets). Returns the warped right feature (B,C,h,w)."""
-        offsets = self.offsets(left, bilinear_warp(right, disparity), disparity)
+    def left_response(self, left: Tensor) -> Tensor:
+        """The per-stage constant of the offset CNN from the left features (B, C, h, w)."""
+        return self.offsets.left_response(left)
+
+    def forward(self, left_response: Tensor, right: Tensor, disparity: Tensor, uncertainty: Tensor | None) -> Tensor:
+        """left_response: ``left_response(F_L)`` of this scale; right: (B,C,h,w) features;
+        disparity: (B,1,h,w) pixels; uncertainty: (B,1,h,w) in [0,1] or None (unscaled offsets).
+        Returns the warped right feature (B,C,h,w)."""
+        offsets = self.offsets(left_response, bilinear_warp(right, disparity), disparity)
         if uncertainty is not None:
             offsets = offsets * uncertainty.unsqueeze(2)
         return self.deform(right, disparity, offsets)

@@ -137,7 +137,7 @@ def test_input_that_is_not_a_multiple_of_32_is_refused_by_the_bare_network():
 
 
 def test_wide_horizontal_convs_equal_the_plain_convolution():
-    from model.update import WideHorizontalConv
+    from model.convolution import WideHorizontalConv
 
     torch.manual_seed(0)
     conv = WideHorizontalConv(12, 8, (1, 15), padding=(0, 7), groups=2)
@@ -145,3 +145,40 @@ def test_wide_horizontal_convs_equal_the_plain_convolution():
     plain = torch.nn.functional.conv2d(x, conv.weight, conv.bias, padding=(0, 7), groups=2)
     assert conv.weight.shape == (8, 6, 1, 15)  # state dicts are those of nn.Conv2d
     torch.testing.assert_close(conv(x), plain, rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize("kernels", ["3x3", "1x5+1x15"])
+def test_the_gru_with_the_context_convolved_once_per_stage_equals_the_gru_on_the_whole_input(kernels):
+    from model.update import ConvGRU, SeparableConvGRU
+
+    torch.manual_seed(1)
+    hidden = 6
+    gru = ConvGRU(hidden, 2 * hidden) if kernels == "3x3" else SeparableConvGRU(hidden, 2 * hidden, kernels)
+    h, motion, context = (torch.randn(2, hidden, 5, 20, dtype=torch.float64) for _ in range(3))
+    gru = gru.double()
+
+    def step(h, zr, q):  # the textbook ConvGRU on x = [motion, context]
+        x = torch.cat((motion, context), dim=1)
+        z, r = torch.sigmoid(zr(torch.cat((h, x), dim=1))).chunk(2, dim=1)
+        return (1 - z) * h + z * torch.tanh(q(torch.cat((r * h, x), dim=1)))
+
+    if kernels == "3x3":
+        expected = step(h, gru.zr, gru.q)
+    else:
+        expected = step(step(h, gru.zr1, gru.q1), gru.zr2, gru.q2)
+    terms = gru.context_terms(context)
+    torch.testing.assert_close(gru(h, motion, terms), expected)
+    torch.testing.assert_close(gru(h, motion, terms), gru(h, motion, terms))  # the terms are reusable
+
+
+def test_the_offset_cnn_with_the_left_features_convolved_once_equals_it_on_the_whole_input():
+    from model.warping import OffsetNet
+
+    torch.manual_seed(2)
+    net = OffsetNet(feature_dim=8, hidden=12, groups=4, max_offset=10.0).double()
+    torch.nn.init.normal_(net.layers[-1].weight)  # zero-initialised: make the offsets non-zero
+    left, warped = torch.randn(2, 2, 8, 6, 11, dtype=torch.float64)
+    disparity = torch.rand(2, 1, 6, 11, dtype=torch.float64) * 5
+    expected = 10.0 * torch.tanh(net.layers(torch.cat((left, warped, disparity), dim=1))).view(2, 4, 9, 6, 11)
+    assert expected.abs().max() > 1.0
+    torch.testing.assert_close(net(net.left_response(left), warped, disparity), expected)

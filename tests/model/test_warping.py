@@ -96,7 +96,7 @@ def test_content_aware_warp_with_zero_offsets_and_centre_weight_is_plain_bilinea
     right, left = torch.randn(2, 8, 6, 9), torch.randn(2, 8, 6, 9)
     disparity = torch.rand(2, 1, 6, 9) * 4
     # the offset CNN's last layer starts at zero, so the learned offsets are zero here
-    out = warp(left, right, disparity, uncertainty=torch.rand(2, 1, 6, 9))
+    out = warp(warp.left_response(left), right, disparity, uncertainty=torch.rand(2, 1, 6, 9))
     assert torch.allclose(out, bilinear_warp(right, disparity), atol=1e-6)
 
 
