@@ -49,9 +49,10 @@ class UGAC(nn.Module):
         Returns:
             V_n (B, groups * 9, h, w) and U_n (B, 1, h, w).
         """
-        if self.warp is None or left_response is None:
+        if self.warp is None:
             warped = bilinear_warp(right, disparity)
         else:
+            assert left_response is not None, "a learned warp needs left_response(left)"
             scale = uncertainty if self.config.warping == "ugac" else None
             warped = self.warp(left_response, right, disparity, scale)
         volume = group_correlation(left, warped, self.config.corr_groups, window_for_iteration(iteration))

@@ -118,19 +118,22 @@ class OffsetNet(nn.Module):
         nn.init.zeros_(head.weight)
         nn.init.zeros_(head.bias)
 
+    @property
+    def first_conv(self) -> nn.Conv2d:
+        """The conv that reads [F_L, S(F_R, d), d]."""
+        first = self.layers[0]
+        assert isinstance(first, nn.Conv2d)
+        return first
+
     def left_response(self, left: Tensor) -> Tensor:
         """The first conv's response to F_L (B, C, h, w) with its bias: (B, hidden, h, w),
         constant over a stage's iterations (computed once per stage)."""
-        first = self.layers[0]
-        assert isinstance(first, nn.Conv2d)
-        return input_response(first, left, 0, True)
+        return input_response(self.first_conv, left, 0, True)
 
     def forward(self, left_response: Tensor, coarse_warp: Tensor, disparity: Tensor) -> Tensor:
         """left_response: ``left_response(F_L)``; coarse_warp: S(F_R, d) (B, C, h, w); disparity
         (B, 1, h, w) pixels. Returns the offsets (B, G, 9, h, w) in pixels."""
-        first = self.layers[0]
-        assert isinstance(first, nn.Conv2d)
-        own = input_response(first, torch.cat((coarse_warp, disparity), dim=1), coarse_warp.shape[1], False)
+        own = input_response(self.first_conv, torch.cat((coarse_warp, disparity), dim=1), coarse_warp.shape[1], False)
         raw = self.layers[1:](left_response + own)
         b, _, h, w = raw.shape
         return (self.max_offset * torch.tanh(raw)).view(b, self.groups, KERNEL_POINTS, h, w)
