@@ -10,7 +10,10 @@ convolutions and matrix products; grid_sample and elementwise work are not count
 GFLOP/s they make, the OpenVINO graph's preparation time (its export, or reading it from the
 cache) and the first call's time (OpenVINO compiles the shape there), and peak memory; then
 OpenCV SGBM on the same pairs. Each row runs in a fresh child process, so that its peak RSS is its
-own. torch rows with bf16 run under autocast. --profile adds the torch rows' top operators.
+own. torch rows with bf16 run under autocast. Each timing is the network's one pass
+(``two_pass=False``); the default ``two_pass="auto"`` adds a pass at quarter resolution, and a
+half-resolution one for pairs with large disparities (``crestereo-pp eval`` times the default).
+--profile adds the torch rows' top operators.
 
 --rounds R runs a model and size's rows R times, interleaved (torch fp32, torch bf16, OpenVINO
 fp32, OpenVINO bf16, then again), each time in a fresh process; the median is then over all R x
@@ -75,16 +78,16 @@ def measure(
     start = time.perf_counter()
     if backend == "torch":
         with FlopCounterMode(display=False) as counter:
-            predictor.predict(left, right)  # the warm-up
+            predictor.predict(left, right, two_pass=False)  # the warm-up
         gflop: float | None = counter.get_total_flops() / 1e9
     else:
-        predictor.predict(left, right)  # the warm-up, which compiles the shape
+        predictor.predict(left, right, two_pass=False)  # the warm-up, which compiles the shape
         gflop = None
     first_call_s = time.perf_counter() - start
     times = []
     for _ in range(runs):
         start = time.perf_counter()
-        predictor.predict(left, right)
+        predictor.predict(left, right, two_pass=False)
         times.append(time.perf_counter() - start)
     result = {
         "times_s": times,
@@ -95,7 +98,7 @@ def measure(
     }
     if profile and backend == "torch":
         with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU]) as prof:
-            predictor.predict(left, right)
+            predictor.predict(left, right, two_pass=False)
         result["profile"] = prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=15)
     return result
 

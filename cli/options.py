@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from model import InferenceOptions, StereoPredictor, load_model, parse_iterations
+from model import TWO_PASS_CHOICES, InferenceOptions, StereoPredictor, load_model, parse_iterations, parse_two_pass
 from model.config import MODEL_NAMES
 from model.device import resolve_device
 
@@ -28,7 +28,15 @@ def add_model_options(parser: argparse.ArgumentParser) -> None:
         default="auto",
         help="auto: bf16 with OpenVINO on a CPU that computes bf16 natively (AMX, AVX512-BF16), else fp32 [auto]",
     )
-    parser.add_argument("--two-pass", action="store_true", help="half-resolution pass, then full-resolution refinement")
+    parser.add_argument(
+        "--two-pass",
+        choices=TWO_PASS_CHOICES,
+        nargs="?",
+        const="on",
+        default="auto",
+        help="a half-resolution pass, then full-resolution refinement from it: on (the flag alone), off, "
+        "or auto: where a quick quarter-resolution pass finds large disparities (above about 90 px) [auto]",
+    )
     parser.add_argument(
         "--iters",
         type=int,
@@ -50,7 +58,7 @@ def inference_options(args: argparse.Namespace) -> InferenceOptions:
     try:
         return InferenceOptions(
             parse_iterations(args.iters),
-            args.two_pass,
+            parse_two_pass(args.two_pass),
             args.scale,
             getattr(args, "raw_uncertainty", False),
         )
@@ -70,7 +78,7 @@ def load_predictor(args: argparse.Namespace) -> StereoPredictor:
         precision=args.precision,
     )
     options = inference_options(args)
-    for warm_start in (False, True) if options.two_pass else (False,):
+    for warm_start in (False, True) if options.two_pass is not False else (False,):
         if not predictor.prepare(options.iters, warm_start=warm_start, wait=False):
             print(
                 f"crestereo-pp: compiling {args.model} for OpenVINO ({'warm' if warm_start else 'cold'} start), once: "

@@ -92,8 +92,8 @@ def _encode(image: Image) -> bytes:
 
 
 def _query(response_format: str, options: dict[str, Any]) -> dict[str, str]:
-    """The query string of a request: `format` and the options given (None and False left out)."""
-    given = {k: _query_value(v) for k, v in options.items() if v is not None and v is not False}
+    """The query string of a request: `format` and the options given (None left out: the service's default)."""
+    given = {k: _query_value(v) for k, v in options.items() if v is not None}
     return {"format": response_format, **given}
 
 
@@ -109,8 +109,8 @@ def _request(left: Image, right: Image, calibration: Calibration | None, options
 
 
 def _query_value(value: Any) -> str:
-    if value is True:
-        return "true"
+    if isinstance(value, bool):
+        return "true" if value else "false"
     if isinstance(value, (tuple, list)):
         return ",".join(str(v) for v in value)
     return str(value)
@@ -174,7 +174,7 @@ class StereoClient:
         model: str = "lite",
         iters: int | tuple[int, int, int] | None = None,
         scale: float | None = None,
-        two_pass: bool = False,
+        two_pass: bool | str = "auto",
         raw_uncertainty: bool = False,
         focal_px: float | None = None,
         baseline_m: float | None = None,
@@ -182,7 +182,8 @@ class StereoClient:
         frame: str = "rectified",
     ) -> DisparityResult:
         """Disparity and uncertainty of a rectified pair, or of a raw pair with its `calibration`
-        (raises `ServiceError` on an error answer)."""
+        (raises `ServiceError` on an error answer). `two_pass`: True, False or "auto" (two passes
+        where a quick pass finds large disparities)."""
         request = _request(
             left,
             right,
@@ -335,7 +336,7 @@ class AsyncStereoClient:
         model: str = "lite",
         iters: int | tuple[int, int, int] | None = None,
         scale: float | None = None,
-        two_pass: bool = False,
+        two_pass: bool | str = "auto",
         raw_uncertainty: bool = False,
         focal_px: float | None = None,
         baseline_m: float | None = None,

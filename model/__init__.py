@@ -11,9 +11,19 @@ from .config import ModelConfig
 from .inference import FrameStream, Prediction, StereoPredictor, TensorPrediction, load_model
 from .loss import matching_loss, sequence_loss
 from .network import CREStereoPP, NetworkOutput, padded_size
-from .options import InferenceOptions, Iterations, StageCounts, WarmStart, parse_iterations
+from .options import (
+    TWO_PASS_CHOICES,
+    InferenceOptions,
+    Iterations,
+    StageCounts,
+    TwoPass,
+    WarmStart,
+    parse_iterations,
+    parse_two_pass,
+)
 
 __all__ = [
+    "TWO_PASS_CHOICES",
     "CREStereoPP",
     "FrameStream",
     "InferenceOptions",
@@ -24,10 +34,12 @@ __all__ = [
     "StageCounts",
     "StereoPredictor",
     "TensorPrediction",
+    "TwoPass",
     "WarmStart",
     "load_model",
     "matching_loss",
     "padded_size",
     "parse_iterations",
+    "parse_two_pass",
     "sequence_loss",
 ]

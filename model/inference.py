@@ -20,7 +20,7 @@ from .config import ModelConfig
 from .cuda_graphs import Forward, GraphedForward
 from .network import CREStereoPP, padded_size
 from .openvino_backend import OpenVINOForward, native_bf16, openvino_available
-from .options import InferenceOptions, Iterations, StageCounts, WarmStart, parse_iterations
+from .options import InferenceOptions, Iterations, StageCounts, TwoPass, WarmStart, parse_iterations
 from .upsample import resize_disparity
 from .weights import USABLE_BAD2, WEIGHTS_DIR, file_sha256, is_trained, network_from_weights, read_weights
 
@@ -61,6 +61,14 @@ def resolve_precision(precision: PrecisionChoice, backend: Backend) -> Precision
         return "bf16" if backend == "openvino" and native_bf16() else "fp32"
     return precision
 
+
+LARGE_DISPARITY_PX = 90.0
+"""``two_pass="auto"`` computes a pair in two passes where the 99th percentile of its quick
+quarter-resolution pass's disparity (``StereoPredictor.large_disparity_percentile``) is above this
+(px of the image the network sees). The single pass of lite's weights misses disparities beyond
+about 90-100 px on real pairs (on procedural ones beyond about 130), where starting from a
+half-resolution pass finds them; below, the single pass keeps finer detail. Measured on the dev
+pairs with ``python -m evaluation.two_pass_rule``."""
 
 MIN_SCALED_SIDE = 16
 """With ``scale``, the pair the network sees keeps at least this many pixels per side: below it
@@ -156,6 +164,13 @@ def load_model(
         payload.get("training"),
         **options,
     )
+
+
+def two_pass_possible(height: int, width: int) -> bool:
+    """Whether ``two_pass="auto"`` considers two passes for a pair of this size (as the network
+    sees it): where its quick pass at quarter resolution keeps at least MIN_SCALED_SIDE px per side
+    (64 px and more); smaller pairs take one pass."""
+    return min(height, width) // 4 >= MIN_SCALED_SIDE
 
 
 def as_image_batch(image: np.ndarray | Tensor, device: torch.device) -> Tensor:
@@ -325,7 +340,7 @@ class StereoPredictor:
         *,
         iters: Iterations = None,
         init_disparity: np.ndarray | Tensor | None = None,
-        two_pass: bool = False,
+        two_pass: TwoPass = "auto",
         scale: float = 1.0,
         raw_uncertainty: bool = False,
     ) -> Prediction: ...
@@ -338,7 +353,7 @@ class StereoPredictor:
         *,
         iters: Iterations = None,
         init_disparity: np.ndarray | Tensor | None = None,
-        two_pass: bool = False,
+        two_pass: TwoPass = "auto",
         scale: float = 1.0,
         raw_uncertainty: bool = False,
     ) -> TensorPrediction: ...
@@ -351,7 +366,7 @@ class StereoPredictor:
         *,
         iters: Iterations = None,
         init_disparity: np.ndarray | Tensor | None = None,
-        two_pass: bool = False,
+        two_pass: TwoPass = "auto",
         scale: float = 1.0,
         raw_uncertainty: bool = False,
     ) -> Prediction | TensorPrediction:
@@ -360,7 +375,9 @@ class StereoPredictor:
         init_disparity: warm start (e.g. the previous video frame's result), HxW array or
             (B, H, W) tensor, positive pixels; refinement then runs at 1/4 only.
         two_pass: first a pass at half resolution, then refinement at full resolution from it
-            (better for large images and large disparities). Ignored when init_disparity is given.
+            (better for large disparities, coarser on fine detail): True, False, or "auto" (two
+            passes where a quick quarter-resolution pass finds disparities above
+            LARGE_DISPARITY_PX). Ignored when init_disparity is given.
         scale: in (0, 1]: the network sees the pair resized by this factor (fewer pixels, so
             faster, and disparities shrunk by it); the maps come back at the input's size, the
             disparity in input pixels.
@@ -391,7 +408,7 @@ class StereoPredictor:
         rights: Sequence[np.ndarray],
         *,
         iters: Iterations = None,
-        two_pass: bool = False,
+        two_pass: TwoPass = "auto",
         scale: float = 1.0,
         raw_uncertainty: bool = False,
         init_disparities: Sequence[np.ndarray] | None = None,
@@ -403,15 +420,33 @@ class StereoPredictor:
 
         Pairs of different sizes are replicate-padded at the bottom and right to one shape, a
         multiple of INPUT_MULTIPLE, exactly as ``predict`` pads a single pair, so each result
-        equals ``predict`` on its pair alone up to float rounding. With ``two_pass`` or a
-        ``scale`` the resized passes would see the padding: all pairs must then have one size.
+        equals ``predict`` on its pair alone up to float rounding. With ``two_pass=True`` or a
+        ``scale`` the resized passes would see the padding: all pairs must then have one size;
+        with ``two_pass="auto"`` (and no warm starts) pairs of different sizes run as one batch per size,
+        unless none of them is large enough for two passes (``two_pass_possible``).
         """
         if not lefts or len(lefts) != len(rights):
             raise ValueError(
                 f"need as many right images as left ones (at least one), got {len(lefts)} and {len(rights)}"
             )
         sizes = [image.shape[:2] for image in lefts]
-        if len(set(sizes)) > 1 and (two_pass or scale != 1.0):
+        auto_mixed = len(set(sizes)) > 1 and two_pass == "auto" and init_disparities is None and scale == 1.0
+        if auto_mixed and not any(two_pass_possible(*size) for size in sizes):
+            two_pass = False  # none is large enough for two passes: one padded batch
+        elif auto_mixed:
+            results: dict[int, Prediction] = {}
+            for size in dict.fromkeys(sizes):
+                group = [i for i, other in enumerate(sizes) if other == size]
+                predictions = self.predict_batch(
+                    [lefts[i] for i in group],
+                    [rights[i] for i in group],
+                    iters=iters,
+                    two_pass=two_pass,
+                    raw_uncertainty=raw_uncertainty,
+                )
+                results.update(zip(group, predictions, strict=True))
+            return [results[i] for i in range(len(lefts))]
+        if len(set(sizes)) > 1 and (two_pass is True or scale != 1.0):
             raise ValueError("pairs of different sizes can only be batched without two_pass or scale")
         height = max(h for h, _ in sizes)
         width = max(w for _, w in sizes)
@@ -475,7 +510,7 @@ class StereoPredictor:
         *,
         iters: Iterations,
         init_disparity: np.ndarray | Tensor | None,
-        two_pass: bool,
+        two_pass: TwoPass,
         scale: float,
         raw_uncertainty: bool,
         graphed: bool,
@@ -491,22 +526,63 @@ class StereoPredictor:
         size = scaled_size(height, width, scale)
         if size != (height, width):
             left_batch, right_batch = (shrink(image, size) for image in (left_batch, right_batch))
-        init: Tensor | None = None
         if init_disparity is not None:
             init = torch.as_tensor(init_disparity, dtype=torch.float32, device=self.device)
             init = init.reshape(left_batch.shape[0], 1, height, width)
             init = init if size == (height, width) else resize_disparity(init, *size)
-        elif two_pass:
-            half_size = (max(1, size[0] // 2), max(1, size[1] // 2))
-            coarse, _ = self.forward_padded(
-                shrink(left_batch, half_size), shrink(right_batch, half_size), counts, None, forward
-            )
-            init = resize_disparity(coarse, *size)
-        disparity, uncertainty = self.forward_padded(left_batch, right_batch, counts, init, forward)
+            disparity, uncertainty = self.forward_padded(left_batch, right_batch, counts, init, forward)
+        else:
+            disparity, uncertainty = self.forward_cold(left_batch, right_batch, counts, two_pass, forward)
         if size != (height, width):
             disparity = resize_disparity(disparity, height, width)
             uncertainty = F.interpolate(uncertainty, size=(height, width), mode="bilinear", align_corners=False)
         return disparity[:, 0], (uncertainty if raw_uncertainty else self.served_uncertainty(uncertainty))[:, 0]
+
+    def forward_cold(
+        self, left: Tensor, right: Tensor, counts: StageCounts, two_pass: TwoPass, forward: Forward
+    ) -> tuple[Tensor, Tensor]:
+        """The maps of (B, 3, H, W) pairs without a warm start, each (B, 1, H, W): one pass, two
+        passes (the second refining at 1/4 from a half-resolution one), or, with "auto", two
+        passes for the pairs whose ``large_disparity_percentile`` is above LARGE_DISPARITY_PX and one
+        for the others (one for all where ``two_pass_possible`` says the pairs are too small)."""
+        if two_pass == "auto" and not two_pass_possible(*left.shape[-2:]):
+            return self.forward_cold(left, right, counts, False, forward)
+        if two_pass == "auto":
+            needs = self.large_disparity_percentile(left, right, counts, forward) > LARGE_DISPARITY_PX
+            if bool(needs.all()) or not bool(needs.any()):
+                return self.forward_cold(left, right, counts, bool(needs.all()), forward)
+            disparity, uncertainty = torch.empty_like(left[:, :1]), torch.empty_like(left[:, :1])
+            for group, two in ((needs, True), (~needs, False)):
+                disparity[group], uncertainty[group] = self.forward_cold(
+                    left[group], right[group], counts, two, forward
+                )
+            return disparity, uncertainty
+        init: Tensor | None = None
+        if two_pass:
+            height, width = left.shape[-2:]
+            half_size = (max(1, height // 2), max(1, width // 2))
+            coarse, _ = self.forward_padded(shrink(left, half_size), shrink(right, half_size), counts, None, forward)
+            init = resize_disparity(coarse, height, width)
+        return self.forward_padded(left, right, counts, init, forward)
+
+    @torch.inference_mode()
+    def large_disparity_percentile(
+        self, left: Tensor, right: Tensor, counts: StageCounts | None = None, forward: Forward | None = None
+    ) -> Tensor:
+        """(B,): the 99th percentile of each pair's disparity (px at H x W) in a quick pass at
+        quarter resolution of the (B, 3, H, W) batch, what ``two_pass="auto"`` decides by.
+        counts: the iterations (default the model's); forward: as ``forward_padded``'s
+        (default this predictor's backend)."""
+        height, width = left.shape[-2:]
+        quarter = (max(1, height // 4), max(1, width // 4))
+        coarse, _ = self.forward_padded(
+            shrink(left, quarter),
+            shrink(right, quarter),
+            self.config.iters if counts is None else counts,
+            None,
+            forward or self.openvino,
+        )
+        return torch.quantile(coarse.flatten(1), 0.99, dim=1) * (width / quarter[1])
 
     def served_uncertainty(self, raw: Tensor) -> Tensor:
         """The uncertainty as served from the paper's U (any shape): P(|error| > threshold_px)

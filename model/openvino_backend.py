@@ -23,6 +23,7 @@ import subprocess
 import sys
 import tempfile
 import threading
+import uuid
 import warnings
 from collections import OrderedDict
 from collections.abc import Sequence
@@ -288,7 +289,8 @@ class OpenVINOForward:
         """The kind's graph, exported by a child process straight into the disk cache where it can
         be written (then read from there), else into a temporary folder (kept in memory only)."""
         if path is not None and _writable(path.parent):
-            partial = path.with_name(f".{os.getpid()}-{path.name}")
+            # unique per export: two predictors of one process may export the same graph at once
+            partial = path.with_name(f".{os.getpid()}-{uuid.uuid4().hex[:8]}-{path.name}")
             _export_in_child(self.network, kind, partial)
             partial.with_suffix(".bin").replace(path.with_suffix(".bin"))
             partial.replace(path)  # the .xml last: a graph on disk is complete

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
@@ -18,6 +18,14 @@ StageCounts = tuple[int, int, int]
 Iterations = int | StageCounts | None
 """What a caller asks for: None, the model's counts; an int, the finest (1/4) stage's; or the
 three `StageCounts`. `StereoPredictor.iterations` resolves it to `StageCounts`."""
+
+TwoPass = bool | Literal["auto"]
+"""Whether a cold pair is computed in two passes (a half-resolution pass, then refinement at full
+resolution from it): True, False, or "auto": two passes only where a quick quarter-resolution pass
+finds large disparities (see ``StereoPredictor.needs_two_pass``)."""
+
+TWO_PASS_CHOICES = ("auto", "on", "off")
+"""``TwoPass`` as the command line and other text spell it (``parse_two_pass``)."""
 
 MAX_ITERATIONS = 99
 """Most ARM iterations per stage that a caller may ask for."""
@@ -44,24 +52,39 @@ def parse_iterations(value: str | int | Sequence[int] | None) -> Iterations:
     return counts[0] if len(counts) == 1 else (counts[0], counts[1], counts[2])
 
 
+def parse_two_pass(value: str | bool) -> TwoPass:
+    """``TwoPass`` from its spelling: "auto", "on"/"true" (True) or "off"/"false" (False), or a
+    bool; ValueError otherwise."""
+    if isinstance(value, bool):
+        return value
+    if value == "auto":
+        return "auto"
+    spelled = {"on": True, "true": True, "off": False, "false": False}.get(str(value).lower())
+    if spelled is None:
+        raise ValueError(f"two_pass is auto, on or off, got {value!r}")
+    return spelled
+
+
 @dataclass(frozen=True)
 class InferenceOptions:
     """The options of one prediction (``StereoPredictor.predict`` and ``predict_batch``).
 
     iters: see ``Iterations`` (given in any form ``parse_iterations`` reads).
-    two_pass: a half-resolution pass first, then refinement at full resolution from it.
+    two_pass: a half-resolution pass first, then refinement at full resolution from it: always
+        (True), never (False), or where the pair has large disparities ("auto"; see ``TwoPass``).
     scale: in (0, 1]: the network sees the pair resized by this factor; maps come at input size.
     raw_uncertainty: the paper's U instead of the calibrated probability of an error.
     Hashable: requests with equal options (and shapes) may share a batch.
     """
 
     iters: Iterations = None
-    two_pass: bool = False
+    two_pass: TwoPass = "auto"
     scale: float = 1.0
     raw_uncertainty: bool = False
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "iters", parse_iterations(self.iters))
+        object.__setattr__(self, "two_pass", parse_two_pass(self.two_pass))
         if not 0.0 < self.scale <= 1.0:
             raise ValueError(f"scale must be in (0, 1], got {self.scale}")
 

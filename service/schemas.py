@@ -11,7 +11,7 @@ from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, field_validator,
 
 from model.config import ModelName
 from model.inference import scaled_size
-from model.options import InferenceOptions, parse_iterations
+from model.options import InferenceOptions, TwoPass, parse_iterations
 from stereo_data.pointcloud import MIN_DISPARITY, Calibration
 
 
@@ -59,10 +59,11 @@ class DisparityOptions(BaseModel):
         "else image-space (x px, y px, disparity px); "
         "pixels above `max_uncertainty` are dropped.",
     )
-    two_pass: bool = Field(
-        False,
-        description="Cascaded inference: a half-resolution pass initialises the "
-        "full-resolution one (better on large images, slower).",
+    two_pass: TwoPass = Field(
+        "auto",
+        description="Cascaded inference, a half-resolution pass initialising the full-resolution one "
+        "(finds large disparities, coarser on fine detail): `true`, `false`, or `auto`: two passes "
+        "only where a quick quarter-resolution pass finds disparities above about 90 px.",
     )
     iters: str | None = Field(
         None,

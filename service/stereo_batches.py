@@ -10,7 +10,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from model import InferenceOptions, Iterations, ModelConfig, Prediction, StageCounts, padded_size
+from model import InferenceOptions, Iterations, ModelConfig, Prediction, StageCounts, TwoPass, padded_size
 from model.calibration import UncertaintyCalibration
 from model.inference import Backend, Precision
 
@@ -44,7 +44,7 @@ class Predictor(Protocol):
         rights: Sequence[np.ndarray],
         *,
         iters: Iterations = None,
-        two_pass: bool = False,
+        two_pass: TwoPass = "auto",
         scale: float = 1.0,
         raw_uncertainty: bool = False,
         init_disparities: Sequence[np.ndarray] | None = None,
@@ -68,9 +68,9 @@ class StereoKey:
 
 def stereo_key(model: str, options: InferenceOptions, height: int, width: int, warm_start: bool = False) -> StereoKey:
     """Plain requests batch by padded shape: padding them to it is what the network does anyway.
-    Two-pass and scaled requests batch by exact shape, since their resized passes see the
-    unpadded image. Warm-started requests batch only with warm-started ones (another graph)."""
-    if options.two_pass or options.scale != 1.0:
+    Two-pass (also "auto") and scaled requests batch by exact shape, since their resized passes
+    see the unpadded image. Warm-started requests batch only with warm-started ones (another graph)."""
+    if options.two_pass is not False or options.scale != 1.0:
         return StereoKey(model, options, height, width, warm_start)
     return StereoKey(model, options, padded_size(height), padded_size(width), warm_start)
 
@@ -85,10 +85,11 @@ iterations at 1/4 resolution."""
 STAGE_WEIGHTS = (0.25, 0.5, 1.0)
 """The cost of one ARM iteration at 1/16, 1/8 and 1/4 resolution, relative to one at 1/4."""
 TWO_PASS_COST = 1.0
-"""Two-pass inference adds a pass at half resolution, and its warm start saves about as much."""
+"""Two-pass inference adds a pass at half resolution, and its warm start saves about as much;
+"auto" adds a pass at quarter resolution to one or the other (about 1/16 of the pixels)."""
 
 
-def relative_cost(counts: StageCounts, default_counts: StageCounts, scale: float, two_pass: bool) -> float:
+def relative_cost(counts: StageCounts, default_counts: StageCounts, scale: float, two_pass: TwoPass) -> float:
     """Compute of a request relative to a plain one of the same size (the model's own iteration
     counts `default_counts`, scale 1, one pass): its iterations `counts` (at 1/16, 1/8, 1/4),
     `scale` (the network sees scale^2 of the pixels) and `two_pass`."""
@@ -97,7 +98,7 @@ def relative_cost(counts: StageCounts, default_counts: StageCounts, scale: float
         return FIXED_COST + sum(weight * n for weight, n in zip(STAGE_WEIGHTS, iterations, strict=True))
 
     cost = forward(counts) / forward(default_counts) * scale**2
-    return cost * TWO_PASS_COST if two_pass else cost
+    return cost * TWO_PASS_COST if two_pass is not False else cost
 
 
 @dataclass(frozen=True)

@@ -104,6 +104,6 @@ def test_eval_runs_and_records_the_inference_knobs(pairs_dir, tmp_path):
     argv = ["eval", str(pairs_dir), "--device", "cpu", "--iters", "1", "1", "2", "--scale", "0.5"]
     assert main([*argv, "--json", str(out)]) == 0
     model = json.loads(out.read_text())["model"]
-    assert (model["iters"], model["scale"], model["two_pass"]) == ([1, 1, 2], 0.5, False)
+    assert (model["iters"], model["scale"], model["two_pass"]) == ([1, 1, 2], 0.5, "auto")
     with pytest.raises(SystemExit, match="1 or 3 counts"):
         main(["eval", str(pairs_dir), "--device", "cpu", "--iters", "1", "2"])

@@ -7,8 +7,11 @@ import pytest
 import torch
 
 from model import InferenceOptions, ModelConfig, load_model
+from model import inference as inference_module
 from model.weights import file_sha256
+from stereo_data.readers import open_dataset
 from stereo_data.synthetic import SceneConfig, SceneGenerator
+from tests.shared_data import SMALL_STEREO_DEV_PAIR, STEREO_DEV
 
 
 @pytest.fixture(scope="module")
@@ -68,6 +71,41 @@ def test_sixteen_bit_images_are_scaled_to_the_eight_bit_range(lite):
     left, right = random_pair(32, 64, seed=5)
     wide = lite.predict(left.astype(np.uint16) * 257, right.astype(np.uint16) * 257)
     np.testing.assert_allclose(wide.disparity, lite.predict(left, right).disparity, atol=1e-3)
+
+
+def test_auto_two_pass_computes_each_pair_of_a_batch_as_its_quick_pass_says(lite, monkeypatch):
+    """A pair whose quick quarter-resolution pass puts its 99th percentile above the threshold is
+    computed in two passes, the others in one, also when the two share a batch."""
+    near, far = (
+        SceneGenerator(SceneConfig(height=64, width=160, max_disparity=d)).generate(batch_size=1, seed=8)
+        for d in (48.0, 8.0)
+    )
+    left, right = torch.cat([near.left, far.left]), torch.cat([near.right, far.right])
+    evidence = lite.large_disparity_percentile(left, right)
+    assert evidence[0] > evidence[1] + 5  # the scene with the larger disparities says so
+    monkeypatch.setattr(inference_module, "LARGE_DISPARITY_PX", float(evidence.mean()))
+    auto = lite.predict(left, right, two_pass="auto")
+    for i, two in ((0, True), (1, False)):
+        alone = lite.predict(left[i : i + 1], right[i : i + 1], two_pass=two)
+        other = lite.predict(left[i : i + 1], right[i : i + 1], two_pass=not two)
+        np.testing.assert_allclose(auto.disparity[i].numpy(), alone.disparity[0].numpy(), atol=1e-3)
+        assert not np.allclose(auto.disparity[i].numpy(), other.disparity[0].numpy(), atol=1e-3)
+
+
+@pytest.mark.skipif(not STEREO_DEV.is_dir(), reason=f"no real stereo pairs at {STEREO_DEV}")
+def test_the_quick_pass_reads_a_real_pairs_largest_disparities_and_keeps_a_near_scene_in_one_pass(lite):
+    dataset = open_dataset(STEREO_DEV)
+    sample = next(dataset[i] for i in range(len(dataset)) if dataset[i].name == SMALL_STEREO_DEV_PAIR)
+    truth = float(np.percentile(sample.disparity[sample.valid], 99))  # tsukuba: 14 px
+    evidence = float(
+        lite.large_disparity_percentile(
+            *(torch.from_numpy(image).permute(2, 0, 1)[None].float() for image in (sample.left, sample.right))
+        )[0]
+    )
+    assert abs(evidence - truth) < 3.0
+    assert evidence < inference_module.LARGE_DISPARITY_PX
+    auto, one = (lite.predict(sample.left, sample.right, two_pass=flag).disparity for flag in ("auto", False))
+    np.testing.assert_array_equal(auto, one)
 
 
 def test_warm_start_and_two_pass_give_maps_of_the_input_size(lite):
@@ -166,14 +204,19 @@ def test_a_scale_runs_the_network_on_the_resized_pair_and_answers_in_input_pixel
 
 def test_a_batch_of_pairs_of_different_sizes_equals_each_pair_alone_as_host_arrays(lite):
     pairs = [random_pair(64, 96, seed=1), random_pair(50, 90, seed=2), random_pair(60, 70, seed=3)]
-    batch = lite.predict_batch([left for left, _ in pairs], [right for _, right in pairs], iters=(1, 1, 2))
-    for (left, right), result in zip(pairs, batch, strict=True):
-        alone = lite.predict(left, right, iters=(1, 1, 2))
+    lefts, rights = [left for left, _ in pairs], [right for _, right in pairs]
+    padded = lite.predict_batch(lefts, rights, iters=(1, 1, 2), two_pass=False)
+    for (left, right), result in zip(pairs, padded, strict=True):
+        alone = lite.predict(left, right, iters=(1, 1, 2), two_pass=False)
         assert isinstance(result.disparity, np.ndarray) and result.disparity.shape == left.shape[:2]
         np.testing.assert_allclose(result.disparity, alone.disparity, rtol=1e-4, atol=1e-3)
         np.testing.assert_allclose(result.uncertainty, alone.uncertainty, rtol=1e-4, atol=1e-4)
-    with pytest.raises(ValueError, match="different sizes"):
-        lite.predict_batch([pairs[0][0], pairs[1][0]], [pairs[0][1], pairs[1][1]], scale=0.5)
+    # "auto" decides each pair on its own unpadded image: one batch per size, each pair as alone
+    for (left, right), result in zip(pairs, lite.predict_batch(lefts, rights, iters=(1, 1, 2)), strict=True):
+        np.testing.assert_allclose(result.disparity, lite.predict(left, right, iters=(1, 1, 2)).disparity, atol=1e-3)
+    for knob in ({"scale": 0.5}, {"two_pass": True}):
+        with pytest.raises(ValueError, match="different sizes"):
+            lite.predict_batch([pairs[0][0], pairs[1][0]], [pairs[0][1], pairs[1][1]], **knob)
     with pytest.raises(ValueError, match="as many"):
         lite.predict_batch([pairs[0][0]], [])
 

@@ -2,7 +2,7 @@
 
 import pytest
 
-from model import InferenceOptions, parse_iterations
+from model import InferenceOptions, parse_iterations, parse_two_pass
 
 
 @pytest.mark.parametrize(
@@ -24,10 +24,26 @@ def test_options_are_hashable_values_that_normalise_their_iterations_and_check_t
     assert len({InferenceOptions(), InferenceOptions(), InferenceOptions(two_pass=True)}) == 2
     assert InferenceOptions(scale=0.5).keywords() == {
         "iters": None,
-        "two_pass": False,
+        "two_pass": "auto",
         "scale": 0.5,
         "raw_uncertainty": False,
     }
     for scale in (0.0, 1.5, -1.0):
         with pytest.raises(ValueError, match="scale"):
             InferenceOptions(scale=scale)
+
+
+@pytest.mark.parametrize(
+    ("given", "parsed"),
+    [("auto", "auto"), ("on", True), ("true", True), ("ON", True), ("off", False), ("false", False), (True, True)],
+)
+def test_two_pass_reads_auto_on_or_off_and_defaults_to_auto(given, parsed):
+    assert parse_two_pass(given) == parsed
+    assert InferenceOptions(two_pass=given).two_pass == parsed
+    assert InferenceOptions().two_pass == "auto"
+
+
+@pytest.mark.parametrize("given", ["", "yes please", "2", "Auto-ish"])
+def test_two_pass_other_than_auto_on_or_off_is_refused(given):
+    with pytest.raises(ValueError, match="auto, on or off"):
+        InferenceOptions(two_pass=given)

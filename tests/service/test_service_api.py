@@ -121,6 +121,8 @@ async def test_grayscale_16_bit_and_jpeg_uploads_are_accepted():
     ("params", "knobs"),
     [
         ({"two_pass": "true"}, {"two_pass": True}),
+        ({"two_pass": "false"}, {"two_pass": False}),
+        ({"two_pass": "auto"}, {"two_pass": "auto"}),
         ({"iters": "3"}, {"iters": 3}),
         ({"iters": "1,1,2"}, {"iters": (1, 1, 2)}),
         ({"scale": "0.5"}, {"scale": 0.5}),
@@ -141,9 +143,18 @@ async def test_inference_options_are_served_as_the_library_computes_them(params,
 
 
 @pytest.mark.parametrize(
-    "params", [{"iters": "0"}, {"iters": "1,2"}, {"iters": "4,x,6"}, {"iters": "100"}, {"scale": "0"}, {"scale": "1.5"}]
+    "params",
+    [
+        {"iters": "0"},
+        {"iters": "1,2"},
+        {"iters": "4,x,6"},
+        {"iters": "100"},
+        {"scale": "0"},
+        {"scale": "1.5"},
+        {"two_pass": "sometimes"},
+    ],
 )
-async def test_bad_iterations_or_scale_get_422(params):
+async def test_bad_iterations_scale_or_two_pass_get_422(params):
     async with serve_asgi() as h:
         response = await h.client.post("/disparity", params=params, files=pair_files(*stereo_pair()))
     assert (response.status_code, response.json()["error"]["code"]) == (422, "invalid_request")
@@ -220,7 +231,8 @@ async def test_on_openvino_the_service_says_so_and_answers_with_the_maps_torch_g
         runs = predictor.openvino.runs
         answer = await h.client.post("/disparity", params={"iters": "1,1,1"}, files=pair_files(left, right))
     assert (info["backend"], info["precision"]) == ("openvino", "fp32")
-    assert answer.status_code == 200 and predictor.openvino.runs == runs + 1
+    # two_pass=auto's quick quarter-resolution pass, then (a small scene) the one pass
+    assert answer.status_code == 200 and predictor.openvino.runs == runs + 2
     expected = load_model("lite", backend="torch").predict(left, right, iters=(1, 1, 1))
     assert_same_maps(decode_array(answer.json()["disparity"]), expected.disparity)
 

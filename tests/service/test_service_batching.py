@@ -89,19 +89,21 @@ async def worker_held(
 
 
 async def test_requests_queued_behind_a_busy_worker_run_as_one_batch_equal_to_single_runs():
-    # Three true sizes that all pad to 64x96: they share one batch, each padded like the network does.
+    # Three true sizes that all pad to 64x96: one-pass requests share one batch, each padded like the
+    # network does (two-pass ones, "auto" included, batch by exact shape).
     pairs = {size: stereo_pair(*size, seed=i) for i, size in enumerate([(64, 96), (50, 90), (60, 70)])}
     async with serve_asgi() as h:
         gated = h.predictors["lite"]
         async with worker_held(h, pair=pairs[(64, 96)]) as requests:
             for size, pair in pairs.items():
-                requests.post(size, *pair)
+                requests.post(size, *pair, params={"two_pass": "false"})
             await wait_queued(h, 3)
         metrics = (await h.client.get("/metrics")).text
         singles = {
             size: gated.predict(
                 torch.from_numpy(np.stack([left])).permute(0, 3, 1, 2).float(),
                 torch.from_numpy(np.stack([right])).permute(0, 3, 1, 2).float(),
+                two_pass=False,
             )
             for size, (left, right) in pairs.items()
         }

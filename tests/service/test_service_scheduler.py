@@ -87,10 +87,11 @@ def test_models_options_and_shapes_never_share_a_batch():
     assert batch == [queued[0], queued[-1]]
 
 
-def test_plain_requests_batch_by_padded_shape_two_pass_and_scaled_ones_by_exact_shape():
-    plain = stereo_key("lite", InferenceOptions(), 50, 90)
-    assert plain == stereo_key("lite", InferenceOptions(), 64, 96) and (plain.height, plain.width) == (64, 96)
-    for options in (InferenceOptions(two_pass=True), InferenceOptions(scale=0.5)):
+def test_one_pass_requests_batch_by_padded_shape_two_pass_auto_and_scaled_ones_by_exact_shape():
+    one_pass = InferenceOptions(two_pass=False)
+    plain = stereo_key("lite", one_pass, 50, 90)
+    assert plain == stereo_key("lite", one_pass, 64, 96) and (plain.height, plain.width) == (64, 96)
+    for options in (InferenceOptions(), InferenceOptions(two_pass=True), InferenceOptions(scale=0.5)):
         assert stereo_key("lite", options, 50, 90) != stereo_key("lite", options, 64, 96)
         assert stereo_key("lite", options, 50, 90).pixels == 50 * 90
 
