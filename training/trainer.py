@@ -13,7 +13,15 @@ from torch.nn.parallel import DistributedDataParallel
 from tqdm import tqdm
 
 from evaluation.evaluate import evaluate
-from model import CREStereoPP, ModelConfig, NetworkOutput, StereoPredictor, matching_loss, sequence_loss
+from model import (
+    CREStereoPP,
+    InferenceOptions,
+    ModelConfig,
+    NetworkOutput,
+    StereoPredictor,
+    matching_loss,
+    sequence_loss,
+)
 from model.device import resolve_device
 from model.inference import autocast_bf16
 from model.weights import WeightsFile, load_state, model_config_of, read_weights, write_weights
@@ -299,11 +307,19 @@ def end_point_error(disparity: torch.Tensor, batch: TrainingBatch) -> torch.Tens
 
 
 def validate(network: CREStereoPP, config: TrainConfig, device: torch.device) -> dict[str, float]:
-    """Mean EPE, bad-1/2/3 and D1-all of `network` on config.val_data; leaves it in train mode."""
+    """Mean EPE, bad-1/2/3 and D1-all of `network` on config.val_data, each pair in one pass (the
+    network itself, comparable along the learning curve; ``two_pass="auto"`` is a serving policy
+    whose threshold is measured for finished weights); leaves it in train mode."""
     if config.val_data is None:
         raise ValueError("validation needs config.val_data")
     predictor = StereoPredictor(network, config.model, None, device)
-    report = evaluate(open_dataset(config.val_data), predictor, dataset_name=config.val_data, progress=False)
+    report = evaluate(
+        open_dataset(config.val_data),
+        predictor,
+        dataset_name=config.val_data,
+        options=InferenceOptions(two_pass=False),
+        progress=False,
+    )
     network.train()
     metrics = report.mean(config.model).metrics
     return dict(epe=metrics.epe, bad1=metrics.bad1, bad2=metrics.bad2, bad3=metrics.bad3, d1_all=metrics.d1_all)

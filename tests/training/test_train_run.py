@@ -155,6 +155,21 @@ def test_validation_at_checkpoints_is_logged(tmp_path, real_pairs):
     )
 
 
+def test_validation_computes_each_pair_in_one_pass_so_the_learning_curve_measures_the_network(
+    tmp_path, real_pairs, monkeypatch
+):
+    options = []
+    evaluate = training.trainer.evaluate
+
+    def recording(*args, **kwargs):
+        options.append(kwargs["options"])
+        return evaluate(*args, **kwargs)
+
+    monkeypatch.setattr(training.trainer, "evaluate", recording)
+    train(tiny(tmp_path, sources=(real_pairs,), max_steps=1, checkpoint_every=1, val_data="/in-memory"), progress=False)
+    assert [o.two_pass for o in options] == [False]
+
+
 def test_fp16_export_halves_the_file_and_predicts_like_fp32(tmp_path, real_pairs):
     train(tiny(tmp_path, sources=(real_pairs,), max_steps=1), progress=False)
     full, half = tmp_path / "fp32.pt", tmp_path / "fp16.pt"
