@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -12,6 +12,7 @@ import numpy as np
 from tqdm import tqdm
 
 from model import InferenceOptions, Prediction, StereoPredictor
+from model.inference import scaled_size, two_pass_possible
 from stereo_data.formats import encode_png
 from stereo_data.readers import StereoSample
 
@@ -167,8 +168,9 @@ def evaluate(
     """Predict every pair of `dataset` with `predictor` (and SGBM when `baseline_sgbm`), score it.
 
     options: how each pair is computed (`StereoPredictor.predict`'s options; None: the defaults).
-    Times are wall-clock seconds of one prediction, the model's after one untimed warm-up
-    prediction at each image size (where OpenVINO compiles the size). With `sheets_dir`, writes
+    Times are wall-clock seconds of one prediction, the model's after untimed warm-up
+    predictions at each image size (where OpenVINO compiles the size; with two_pass "auto", one
+    per path a pair of that size may take). With `sheets_dir`, writes
     `sheets_dir/NAME.png` per pair: left image, ground truth, uncertainty, then each method's
     disparity and error map, on fixed colour scales (disparity 0..max ground truth of the pair;
     error 0..ERROR_SCALE_PX).
@@ -195,8 +197,15 @@ def evaluate(
         },
     )
 
-    def predict(sample: StereoSample) -> Prediction:
-        return predictor.predict(sample.left, sample.right, **options.keywords())
+    def predict(sample: StereoSample, chosen: InferenceOptions = options) -> Prediction:
+        return predictor.predict(sample.left, sample.right, **chosen.keywords())
+
+    def warm_ups(height: int, width: int) -> list[InferenceOptions]:
+        """The untimed runs at a new size: OpenVINO compiles every shape its pairs may run at (with
+        "auto", both paths, since one pair of a size may take two passes and the next one)."""
+        if options.two_pass == "auto" and two_pass_possible(*scaled_size(height, width, options.scale)):
+            return [options, replace(options, two_pass=True), replace(options, two_pass=False)]
+        return [options]
 
     sizes_seen: set[tuple[int, ...]] = set()
     for index in tqdm(range(len(dataset)), desc=f"eval {predictor.name}", unit="pair", disable=not progress):
@@ -204,9 +213,10 @@ def evaluate(
         known = sample.valid & np.isfinite(sample.disparity)
         if not known.any():
             raise ValueError(f"pair {sample.name!r} has no valid ground-truth pixel")
-        if sample.left.shape not in sizes_seen:  # untimed: the first run of a size compiles it (OpenVINO)
+        if sample.left.shape not in sizes_seen:
             sizes_seen.add(sample.left.shape)
-            predict(sample)
+            for warm_up in warm_ups(*sample.left.shape[:2]):
+                predict(sample, warm_up)
         start = time.perf_counter()
         prediction = predict(sample)
         seconds = time.perf_counter() - start

@@ -27,20 +27,22 @@ class OffsetPredictor:
         self.truth = {id(s.left): s.disparity for s in samples}
         self.offset = offset
         self.calls = 0
+        self.two_pass = []
 
-    def predict(self, left, right, *, two_pass=False, iters=None, scale=1.0, raw_uncertainty=False):
+    def predict(self, left, right, *, two_pass="auto", iters=None, scale=1.0, raw_uncertainty=False):
         self.calls += 1
+        self.two_pass.append(two_pass)
         truth = self.truth[id(left)]
         disparity = np.where(np.isfinite(truth), truth + self.offset, 0.0).astype(np.float32)
         return Prediction(disparity, np.full(truth.shape, 0.25, np.float32))
 
 
-def shifted_sample(name: str, disparity: int, seed: int) -> StereoSample:
+def shifted_sample(name: str, disparity: int, seed: int, height: int = 48, width: int = 80) -> StereoSample:
     rng = np.random.default_rng(seed)
-    texture = rng.integers(0, 256, (48, 80 + disparity, 3), dtype=np.uint8)
-    truth = np.full((48, 80), float(disparity), np.float32)
+    texture = rng.integers(0, 256, (height, width + disparity, 3), dtype=np.uint8)
+    truth = np.full((height, width), float(disparity), np.float32)
     truth[:, :disparity] = np.inf
-    return StereoSample(name, texture[:, :80].copy(), texture[:, disparity:].copy(), truth, np.isfinite(truth))
+    return StereoSample(name, texture[:, :width].copy(), texture[:, disparity:].copy(), truth, np.isfinite(truth))
 
 
 @pytest.fixture
@@ -61,6 +63,15 @@ def test_the_model_is_warmed_up_once_before_timing(samples):
     predictor = OffsetPredictor(samples, 0.0)
     evaluate(samples, predictor, dataset_name="mem", progress=False)
     assert predictor.calls == len(samples) + 1
+
+
+def test_with_auto_two_pass_each_new_size_warms_up_both_paths_before_timing():
+    # 64x96 pairs may take one pass or two: both are compiled untimed, so no pair's time counts a
+    # compile (the 48x80 ones are too small for two passes: one warm-up)
+    large = [shifted_sample(name, 4, seed, height=64, width=96) for name, seed in (("a", 0), ("b", 1))]
+    predictor = OffsetPredictor(large, 0.0)
+    evaluate(large, predictor, dataset_name="mem", progress=False)
+    assert predictor.two_pass == ["auto", True, False, "auto", "auto"]
 
 
 def test_sgbm_rows_sit_beside_the_model_and_means_are_per_method(samples):
