@@ -70,6 +70,11 @@ about 90-100 px on real pairs (on procedural ones beyond about 130), where start
 half-resolution pass finds them; below, the single pass keeps finer detail. Measured on the dev
 pairs with ``python -m evaluation.two_pass_rule``."""
 
+QUICK_PASS_MIN_SIDE = 48
+"""``two_pass="auto"``'s quick pass at quarter resolution needs at least this many pixels per side
+to measure anything: on 16 x 24 or 32 x 48 px it reads 99th-percentile disparities of 140-220 px
+on pairs whose true disparity is 4-16 px (and would send them to two passes)."""
+
 MIN_SCALED_SIDE = 16
 """With ``scale``, the pair the network sees keeps at least this many pixels per side: below it
 the network sees too little to match, and its disparities, multiplied by 1 / scale, come out
@@ -168,9 +173,9 @@ def load_model(
 
 def two_pass_possible(height: int, width: int) -> bool:
     """Whether ``two_pass="auto"`` considers two passes for a pair of this size (as the network
-    sees it): where its quick pass at quarter resolution keeps at least MIN_SCALED_SIDE px per side
-    (64 px and more); smaller pairs take one pass."""
-    return min(height, width) // 4 >= MIN_SCALED_SIDE
+    sees it): where its quick pass at quarter resolution keeps at least QUICK_PASS_MIN_SIDE px per
+    side (192 px and more); smaller pairs take one pass."""
+    return min(height, width) // 4 >= QUICK_PASS_MIN_SIDE
 
 
 def as_image_batch(image: np.ndarray | Tensor, device: torch.device) -> Tensor:

@@ -22,7 +22,7 @@ three `StageCounts`. `StereoPredictor.iterations` resolves it to `StageCounts`."
 TwoPass = bool | Literal["auto"]
 """Whether a cold pair is computed in two passes (a half-resolution pass, then refinement at full
 resolution from it): True, False, or "auto": two passes only where a quick quarter-resolution pass
-finds large disparities (see ``StereoPredictor.needs_two_pass``)."""
+finds large disparities (see ``StereoPredictor.large_disparity_percentile``)."""
 
 TWO_PASS_CHOICES = ("auto", "on", "off")
 """``TwoPass`` as the command line and other text spell it (``parse_two_pass``)."""

@@ -66,9 +66,9 @@ def test_the_model_is_warmed_up_once_before_timing(samples):
 
 
 def test_with_auto_two_pass_each_new_size_warms_up_both_paths_before_timing():
-    # 64x96 pairs may take one pass or two: both are compiled untimed, so no pair's time counts a
+    # 192x200 pairs may take one pass or two: both are compiled untimed, so no pair's time counts a
     # compile (the 48x80 ones are too small for two passes: one warm-up)
-    large = [shifted_sample(name, 4, seed, height=64, width=96) for name, seed in (("a", 0), ("b", 1))]
+    large = [shifted_sample(name, 4, seed, height=192, width=200) for name, seed in (("a", 0), ("b", 1))]
     predictor = OffsetPredictor(large, 0.0)
     evaluate(large, predictor, dataset_name="mem", progress=False)
     assert predictor.two_pass == ["auto", True, False, "auto", "auto"]

@@ -77,7 +77,7 @@ def test_auto_two_pass_computes_each_pair_of_a_batch_as_its_quick_pass_says(lite
     """A pair whose quick quarter-resolution pass puts its 99th percentile above the threshold is
     computed in two passes, the others in one, also when the two share a batch."""
     near, far = (
-        SceneGenerator(SceneConfig(height=64, width=160, max_disparity=d)).generate(batch_size=1, seed=8)
+        SceneGenerator(SceneConfig(height=192, width=224, max_disparity=d)).generate(batch_size=1, seed=8)
         for d in (48.0, 8.0)
     )
     left, right = torch.cat([near.left, far.left]), torch.cat([near.right, far.right])
@@ -212,6 +212,8 @@ def test_a_batch_of_pairs_of_different_sizes_equals_each_pair_alone_as_host_arra
         np.testing.assert_allclose(result.disparity, alone.disparity, rtol=1e-4, atol=1e-3)
         np.testing.assert_allclose(result.uncertainty, alone.uncertainty, rtol=1e-4, atol=1e-4)
     # "auto" decides each pair on its own unpadded image: one batch per size, each pair as alone
+    pairs[0] = random_pair(192, 200, seed=1)  # large enough for the quick pass
+    lefts, rights = [left for left, _ in pairs], [right for _, right in pairs]
     for (left, right), result in zip(pairs, lite.predict_batch(lefts, rights, iters=(1, 1, 2)), strict=True):
         np.testing.assert_allclose(result.disparity, lite.predict(left, right, iters=(1, 1, 2)).disparity, atol=1e-3)
     for knob in ({"scale": 0.5}, {"two_pass": True}):
