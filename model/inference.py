@@ -5,7 +5,7 @@ from __future__ import annotations
 import contextlib
 import os
 import warnings
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal, NamedTuple, TypeVar, overload
@@ -203,6 +203,16 @@ def as_image_batch(image: np.ndarray | Tensor, device: torch.device) -> Tensor:
 def shrink(images: Tensor, size: tuple[int, int]) -> Tensor:
     """(B, 3, H, W) images resized down to ``size`` = (height, width), antialiased."""
     return F.interpolate(images, size=size, mode="bilinear", antialias=True, align_corners=False)
+
+
+def half_resolution_start(left: Tensor, right: Tensor, coarse: Callable[[Tensor, Tensor], Tensor]) -> Tensor:
+    """The first of two passes: the (B, 1, H, W) disparity (px at H x W, positive) that
+    ``coarse`` finds on the (B, 3, H, W) pair shrunk to half its size, resized back to H x W. The
+    second pass refines it at full resolution (``init_disparity``), at inference with
+    ``two_pass`` and in training with ``TrainConfig.two_pass_fraction``."""
+    height, width = left.shape[-2:]
+    half_size = (max(1, height // 2), max(1, width // 2))
+    return resize_disparity(coarse(shrink(left, half_size), shrink(right, half_size)), height, width)
 
 
 T = TypeVar("T", Tensor, np.ndarray)
@@ -564,10 +574,11 @@ class StereoPredictor:
             return disparity, uncertainty
         init: Tensor | None = None
         if two_pass:
-            height, width = left.shape[-2:]
-            half_size = (max(1, height // 2), max(1, width // 2))
-            coarse, _ = self.forward_padded(shrink(left, half_size), shrink(right, half_size), counts, None, forward)
-            init = resize_disparity(coarse, height, width)
+            init = half_resolution_start(
+                left,
+                right,
+                lambda small_left, small_right: self.forward_padded(small_left, small_right, counts, None, forward)[0],
+            )
         return self.forward_padded(left, right, counts, init, forward)
 
     @torch.inference_mode()

@@ -127,6 +127,12 @@ class TrainConfig:
     train_iters: tuple[int, int, int] | None = _knob(
         None, "ARM iterations at 1/16, 1/8, 1/4 in training (fewer = faster steps) [the model's own]"
     )
+    two_pass_fraction: float = _knob(
+        0.0,
+        "fraction of the steps that compute their pairs as two-pass inference does: the network's own disparity at "
+        "half resolution (no gradient), then the full-resolution refinement from it, trained (the path that "
+        "two_pass and warm starts take; crops must then be multiples of 64)",
+    )
     loss_max_disparity: float = _knob(512.0, "ground truth at or above this (px) is ignored by the loss")
     matching_weight: float = _knob(
         0.0, "weight of the training-only feature matching loss (model.loss.matching_loss); 0: off"
@@ -167,6 +173,13 @@ class TrainConfig:
             raise ValueError("batch_size, max_steps, log_every and checkpoint_every must be positive")
         if not 0.0 <= self.ema_decay < 1.0:
             raise ValueError(f"ema_decay must be in [0, 1), got {self.ema_decay}")
+        if not 0.0 <= self.two_pass_fraction <= 1.0:
+            raise ValueError(f"two_pass_fraction must be in [0, 1], got {self.two_pass_fraction}")
+        if self.two_pass_fraction > 0 and (self.crop_height % 64 or self.crop_width % 64):
+            raise ValueError(
+                f"two-pass steps need crops that are multiples of 64 (their half is what the network sees), "
+                f"got {self.crop_height}x{self.crop_width}"
+            )
         if self.schedule_steps is not None and self.schedule_steps < 1:
             raise ValueError("schedule_steps must be positive")
         low, high = self.real_scale_range

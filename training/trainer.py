@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import datetime as dt
+import random
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -23,7 +24,7 @@ from model import (
     sequence_loss,
 )
 from model.device import resolve_device
-from model.inference import autocast_bf16
+from model.inference import autocast_bf16, half_resolution_start
 from model.weights import WeightsFile, load_state, model_config_of, read_weights, write_weights
 from stereo_data.readers import open_dataset
 
@@ -183,7 +184,7 @@ class Trainer:
         self.network.train()
         for batch in TrainingData(config, self.context.rank, self.device).batches(self.start_step):
             lr = self.optimizer.param_groups[0]["lr"]
-            window_sums += self.train_step(batch)
+            window_sums += self.train_step(batch, takes_two_passes(config, step))
             window_steps += 1
             step += 1
             bar.update(self.pairs_per_step)
@@ -220,11 +221,21 @@ class Trainer:
         bar.close()
         return TrainResult(step, self.out_dir / CHECKPOINT_NAME, out_of_time, self.network)
 
-    def train_step(self, batch: TrainingBatch) -> torch.Tensor:
-        """One optimiser step on `batch`; returns (loss, train EPE in px), detached, on the device."""
+    def train_step(self, batch: TrainingBatch, two_pass: bool = False) -> torch.Tensor:
+        """One optimiser step on `batch`: one pass, or (`two_pass`) the full-resolution refinement
+        from the network's own half-resolution disparity, as two-pass inference computes a pair.
+        Returns (loss, train EPE in px), detached, on the device."""
         config = self.config
         with autocast_bf16(self.device, self.use_bf16):
-            output = self.model(batch.left, batch.right, iters=config.train_iters)
+            init = None
+            if two_pass:
+                with torch.no_grad():
+                    init = half_resolution_start(
+                        batch.left,
+                        batch.right,
+                        lambda left, right: self.model(left, right, iters=config.train_iters).disparity.float(),
+                    )
+            output = self.model(batch.left, batch.right, iters=config.train_iters, init_disparity=init)
         predictions = [[p.float() for p in stage] for stage in output.predictions]
         loss = sequence_loss(predictions, batch.disparity, batch.valid, config.gamma, config.loss_max_disparity)
         if config.matching_weight > 0:
@@ -304,6 +315,13 @@ def end_point_error(disparity: torch.Tensor, batch: TrainingBatch) -> torch.Tens
     """Mean |disparity - ground truth| (px) over the batch's valid pixels; disparity (B,1,H,W)."""
     errors = torch.where(batch.valid, (disparity - batch.disparity).abs(), 0.0)
     return errors.sum() / batch.valid.sum().clamp(min=1)
+
+
+def takes_two_passes(config: TrainConfig, step: int) -> bool:
+    """Whether the optimiser step after `step` (counted across resumes) is a two-pass one: a draw
+    with probability ``config.two_pass_fraction`` seeded by the run's seed and the step, so that a
+    resumed run repeats the uninterrupted one."""
+    return config.two_pass_fraction > 0 and random.Random(f"{config.seed}:{step}").random() < config.two_pass_fraction
 
 
 def validate(network: CREStereoPP, config: TrainConfig, device: torch.device) -> dict[str, float]:

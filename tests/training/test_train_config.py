@@ -62,6 +62,9 @@ def test_a_source_weight_must_be_positive_and_numeric():
         dict(ema_decay=-0.1),
         dict(texel_size=(0.8, 3.0)),  # texels under 1 px at the smallest scale: aliasing
         dict(texel_size=(3.0, 1.2)),
+        dict(two_pass_fraction=1.5),
+        dict(two_pass_fraction=-0.1),
+        dict(two_pass_fraction=0.5, crop_height=96, crop_width=128),  # half of 96 is not a multiple of 32
     ],
 )
 def test_invalid_configs_are_rejected(bad):

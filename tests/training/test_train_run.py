@@ -11,11 +11,12 @@ import training.data
 import training.trainer
 from cli.main import main
 from model import load_model
+from model.network import CREStereoPP
 from model.weights import read_weights
 from stereo_data.readers import StereoSample
 from training.config import DataSource, TrainConfig
 from training.records import read_csv
-from training.trainer import train
+from training.trainer import takes_two_passes, train
 from training_helpers import tiny
 
 
@@ -104,6 +105,41 @@ def test_a_resumed_run_repeats_the_uninterrupted_run_exactly(tmp_path, real_pair
     assert all(torch.equal(a[name], b[name]) for name in a)
     history = read_weights(tmp_path / "split" / "checkpoint.pt")["training"]
     assert [run["origin"] for run in history["runs"]] == ["scratch", "resume"] and history["total_steps"] == 4
+
+
+def test_two_pass_steps_refine_the_networks_own_half_resolution_disparity_and_resume_exactly(
+    tmp_path, real_pairs, monkeypatch
+):
+    calls = []
+    forward = CREStereoPP.forward
+
+    def recording(self, left, right, iters=None, init_disparity=None):
+        calls.append((tuple(left.shape[-2:]), init_disparity is not None, torch.is_grad_enabled()))
+        return forward(self, left, right, iters, init_disparity)
+
+    monkeypatch.setattr(CREStereoPP, "forward", recording)
+    every = tiny(tmp_path / "every", sources=(real_pairs,), crop_width=128, max_steps=1, two_pass_fraction=1.0)
+    train(every, progress=False)
+    # the half-resolution pass without a gradient, then the trained refinement from it
+    assert calls == [((32, 64), False, False), ((64, 128), True, True)]
+    assert np.isfinite(losses(tmp_path / "every")).all()
+
+    half = replace(every, out_dir=str(tmp_path / "whole"), two_pass_fraction=0.5, max_steps=4, schedule_steps=4)
+    drawn = [takes_two_passes(half, step) for step in range(4)]
+    assert 0 < sum(drawn) < 4  # both kinds of step, for the resume below
+    calls.clear()
+    train(half, progress=False)
+    assert sum(init for _, init, _ in calls) == sum(drawn)
+    train(replace(half, out_dir=str(tmp_path / "split"), max_steps=2), progress=False)
+    train(replace(half, out_dir=str(tmp_path / "split")), resume=tmp_path / "split" / "checkpoint.pt", progress=False)
+    assert losses(tmp_path / "split") == losses(tmp_path / "whole")
+
+
+def test_two_pass_steps_are_drawn_with_the_configured_fraction():
+    config = TrainConfig(two_pass_fraction=0.3, crop_height=128, crop_width=256)
+    share = np.mean([takes_two_passes(config, step) for step in range(2000)])
+    assert 0.27 < share < 0.33
+    assert not any(takes_two_passes(replace(config, two_pass_fraction=0.0), step) for step in range(200))
 
 
 def test_the_time_budget_stops_after_the_current_step_and_saves_it(tmp_path, real_pairs):
