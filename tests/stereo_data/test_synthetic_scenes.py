@@ -8,6 +8,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+from stereo_data import synthetic
 from stereo_data.photos import PHOTOS, load_photos
 from stereo_data.synthetic import MAX_SIDES, PhotometricConfig, Scene, SceneConfig, SceneGenerator
 
@@ -538,3 +539,37 @@ def test_a_pan_is_one_scene_rendered_frame_by_frame_and_its_pairs_are_8_bit_imag
     left, right = frames[0].pair()
     assert left.dtype == right.dtype == np.uint8 and left.shape == (64, 128, 3)
     assert np.array_equal(left, frames[0].left[0].permute(1, 2, 0).round().to(torch.uint8).numpy())
+
+
+@pytest.mark.parametrize(
+    "layout", [dict(curve_probability=0.5), dict(road_probability=1.0), dict(room_probability=1.0)]
+)
+def test_the_z_buffer_evaluates_each_surface_only_inside_a_box_that_holds_all_its_points(layout: dict) -> None:
+    """Each surface is evaluated only within its box in the view (the renderer's culling): the
+    box holds every point the surface covers there, in both views, and the nearest surface then
+    equals a z-buffer over every surface at every point."""
+    config = replace(SMALL, max_disparity=40.0, **layout)
+    scene = SceneGenerator(config).sample_scene(batch_size=2, seed=3)
+    x = torch.arange(config.width, dtype=torch.float32).view(1, 1, 1, -1)
+    y = torch.arange(config.height, dtype=torch.float32).view(1, 1, -1, 1)
+    for view in ("left", "right"):
+        x_left = x if view == "left" else synthetic._seen_from_right(scene, x, y)
+        covered = synthetic._covers(scene, x_left, y) & scene.present[..., None, None]  # (B, S, H, W)
+        low_x, high_x, low_y, high_y = (b[..., None, None] for b in synthetic._view_bounds(scene, view).unbind(-1))
+        in_box = (x >= low_x) & (x <= high_x) & (y >= low_y) & (y <= high_y)
+        assert covered.any() and not (covered & ~in_box).any()
+        bounded = torch.isfinite(low_x) & torch.isfinite(high_x)  # foreground shapes: small boxes
+        assert in_box[bounded.expand_as(in_box)].float().mean() < 0.5
+
+        disparity = synthetic._surface_disparity(
+            scene.plane[..., None, None, :],
+            scene.curvature[..., None, None, :],
+            scene.apex[..., None, None, :],
+            x_left,
+            y,
+        )
+        everywhere = torch.where(covered, disparity, -math.inf).max(dim=1, keepdim=True)
+        nearest, index, _ = synthetic._nearest_surface(scene, x, y, view)
+        assert torch.equal(index, everywhere.indices)
+        # the right view's root, computed on other tensor shapes, may round differently (1e-6 px)
+        torch.testing.assert_close(nearest, everywhere.values, rtol=0, atol=0 if view == "left" else 1e-4)
