@@ -272,14 +272,19 @@ async def test_a_depth_limit_bounds_the_metric_point_cloud_and_needs_a_calibrati
     from plyfile import PlyData
 
     left, right = stereo_pair()
-    params = {"format": "ply", "focal_px": 500.0, "baseline_m": 0.12, "max_depth_m": 3.0}
+    params = {"format": "ply", "focal_px": 500.0, "baseline_m": 0.12}
     async with serve_asgi() as h:
-        bounded = await h.client.post("/disparity", params=params, files=pair_files(left, right))
+        unbounded = await h.client.post("/disparity", params=params, files=pair_files(left, right))
+        everything = PlyData.read(io.BytesIO(unbounded.content))["vertex"]
+        limit = float(np.median(everything["z"]))  # about 15 m: a 4 px disparity
+        bounded = await h.client.post(
+            "/disparity", params={**params, "max_depth_m": limit}, files=pair_files(left, right)
+        )
         uncalibrated = await h.client.post(
             "/disparity", params={"format": "ply", "max_depth_m": 3.0}, files=pair_files(left, right)
         )
     ply = PlyData.read(io.BytesIO(bounded.content))
-    assert 0 < len(ply["vertex"]) and ply["vertex"]["z"].max() <= 3.0
+    assert 0 < len(ply["vertex"]) < len(everything) and ply["vertex"]["z"].max() <= limit
     assert "units metres; frame: left camera, x right, y down, z forward" in ply.comments
     assert (
         uncalibrated.status_code == 422
