@@ -860,11 +860,10 @@ def _nearest_surface(
     low_x, high_x, low_y, high_y = _view_bounds(scene, view).unbind(-1)  # (B, S) each
     rows = _spans(y.flatten(), low_y.amin(0), high_y.amax(0))
     shared_columns = x.shape[-2] == 1
-    columns = _spans(x.flatten(), low_x.amin(0), high_x.amax(0)) if shared_columns else None
+    columns = _spans(x.flatten(), low_x.amin(0), high_x.amax(0)) if shared_columns else [slice(0, shape[-1])] * surfaces
     present = scene.present.any(0).tolist()
     for surface in range(surfaces):
-        row = rows[surface]
-        column = columns[surface] if columns is not None else slice(0, shape[-1])
+        row, column = rows[surface], columns[surface]
         if not present[surface] or row.start >= row.stop or column.start >= column.stop:
             continue
         part = scene.surfaces(slice(surface, surface + 1))
@@ -921,6 +920,7 @@ def _view_bounds(scene: Scene, view: str) -> torch.Tensor:
     u = torch.maximum((low_x - scene.apex[..., 0]).abs(), (high_x - scene.apex[..., 0]).abs())
     v = torch.maximum((low_y - scene.apex[..., 1]).abs(), (high_y - scene.apex[..., 1]).abs())
     quadratic = torch.where(scene.curvature.any(-1), kxx * u * u + kxy * u * v + kyy * v * v, 0.0)
+    # unbounded shapes keep infinite boxes (their plane terms would be 0 * inf = nan)
     high_right = torch.where(bounded, high_x - (plane_low - quadratic), math.inf)
     low_right = torch.where(bounded, low_x - (plane_high + quadratic), -math.inf)
     return torch.stack([low_right, high_right, low_y, high_y], dim=-1)
