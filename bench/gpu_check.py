@@ -9,9 +9,12 @@ and the next stage runs), within one time budget:
                  runs it); then bf16 against fp32 and graph against eager on the dev pairs
     service      `python -m service` on loopback with CRESTEREO_DEVICE=cuda: a real pair over HTTP,
                  concurrent requests (batches), both models; skipped when fastapi is missing
-    train        lite from the shipped weights (--resume model/weights/lite.pt) for the minutes left
+    train        lite from the shipped weights (--resume model/weights/lite.pt) for the minutes left:
+                 a short probe run measures the step rate, then one run sized to end its flat-decay
+                 schedule (and its weight average's horizon) within the time left
 
-    PYTHONPATH=. python3 bench/gpu_check.py --out DIR [--minutes 9] [--data DIR] [--wheels DIR] [--train-compile]
+    PYTHONPATH=. python3 bench/gpu_check.py --out DIR [--minutes 9] [--stages S,...] [--data DIR] [--wheels DIR]
+                                            [--train-compile]
     PYTHONPATH=. python3 bench/gpu_check.py --cpu-smoke --out DIR    # the same stages on the CPU, tiny
 
 DIR (or $GPU_CHECK_OUT, else $OUT) receives at most 8 files, each under 16 MiB: gpu_check.log
@@ -76,8 +79,10 @@ class Plan:
     stage_seconds: the most each stage may take (train: what is left of `minutes`);
     reserve_seconds: kept for the stages after it, so that an overrun cannot starve them.
     train: TrainConfig overrides of the shipped lite checkpoint's config for the training stage,
-    which runs `train_steps` more steps at most; train_tail_seconds: kept after the training time
-    for validation, the checkpoint and the process's start.
+    which runs `train_steps` more steps at most; probe_steps: the untimed-then-timed steps of the
+    probe run that measures the step rate; decay_fraction: the share of the run's steps over which
+    flat-decay brings the lr to 0; train_tail_seconds: kept after the training time for the last
+    validation, the checkpoint and the process's start.
     """
 
     device: str
@@ -96,6 +101,8 @@ class Plan:
     reserve_seconds: dict[str, float]
     train: dict[str, Any]
     train_steps: int
+    probe_steps: int
+    decay_fraction: float
     train_tail_seconds: float
     label: str = ""
 
@@ -115,19 +122,19 @@ GPU = Plan(
     service_requests=16,
     stage_seconds={"environment": 60, "tests": 150, "bench": 210, "service": 120},
     reserve_seconds={"environment": 420, "tests": 330, "bench": 150, "service": 90},
-    train=dict(
-        crop_height=256,
+    train=dict(  # the campaign's recipe (scenes, max disparity, iterations) on 384x512 crops, batch 16
+        crop_height=384,
         crop_width=512,
-        max_disparity=192.0,
-        batch_size=32,
-        lr=1e-4,
-        schedule="constant",
+        batch_size=16,
+        lr=2e-4,
+        schedule="flat-decay",
         warmup_fraction=0.0,
         log_every=25,
-        checkpoint_every=2000,
         num_workers=0,
     ),
     train_steps=1_000_000,
+    probe_steps=40,
+    decay_fraction=0.4,
     train_tail_seconds=75,
     label="GPU",
 )
@@ -153,13 +160,14 @@ CPU_SMOKE = Plan(
         batch_size=1,
         train_iters=(1, 1, 1),
         lr=1e-4,
-        schedule="constant",
+        schedule="flat-decay",
         warmup_fraction=0.0,
         log_every=1,
-        checkpoint_every=1000,
         num_workers=0,
     ),
     train_steps=2,
+    probe_steps=2,
+    decay_fraction=0.4,
     train_tail_seconds=20,
     label="CPU smoke run (no GPU: no number here is a GPU number)",
 )
@@ -215,7 +223,7 @@ def run_stages(
     summary after each."""
     deadline = time.monotonic() + 60.0 * plan.minutes
     results: dict[str, StageResult] = {}
-    for stage in STAGES:
+    for stage in args.stages:
         remaining = deadline - time.monotonic()
         if stage == "train":
             seconds = remaining - 10.0
@@ -251,6 +259,12 @@ def parse_arguments(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--out", type=Path, help="output folder [$GPU_CHECK_OUT, else $OUT]")
     parser.add_argument("--cpu-smoke", action="store_true", help="the same stages on the CPU, tiny sizes")
     parser.add_argument("--minutes", type=float, help="time budget of all stages [9; smoke: 3]")
+    parser.add_argument(
+        "--stages",
+        type=stage_list,
+        default=STAGES,
+        help=f"the stages to run, comma-separated, in this order [{','.join(STAGES)}]",
+    )
     parser.add_argument("--data", type=Path, help="dev pairs [$STEREO_DEV, shared/data/stereo-dev]")
     parser.add_argument("--wheels", type=Path, help="wheels to install for the service stage [.whl/]")
     parser.add_argument("--train-compile", action="store_true", help="torch.compile the training step")
@@ -258,6 +272,15 @@ def parse_arguments(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--seconds", type=float, help=argparse.SUPPRESS)
     parser.add_argument("--result", type=Path, help=argparse.SUPPRESS)
     return parser.parse_args(argv)
+
+
+def stage_list(text: str) -> tuple[str, ...]:
+    """--stages: a comma-separated subset of STAGES, run in STAGES' order."""
+    names = {name.strip() for name in text.split(",") if name.strip()}
+    unknown = names - set(STAGES)
+    if unknown or not names:
+        raise argparse.ArgumentTypeError(f"stages are {', '.join(STAGES)}; got {text!r}")
+    return tuple(stage for stage in STAGES if stage in names)
 
 
 def output_folder(given: Path | None) -> Path:
@@ -732,6 +755,39 @@ def exchange(client: Any, plan: Plan, sample: Any) -> dict[str, Any]:
     )
 
 
+@dataclass(frozen=True)
+class RunSize:
+    """The training run that fits the time left: `steps` more steps, flat-decay over the last
+    `decay_steps` of them, a validation and checkpoint every `checkpoint_every`, and the weight
+    average's decay `ema_decay` (its horizon, 1 / (1 - decay) steps, a quarter of the run at most)."""
+
+    steps: int
+    decay_steps: int
+    checkpoint_every: int
+    ema_decay: float
+
+
+def size_run(steps_per_second: float, seconds: float, plan: Plan, ema_decay: float) -> RunSize:
+    """Size the run to `seconds` at the probe's `steps_per_second` (10 % kept for the validations
+    along the way), at most plan.train_steps; `ema_decay` is the recipe's, shortened for short runs."""
+    steps = max(1, min(plan.train_steps, int(0.9 * steps_per_second * seconds)))
+    return RunSize(
+        steps=steps,
+        decay_steps=max(1, round(plan.decay_fraction * steps)),
+        checkpoint_every=max(1, steps // 4),
+        ema_decay=0.0 if ema_decay == 0 else min(ema_decay, max(0.9, 1.0 - 4.0 / steps)),
+    )
+
+
+def median_rate(log: Path) -> float:
+    """The median pairs/s of a training log's windows, the first (warm-up, autotuning) left out
+    where there are more."""
+    from training.records import read_csv
+
+    rates = [float(row["pairs_per_second"]) for row in read_csv(log)]
+    return statistics.median(rates[1:] or rates)
+
+
 def train_stage(plan: Plan, deadline: float, args: argparse.Namespace, save: Callable[..., None]) -> StageResult:
     import torch
 
@@ -743,26 +799,69 @@ def train_stage(plan: Plan, deadline: float, args: argparse.Namespace, save: Cal
     shipped = WEIGHTS_DIR / "lite.pt"
     saved = read_weights(shipped)
     first_step = int(saved["step"])
-    minutes = max(0.05, (deadline - time.monotonic() - plan.train_tail_seconds) / 60.0)
-    config = replace(
+    recipe = replace(
         TrainConfig.from_dict(saved["train_config"]),
         **plan.train,
         device=plan.device,
-        out_dir=str(args.out),
-        max_steps=first_step + plan.train_steps,
-        max_minutes=minutes,
-        val_data=str(args.data) if args.data is not None else None,
         compile=args.train_compile,
     )
-    print(f"training lite from {shipped} (step {first_step}) for {minutes:.2f} min: {json.dumps(config.to_dict())}")
+
+    def probe(config: TrainConfig) -> tuple[TrainConfig, float]:
+        """Train plan.probe_steps steps into a scratch folder; the step rate after the first window."""
+        folder = Path(tempfile.mkdtemp(prefix="probe-"))
+        log_every = max(1, plan.probe_steps // 4)
+        trial = replace(
+            config,
+            out_dir=str(folder),
+            max_steps=first_step + plan.probe_steps,
+            schedule_steps=first_step + plan.probe_steps + 1,
+            decay_steps=1,
+            max_minutes=1.5,
+            log_every=log_every,
+            checkpoint_every=10**9,
+            val_data=None,
+        )
+        train(trial, resume=shipped, progress=False)
+        return config, median_rate(folder / "log.csv") / config.batch_size
+
+    start = time.monotonic()
+    try:
+        recipe, steps_per_second = probe(recipe)
+    except Exception as error:  # the run that stops here is the one whose minutes it uses: try fp32 once
+        print(f"probe failed ({type(error).__name__}: {error}); again in fp32 with plain AdamW", flush=True)
+        recipe, steps_per_second = probe(replace(recipe, precision="fp32", fused_adamw="off"))
+    probe_seconds = time.monotonic() - start
+    seconds = deadline - time.monotonic() - plan.train_tail_seconds
+    size = size_run(steps_per_second, seconds, plan, recipe.ema_decay)
+    last_step = first_step + size.steps
+    config = replace(
+        recipe,
+        out_dir=str(args.out),
+        max_steps=last_step,
+        schedule_steps=last_step,
+        decay_steps=size.decay_steps,
+        checkpoint_every=size.checkpoint_every,
+        ema_decay=size.ema_decay,
+        max_minutes=max(0.05, seconds / 60.0),
+        val_data=str(args.data) if args.data is not None else None,
+    )
+    print(
+        f"probe: {steps_per_second:.2f} steps/s in {probe_seconds:.0f} s; training lite from {shipped} "
+        f"(step {first_step}) for {size.steps} steps, at most {seconds / 60.0:.2f} min: {json.dumps(config.to_dict())}",
+        flush=True,
+    )
     result = train(config, resume=shipped, progress=False)
     rows = read_csv(args.out / "log.csv")
-    rates = [float(r["pairs_per_second"]) for r in rows[1:]] or [float(r["pairs_per_second"]) for r in rows]
     data: dict[str, Any] = dict(
         steps=result.step - first_step,
-        pairs_per_s_median=round(statistics.median(rates), 1),
+        planned_steps=size.steps,
+        probe_steps_per_s=round(steps_per_second, 2),
+        pairs_per_s_median=round(median_rate(args.out / "log.csv"), 1),
         batch_size=config.batch_size,
         crop=f"{config.crop_height}x{config.crop_width}",
+        lr=config.lr,
+        decay_steps=size.decay_steps,
+        ema_decay=size.ema_decay,
         compile=config.compile,
         bf16=config.precision == "bf16" or (config.precision == "auto" and plan.device == "cuda"),
         final_loss=float(rows[-1]["loss"]),
@@ -772,7 +871,9 @@ def train_stage(plan: Plan, deadline: float, args: argparse.Namespace, save: Cal
     )
     validation = read_csv(args.out / "validation.csv")
     if validation:
-        data["dev"] = {k: float(v) for k, v in validation[-1].items() if k in ("epe", "bad2")}
+        data["dev"] = [
+            {k: float(v) for k, v in row.items() if k in ("step", "epe", "bad1", "bad2")} for row in validation
+        ]
     print(json.dumps(data))
     return StageResult("passed", f"{data['steps']} steps, {data['pairs_per_s_median']} pairs/s", data=data)
 

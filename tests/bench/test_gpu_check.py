@@ -1,11 +1,14 @@
 """The prepared GPU check (bench/gpu_check.py) runs every stage end to end in its CPU smoke mode:
 what a GPU machine will run, at tiny sizes, so that its first run there is not its first run."""
 
+import argparse
 import importlib.util
 import json
 import subprocess
 import sys
 from pathlib import Path
+
+import pytest
 
 from model.weights import read_weights
 
@@ -13,11 +16,16 @@ REPO = Path(__file__).resolve().parents[2]
 STAGES = ("environment", "tests", "bench", "service", "train")
 
 
-def test_without_fastapi_the_service_stage_is_skipped_saying_so(monkeypatch):
+@pytest.fixture
+def gpu_check(monkeypatch):
     spec = importlib.util.spec_from_file_location("gpu_check", REPO / "bench/gpu_check.py")
-    gpu_check = importlib.util.module_from_spec(spec)
-    monkeypatch.setitem(sys.modules, "gpu_check", gpu_check)  # its dataclasses look their module up
-    spec.loader.exec_module(gpu_check)
+    module = importlib.util.module_from_spec(spec)
+    monkeypatch.setitem(sys.modules, "gpu_check", module)  # its dataclasses look their module up
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_without_fastapi_the_service_stage_is_skipped_saying_so(gpu_check, monkeypatch):
     real_find_spec = importlib.util.find_spec
     monkeypatch.setattr(
         gpu_check.importlib.util, "find_spec", lambda name: None if name == "fastapi" else real_find_spec(name)
@@ -62,3 +70,21 @@ def test_the_cpu_smoke_run_passes_every_stage_and_keeps_to_the_output_limits(tmp
     shipped = read_weights(REPO / "model/weights/lite.pt")
     assert checkpoint["step"] == shipped["step"] + 2 and checkpoint["model_name"] == "lite"
     assert len(checkpoint["training"]["runs"]) == len(shipped["training"]["runs"]) + 1
+
+
+def test_the_training_run_is_sized_to_end_its_decay_and_average_within_the_time_left(gpu_check):
+    # 5 steps/s for 400 s: 90 % of 2,000 steps, the last 40 % of them decaying, 4 validations
+    size = gpu_check.size_run(5.0, 400.0, gpu_check.GPU, ema_decay=0.999)
+    assert (size.steps, size.decay_steps, size.checkpoint_every) == (1800, 720, 450)
+    assert size.ema_decay == pytest.approx(1 - 4 / 1800)  # the average's horizon: a quarter of the run
+    long_run = gpu_check.size_run(50.0, 400.0, gpu_check.GPU, ema_decay=0.999)
+    assert long_run.steps == 18000 and long_run.ema_decay == 0.999  # never longer than the recipe's
+    assert gpu_check.size_run(5.0, 400.0, gpu_check.GPU, ema_decay=0.0).ema_decay == 0.0  # off stays off
+    capped = gpu_check.size_run(5.0, 400.0, gpu_check.CPU_SMOKE, ema_decay=0.999)
+    assert capped.steps == gpu_check.CPU_SMOKE.train_steps
+
+
+def test_stages_are_chosen_by_name_and_run_in_their_fixed_order(gpu_check):
+    assert gpu_check.stage_list("train,environment") == ("environment", "train")
+    with pytest.raises(argparse.ArgumentTypeError, match="stages are environment, tests"):
+        gpu_check.stage_list("environment,warp")
