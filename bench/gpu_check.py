@@ -806,7 +806,7 @@ def train_stage(plan: Plan, deadline: float, args: argparse.Namespace, save: Cal
         compile=args.train_compile,
     )
 
-    def probe(config: TrainConfig) -> tuple[TrainConfig, float]:
+    def probe(config: TrainConfig) -> float:
         """Train plan.probe_steps steps into a scratch folder; the step rate after the first window."""
         folder = Path(tempfile.mkdtemp(prefix="probe-"))
         log_every = max(1, plan.probe_steps // 4)
@@ -822,14 +822,15 @@ def train_stage(plan: Plan, deadline: float, args: argparse.Namespace, save: Cal
             val_data=None,
         )
         train(trial, resume=shipped, progress=False)
-        return config, median_rate(folder / "log.csv") / config.batch_size
+        return median_rate(folder / "log.csv") / config.batch_size
 
     start = time.monotonic()
     try:
-        recipe, steps_per_second = probe(recipe)
-    except Exception as error:  # the run that stops here is the one whose minutes it uses: try fp32 once
+        steps_per_second = probe(recipe)
+    except Exception as error:  # a lent GPU is minutes long: retry once in the plainest setting, not never
         print(f"probe failed ({type(error).__name__}: {error}); again in fp32 with plain AdamW", flush=True)
-        recipe, steps_per_second = probe(replace(recipe, precision="fp32", fused_adamw="off"))
+        recipe = replace(recipe, precision="fp32", fused_adamw="off")
+        steps_per_second = probe(recipe)
     probe_seconds = time.monotonic() - start
     seconds = deadline - time.monotonic() - plan.train_tail_seconds
     size = size_run(steps_per_second, seconds, plan, recipe.ema_decay)
