@@ -779,12 +779,10 @@ def size_run(steps_per_second: float, seconds: float, plan: Plan, ema_decay: flo
     )
 
 
-def median_rate(log: Path) -> float:
-    """The median pairs/s of a training log's windows, the first (warm-up, autotuning) left out
-    where there are more."""
-    from training.records import read_csv
-
-    rates = [float(row["pairs_per_second"]) for row in read_csv(log)]
+def median_rate(rows: list[dict[str, str]]) -> float:
+    """The median pairs/s of a training log's rows (its windows), the first (warm-up, autotuning)
+    left out where there are more."""
+    rates = [float(row["pairs_per_second"]) for row in rows]
     return statistics.median(rates[1:] or rates)
 
 
@@ -822,7 +820,7 @@ def train_stage(plan: Plan, deadline: float, args: argparse.Namespace, save: Cal
             val_data=None,
         )
         train(trial, resume=shipped, progress=False)
-        return median_rate(folder / "log.csv") / config.batch_size
+        return median_rate(read_csv(folder / "log.csv")) / config.batch_size
 
     start = time.monotonic()
     try:
@@ -857,7 +855,7 @@ def train_stage(plan: Plan, deadline: float, args: argparse.Namespace, save: Cal
         steps=result.step - first_step,
         planned_steps=size.steps,
         probe_steps_per_s=round(steps_per_second, 2),
-        pairs_per_s_median=round(median_rate(args.out / "log.csv"), 1),
+        pairs_per_s_median=round(median_rate(rows), 1),
         batch_size=config.batch_size,
         crop=f"{config.crop_height}x{config.crop_width}",
         lr=config.lr,
