@@ -126,6 +126,7 @@ class Trainer:
 
         self.pairs_per_step = config.batch_size * context.world_size
         self.prior_minutes = self.history.total_minutes
+        self.prior_pairs = self.history.total_pairs
         self.record = RunRecord(
             started=dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
             origin="resume" if resume else "init-weights" if init_weights else "scratch",
@@ -202,7 +203,7 @@ class Trainer:
                     self.log.append(
                         dict(
                             step=step,
-                            pairs_seen=step * self.pairs_per_step,
+                            pairs_seen=self.prior_pairs + self.run_pairs(step),
                             minutes=self.prior_minutes + run_minutes,
                             loss=mean_loss,
                             train_epe=mean_epe,
@@ -220,6 +221,10 @@ class Trainer:
                 break
         bar.close()
         return TrainResult(step, self.out_dir / CHECKPOINT_NAME, out_of_time, self.network)
+
+    def run_pairs(self, step: int) -> int:
+        """Training pairs this run has seen when its step counter is at `step` (all processes)."""
+        return (step - self.start_step) * self.pairs_per_step
 
     def train_step(self, batch: TrainingBatch, two_pass: bool = False) -> torch.Tensor:
         """One optimiser step on `batch`: one pass, or (`two_pass`) the full-resolution refinement
@@ -257,11 +262,7 @@ class Trainer:
     def save(self, step: int, run_minutes: float) -> None:
         """Rank 0: validate (when configured), then write the checkpoint and the curves."""
         record = self.record
-        record.last_step, record.pairs, record.minutes = (
-            step,
-            (step - self.start_step) * self.pairs_per_step,
-            run_minutes,
-        )
+        record.last_step, record.pairs, record.minutes = step, self.run_pairs(step), run_minutes
         served = self.network if self.average is None else self.average.network
         if self.validation_log is not None:
             record.validation = validate(served, self.config, self.device)
@@ -272,7 +273,7 @@ class Trainer:
             self.validation_log.append(
                 dict(
                     step=step,
-                    pairs_seen=step * self.pairs_per_step,
+                    pairs_seen=self.prior_pairs + self.run_pairs(step),
                     minutes=self.prior_minutes + run_minutes,
                     **record.validation,
                     **raw,

@@ -107,6 +107,18 @@ def test_a_resumed_run_repeats_the_uninterrupted_run_exactly(tmp_path, real_pair
     assert [run["origin"] for run in history["runs"]] == ["scratch", "resume"] and history["total_steps"] == 4
 
 
+def test_a_resumed_run_with_a_larger_batch_counts_pairs_on_from_the_checkpoints_total(tmp_path, real_pairs):
+    train(tiny(tmp_path, sources=(real_pairs,), max_steps=2), progress=False)  # 2 steps of 1 pair
+    resumed = tiny(tmp_path, sources=(real_pairs,), max_steps=4, batch_size=3)
+    train(resumed, resume=tmp_path / "checkpoint.pt", progress=False)  # 2 steps of 3 pairs
+
+    rows = read_csv(tmp_path / "log.csv")
+    assert [int(r["step"]) for r in rows] == [1, 2, 3, 4]
+    assert [int(r["pairs_seen"]) for r in rows] == [1, 2, 5, 8]
+    history = read_weights(tmp_path / "checkpoint.pt")["training"]
+    assert [run["pairs"] for run in history["runs"]] == [2, 6] and history["total_pairs"] == 8
+
+
 def test_two_pass_steps_refine_the_networks_own_half_resolution_disparity_and_resume_exactly(
     tmp_path, real_pairs, monkeypatch
 ):
