@@ -6,10 +6,14 @@ import torch
 
 
 def resolve_device(name: str, local_rank: int) -> torch.device:
-    """ "auto" is cuda:LOCAL_RANK when CUDA is available, else cpu; "cuda" also takes LOCAL_RANK."""
+    """ "auto" is cuda:LOCAL_RANK when CUDA is available, else cpu; "cuda" also takes LOCAL_RANK.
+    Asking for CUDA where torch has none (a checkpoint trained on a GPU, resumed on a CPU) is a
+    ValueError that says what to pass instead."""
     if name == "auto":
         name = "cuda" if torch.cuda.is_available() else "cpu"
     device = torch.device(name)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"device {name!r} was asked for, but CUDA is not available here: use 'auto' or 'cpu'")
     if device.type == "cuda" and device.index is None:
         device = torch.device("cuda", local_rank)
     return device

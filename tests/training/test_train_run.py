@@ -169,6 +169,23 @@ def test_resume_options_override_the_checkpoint_config(tmp_path, real_pairs):
     assert [float(r["lr"]) for r in rows] == [4e-4, 1e-5]
 
 
+@pytest.mark.skipif(torch.cuda.is_available(), reason="needs a machine without CUDA")
+def test_a_checkpoint_trained_on_a_gpu_resumes_on_a_cpu_only_with_another_device_and_says_so(
+    tmp_path, real_pairs, capsys
+):
+    train(tiny(tmp_path, sources=(real_pairs,), max_steps=1), progress=False)
+    checkpoint = tmp_path / "checkpoint.pt"
+    saved = read_weights(checkpoint)
+    saved["train_config"]["device"] = "cuda"  # as the GPU check's training stage records it
+    torch.save(saved, checkpoint)
+
+    assert main(["train", "--resume", str(checkpoint), "--max-steps", "2", "--no-progress"]) == 2
+    error = capsys.readouterr().err
+    assert "CUDA is not available" in error and "'cpu'" in error and "Traceback" not in error
+    assert main(["train", "--resume", str(checkpoint), "--max-steps", "2", "--device", "cpu", "--no-progress"]) == 0
+    assert read_weights(checkpoint)["step"] == 2
+
+
 def test_init_weights_start_a_fresh_run_that_carries_the_history(tmp_path, real_pairs):
     train(tiny(tmp_path / "a", sources=(real_pairs,), max_steps=1), progress=False)
     weights = tmp_path / "a.pt"
