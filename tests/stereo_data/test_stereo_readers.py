@@ -258,7 +258,7 @@ def warp_mae(sample: StereoSample, disparity: np.ndarray) -> float:
 @needs_stereo_dev
 def test_stereo_dev_pairs_read_with_the_documented_ground_truth() -> None:
     dataset = open_dataset(STEREO_DEV)
-    assert dataset.layout == "simple" and len(dataset) == 9
+    assert dataset.layout == "simple" and len(dataset) == 16
     for sample in dataset:
         meta = json.loads((STEREO_DEV / sample.name / "meta.json").read_text())
         size = (meta["resolution"]["height"], meta["resolution"]["width"])
