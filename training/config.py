@@ -14,6 +14,7 @@ SYNTHETIC = "synthetic"
 Schedule = Literal["one-cycle", "linear", "constant", "flat-decay"]
 Precision = Literal["auto", "fp32", "bf16"]
 Switch = Literal["auto", "on", "off"]
+CompileMode = Literal["default", "reduce-overhead", "max-autotune-no-cudagraphs"]
 
 
 @dataclass(frozen=True)
@@ -154,6 +155,14 @@ class TrainConfig:
         False,
         "torch.compile the network for training: fewer, fused kernels per step after a compile of a "
         "minute or more (for long CUDA runs; the checkpoints are the same)",
+    )
+    compile_mode: CompileMode = _knob(
+        "default",
+        "torch.compile mode when compile is on: reduce-overhead replays the step's kernels as CUDA graphs "
+        "(the crops have one shape)",
+    )
+    channels_last: bool = _knob(
+        False, "train with the network's weights and the images in channels-last memory format (NHWC)"
     )
     device: str = _knob("auto", "auto (cuda if available, else cpu), cpu, cuda, cuda:N")
     seed: int = _knob(0, "seed of the initial weights and of every batch")

@@ -39,6 +39,11 @@ class TrainingBatch:
     def to(self, device: torch.device) -> TrainingBatch:
         return TrainingBatch(*(t.to(device) for t in (self.left, self.right, self.disparity, self.valid)))
 
+    def channels_last(self) -> TrainingBatch:
+        """The same pairs stored channels-last (NHWC in memory; the shapes stay (B, C, H, W))."""
+        tensors = (self.left, self.right, self.disparity, self.valid)
+        return TrainingBatch(*(t.contiguous(memory_format=torch.channels_last) for t in tensors))
+
     @staticmethod
     def concatenate(parts: Sequence[TrainingBatch]) -> TrainingBatch:
         return TrainingBatch(

@@ -106,6 +106,8 @@ class Trainer:
         self.model_config = model_config_of(source, config.model) if source else ModelConfig.preset(config.model)
         torch.manual_seed(config.seed)
         self.network = CREStereoPP(self.model_config).to(device)
+        if config.channels_last:
+            self.network = self.network.to(memory_format=torch.channels_last)  # type: ignore[call-overload]  # torch's stub lacks it
         self.optimizer = torch.optim.AdamW(
             self.network.parameters(),
             lr=config.lr,
@@ -147,7 +149,9 @@ class Trainer:
         )
         device_ids = [device.index] if device.type == "cuda" else None
         model = DistributedDataParallel(self.network, device_ids=device_ids) if context.is_distributed else self.network
-        self.model: Callable[..., NetworkOutput] = torch.compile(model) if config.compile else model
+        self.model: Callable[..., NetworkOutput] = (
+            torch.compile(model, mode=config.compile_mode) if config.compile else model
+        )
         self.use_bf16 = config.precision == "bf16" or (config.precision == "auto" and device.type == "cuda")
         if device.type == "cuda":
             torch.backends.cudnn.benchmark = True  # the crops have one shape: pick the fastest convolutions once
@@ -231,6 +235,8 @@ class Trainer:
         from the network's own half-resolution disparity, as two-pass inference computes a pair.
         Returns (loss, train EPE in px), detached, on the device."""
         config = self.config
+        if config.channels_last:
+            batch = batch.channels_last()
         with autocast_bf16(self.device, self.use_bf16):
             init = None
             if two_pass:
