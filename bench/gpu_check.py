@@ -9,11 +9,16 @@ and the next stage runs), within one time budget:
                  runs it); then bf16 against fp32 and graph against eager on the dev pairs
     service      `python -m service` on loopback with CRESTEREO_DEVICE=cuda: a real pair over HTTP,
                  concurrent requests (batches), both models; skipped when fastapi is missing
-    train        lite from the shipped weights (--resume model/weights/lite.pt) for the minutes left:
-                 a short probe run measures the step rate, then one run sized to end its flat-decay
-                 schedule (and its weight average's horizon) within the time left
+    probe        training throughput, lite and full: pairs/s and peak memory of the training step at
+                 batch 1x-8x the recipe's, plain AdamW, channels-last, torch.compile and CUDA graphs
+                 (bench/train_speed.py's `measure` and `probe_rows`), at most two minutes
+    train        --model (lite) from --weights (its shipped file) for the minutes left: a short
+                 probe run measures the step rate, then one run sized to end its flat-decay schedule
+                 (and its weight average's horizon) within the time left; a checkpoint with an
+                 optimiser state is resumed, a weights-only file starts a fresh optimiser
 
     PYTHONPATH=. python3 bench/gpu_check.py --out DIR [--minutes 9] [--stages S,...] [--data DIR] [--wheels DIR]
+                                            [--model lite|full] [--weights FILE] [--train-set KEY=VALUE ...]
                                             [--train-compile]
     PYTHONPATH=. python3 bench/gpu_check.py --cpu-smoke --out DIR    # the same stages on the CPU, tiny
 
@@ -48,10 +53,16 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+from train_speed import GPU_RECIPE  # bench/'s sibling script (standard library only at import)
+
+if TYPE_CHECKING:
+    from model.config import ModelName
 
 REPO = Path(__file__).resolve().parents[1]
-STAGES = ("environment", "tests", "bench", "service", "train")
+
+STAGES = ("environment", "tests", "bench", "service", "probe", "train")
 MAX_FILES = 8
 MAX_FILE_BYTES = 16 * 2**20
 BF16_TOLERANCE_PX = 0.05
@@ -82,13 +93,14 @@ class Plan:
     which runs `train_steps` more steps at most; probe_steps: the untimed-then-timed steps of the
     probe run that measures the step rate; decay_fraction: the share of the run's steps over which
     flat-decay brings the lr to 0; train_tail_seconds: kept after the training time for the last
-    validation, the checkpoint and the process's start.
+    validation, the checkpoint and the process's start; throughput_steps: timed steps per row of the
+    throughput probe, which stops a row after throughput_row_seconds and starts none with less left.
     """
 
     device: str
     minutes: float
     tests: tuple[str, ...]
-    models: tuple[str, ...]
+    models: tuple[ModelName, ...]
     sizes: tuple[tuple[int, int], ...]
     batches: tuple[int, ...]
     iters: tuple[int, int, int] | None
@@ -104,6 +116,8 @@ class Plan:
     probe_steps: int
     decay_fraction: float
     train_tail_seconds: float
+    throughput_steps: int
+    throughput_row_seconds: float
     label: str = ""
 
 
@@ -120,22 +134,15 @@ GPU = Plan(
     accuracy_pairs=9,
     service_models=("lite", "full"),
     service_requests=16,
-    stage_seconds={"environment": 60, "tests": 150, "bench": 210, "service": 120},
-    reserve_seconds={"environment": 420, "tests": 330, "bench": 150, "service": 90},
-    train=dict(  # the campaign's recipe (scenes, max disparity, iterations) on 384x512 crops, batch 16
-        crop_height=384,
-        crop_width=512,
-        batch_size=16,
-        lr=2e-4,
-        schedule="flat-decay",
-        warmup_fraction=0.0,
-        log_every=25,
-        num_workers=0,
-    ),
+    stage_seconds={"environment": 60, "tests": 150, "bench": 210, "service": 120, "probe": 120},
+    reserve_seconds={"environment": 420, "tests": 330, "bench": 150, "service": 90, "probe": 120},
+    train=dict(GPU_RECIPE, log_every=25),  # the weights' recipe (scenes, max disparity, iterations) on the GPU step
     train_steps=1_000_000,
     probe_steps=40,
     decay_fraction=0.4,
     train_tail_seconds=75,
+    throughput_steps=8,
+    throughput_row_seconds=8.0,
     label="GPU",
 )
 CPU_SMOKE = Plan(
@@ -151,8 +158,8 @@ CPU_SMOKE = Plan(
     accuracy_pairs=1,
     service_models=("lite",),
     service_requests=3,
-    stage_seconds={"environment": 30, "tests": 60, "bench": 60, "service": 60},
-    reserve_seconds={"environment": 60, "tests": 50, "bench": 40, "service": 30},
+    stage_seconds={"environment": 30, "tests": 60, "bench": 60, "service": 60, "probe": 30},
+    reserve_seconds={"environment": 60, "tests": 50, "bench": 40, "service": 30, "probe": 20},
     train=dict(
         crop_height=64,
         crop_width=96,
@@ -169,6 +176,8 @@ CPU_SMOKE = Plan(
     probe_steps=2,
     decay_fraction=0.4,
     train_tail_seconds=20,
+    throughput_steps=1,
+    throughput_row_seconds=2.0,
     label="CPU smoke run (no GPU: no number here is a GPU number)",
 )
 
@@ -241,6 +250,8 @@ def run_stages(
             command = [sys.executable, str(Path(__file__).resolve()), "--stage", stage, "--out", str(out)]
             command += ["--seconds", f"{seconds:.0f}", "--result", str(result_file)]
             command += ["--cpu-smoke"] * args.cpu_smoke + ["--train-compile"] * args.train_compile
+            command += ["--model", args.model] + (["--weights", str(args.weights)] if args.weights else [])
+            command += [f"--train-set={key}={json.dumps(value)}" for key, value in args.train_set]
             command += ["--data", str(data)] if data is not None else []
             result = run_child(command, seconds, environments[stage], log, result_file)
         results[stage] = result
@@ -267,11 +278,32 @@ def parse_arguments(argv: Sequence[str] | None) -> argparse.Namespace:
     )
     parser.add_argument("--data", type=Path, help="dev pairs [$STEREO_DEV, shared/data/stereo-dev]")
     parser.add_argument("--wheels", type=Path, help="wheels to install for the service stage [.whl/]")
+    parser.add_argument("--model", choices=("lite", "full"), default="lite", help="the network to train [lite]")
+    parser.add_argument("--weights", type=Path, help="the weights to train from [model/weights/MODEL.pt]")
+    parser.add_argument(
+        "--train-set",
+        type=train_setting,
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="a TrainConfig field of the training stage (VALUE as JSON, else text), e.g. batch_size=64; repeatable",
+    )
     parser.add_argument("--train-compile", action="store_true", help="torch.compile the training step")
     parser.add_argument("--stage", choices=STAGES, help=argparse.SUPPRESS)  # child mode
     parser.add_argument("--seconds", type=float, help=argparse.SUPPRESS)
     parser.add_argument("--result", type=Path, help=argparse.SUPPRESS)
     return parser.parse_args(argv)
+
+
+def train_setting(text: str) -> tuple[str, Any]:
+    """--train-set KEY=VALUE: the field name and its value (JSON where it parses, else the text)."""
+    key, equals, value = text.partition("=")
+    if not equals or not key.strip():
+        raise argparse.ArgumentTypeError(f"expected KEY=VALUE, got {text!r}")
+    try:
+        return key.strip(), json.loads(value)
+    except json.JSONDecodeError:
+        return key.strip(), value
 
 
 def stage_list(text: str) -> tuple[str, ...]:
@@ -415,6 +447,8 @@ def write_summary(out: Path, plan: Plan, data: Path | None, results: dict[str, S
         lines += ["", *bench_tables(results["bench"].data)]
     if "service" in results and results["service"].data:
         lines += ["", "## Service", "", "```", json.dumps(results["service"].data, indent=1), "```"]
+    if "probe" in results and results["probe"].data:
+        lines += ["", *probe_table(results["probe"].data)]
     if "train" in results and results["train"].data:
         lines += ["", "## Training", "", "```", json.dumps(results["train"].data, indent=1), "```"]
     lines += ["", *output_files_report(out)]
@@ -485,6 +519,7 @@ def run_stage_here(args: argparse.Namespace, plan: Plan) -> int:
         "environment": environment_stage,
         "bench": bench_stage,
         "service": service_stage,
+        "probe": probe_stage,
         "train": train_stage,
     }
     deadline = time.monotonic() + args.seconds
@@ -786,23 +821,111 @@ def median_rate(rows: list[dict[str, str]]) -> float:
     return statistics.median(rates[1:] or rates)
 
 
+def weights_for(model: str, args: argparse.Namespace) -> Path:
+    """The weights file a stage trains `model` from: --weights for the --model, else the shipped file."""
+    from model.weights import WEIGHTS_DIR
+
+    return args.weights if args.weights is not None and model == args.model else WEIGHTS_DIR / f"{model}.pt"
+
+
+def recipe_of(model: ModelName, plan: Plan, args: argparse.Namespace) -> Any:
+    """The TrainConfig of a stage's training step for `model`: the data recipe of the shipped lite
+    weights (scenes, disparities, photometry: what the campaign settled on) with the model's own
+    iterations, then the plan's step (plan.train), --train-compile and --train-set."""
+    from model.weights import WEIGHTS_DIR, read_weights
+    from training.config import TrainConfig
+
+    return replace(
+        TrainConfig.from_dict(read_weights(WEIGHTS_DIR / "lite.pt")["train_config"]),
+        **{"train_iters": None, **plan.train, "compile": args.train_compile, **dict(args.train_set)},
+        model=model,
+        device=plan.device,
+    )
+
+
+def probe_stage(plan: Plan, deadline: float, args: argparse.Namespace, save: Callable[..., None]) -> StageResult:
+    """Training throughput: bench/train_speed.py's probe rows for each model, in one process; a row
+    that fails (out of memory, a compile error) is recorded and the next runs."""
+    import torch
+    from train_speed import measure, probe_rows
+
+    device = torch.device(plan.device)
+    on_cuda = device.type == "cuda"
+    data: dict[str, Any] = {"device": torch.cuda.get_device_name(device) if on_cuda else "CPU", "rows": []}
+    scratch = Path(tempfile.mkdtemp(prefix="probe-"))
+    for model in plan.models:
+        weights = weights_for(model, args)
+        recipe = replace(recipe_of(model, plan, args), out_dir=str(scratch), val_data=None)
+        for row in probe_rows(recipe.batch_size, recipe.lr, options=model == "lite", compiled=on_cuda):
+            entry: dict[str, Any] = {"model": model, "row": row.name, "setting": row.description}
+            if deadline - time.monotonic() < plan.throughput_row_seconds + 5:
+                entry["skipped"] = "no time left"
+            else:
+                try:
+                    entry |= measure(
+                        replace(recipe, **row.overrides),
+                        weights,
+                        device,
+                        plan.throughput_steps,
+                        max_seconds=plan.throughput_row_seconds,
+                    )
+                except Exception as error:  # out of memory, a compile failure: the next row still runs
+                    entry["skipped"] = f"{type(error).__name__}: {str(error)[:160]}"
+                finally:
+                    torch._dynamo.reset()
+                    if on_cuda:
+                        torch.cuda.empty_cache()
+            print(json.dumps(entry), flush=True)
+            data["rows"].append(entry)
+            save(StageResult("passed", f"{len(data['rows'])} rows", data=data))  # kept if the stage is killed
+    measured = [row for row in data["rows"] if "skipped" not in row]
+    status = "passed" if measured else "failed"
+    return StageResult(status, f"{len(measured)} of {len(data['rows'])} rows measured", data=data)
+
+
+def probe_table(data: dict[str, Any]) -> list[str]:
+    """Markdown: one row per model and setting; `vs recipe` is pairs/s against the model's first row."""
+    lines = [
+        f"## Training throughput ({data.get('device', '?')})",
+        "",
+        "Median seconds per optimiser step after two untimed steps (the batch made on the device included; "
+        "`data ms` of it); the first step's seconds show compilation; lr scaled by the square root of the "
+        "batch ratio.",
+        "",
+        "| model | row | setting | pairs / s | vs recipe | step ms | data ms | first step s | peak GiB |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    recipe: dict[str, float] = {}
+    for row in data.get("rows", []):
+        head = f"| {row['model']} | {row['row']} | {row['setting']} |"
+        if "skipped" in row:
+            lines.append(f"{head} {row['skipped'].replace('|', '/')} | | | | | |")
+            continue
+        base = recipe.setdefault(row["model"], row["pairs_per_s"])
+        peak = "-" if row["peak_gib"] is None else f"{row['peak_gib']:.1f}"
+        lines.append(
+            f"{head} {row['pairs_per_s']:.1f} | {row['pairs_per_s'] / base:.2f}x | {1000 * row['step_s']:.0f} | "
+            f"{1000 * row['data_s']:.0f} | {row['first_step_s']:.1f} | {peak} |"
+        )
+    return lines
+
+
 def train_stage(plan: Plan, deadline: float, args: argparse.Namespace, save: Callable[..., None]) -> StageResult:
     import torch
 
-    from model.weights import WEIGHTS_DIR, read_weights
+    from model.weights import read_weights
     from training.config import TrainConfig
     from training.records import read_csv
     from training.trainer import train
 
-    shipped = WEIGHTS_DIR / "lite.pt"
+    shipped = weights_for(args.model, args)
     saved = read_weights(shipped)
-    first_step = int(saved["step"])
-    recipe = replace(
-        TrainConfig.from_dict(saved["train_config"]),
-        **plan.train,
-        device=plan.device,
-        compile=args.train_compile,
-    )
+    if saved.get("model_name") != args.model:
+        return StageResult("failed", f"{shipped} holds {saved.get('model_name')!r} weights, not {args.model!r}")
+    resumable = "optimizer" in saved  # else a weights-only file: a fresh optimiser from step 0
+    source = {"resume": shipped} if resumable else {"init_weights": shipped}
+    first_step = int(saved["step"]) if resumable else 0
+    recipe = recipe_of(args.model, plan, args)
 
     def probe(config: TrainConfig) -> float:
         """Train plan.probe_steps steps into a scratch folder; the step rate after the first window."""
@@ -819,7 +942,7 @@ def train_stage(plan: Plan, deadline: float, args: argparse.Namespace, save: Cal
             checkpoint_every=10**9,
             val_data=None,
         )
-        train(trial, resume=shipped, progress=False)
+        train(trial, **source, progress=False)
         return median_rate(read_csv(folder / "log.csv")) / config.batch_size
 
     start = time.monotonic()
@@ -845,13 +968,16 @@ def train_stage(plan: Plan, deadline: float, args: argparse.Namespace, save: Cal
         val_data=str(args.data) if args.data is not None else None,
     )
     print(
-        f"probe: {steps_per_second:.2f} steps/s in {probe_seconds:.0f} s; training lite from {shipped} "
+        f"probe: {steps_per_second:.2f} steps/s in {probe_seconds:.0f} s; training {args.model} from {shipped} "
         f"(step {first_step}) for {size.steps} steps, at most {seconds / 60.0:.2f} min: {json.dumps(config.to_dict())}",
         flush=True,
     )
-    result = train(config, resume=shipped, progress=False)
+    result = train(config, **source, progress=False)
     rows = read_csv(args.out / "log.csv")
     data: dict[str, Any] = dict(
+        model=args.model,
+        weights=str(shipped),
+        resumed=resumable,
         steps=result.step - first_step,
         planned_steps=size.steps,
         probe_steps_per_s=round(steps_per_second, 2),

@@ -2,6 +2,8 @@
 
     python bench/train_speed.py [--steps 12] [--rows today workers ...] [--profile ROW]
 
+(On a GPU, bench/gpu_check.py's probe stage times `probe_rows` with the same `measure`.)
+
 Every row runs in a fresh child process (its own OpenMP state): it builds the real
 `training.trainer.Trainer` from the shipped lite weights and times --steps optimiser steps after
 two warm-up steps, the batch fetch included (so data made on the critical path counts), as the
@@ -14,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import statistics
 import subprocess
@@ -37,6 +40,8 @@ class Row:
     wide_transposed: bool = True  # 1x15 gate convs computed as transposed 15x1 (model.update)
 
 
+WARMUP_STEPS = 2
+MIN_TIMED_STEPS = 3
 BASE = dict(crop_height=128, crop_width=256, batch_size=2, train_iters=(1, 2, 3), max_disparity=64.0)
 CAMPAIGN = dict(num_workers=1, crop_width=320, max_disparity=128.0)  # the lite campaign's settings since stretch 2
 ROWS: dict[str, Row] = {
@@ -65,38 +70,139 @@ ROWS: dict[str, Row] = {
 }
 
 
-def measure(row: Row, steps: int, profile: bool) -> dict[str, Any]:
-    """In this (child) process: seconds per step of `row`."""
+GPU_RECIPE: dict[str, Any] = dict(
+    crop_height=384,
+    crop_width=512,
+    batch_size=16,
+    lr=2e-4,
+    schedule="flat-decay",
+    warmup_fraction=0.0,
+    num_workers=0,
+)
+"""The GPU training step (bench/gpu_check.py's training stage) on top of the weights' own recipe:
+384x512 crops, batch 16, lr 2e-4, scenes made on the device in the training process."""
+
+
+@dataclass(frozen=True)
+class ProbeRow:
+    """One row of the GPU throughput probe: a name, what it changes, and its TrainConfig overrides."""
+
+    name: str
+    description: str
+    overrides: dict[str, Any]
+
+
+def probe_rows(batch_size: int, lr: float, options: bool, compiled: bool) -> list[ProbeRow]:
+    """The probe's rows around a recipe of `batch_size` pairs per step at `lr`: the batch times 1,
+    2, 4 and 8, the lr scaled by the square root of the batch ratio (the usual rule for Adam); with
+    `options`, at 4x the batch: plain (foreach) AdamW instead of the fused kernel, and channels-last;
+    with `compiled`, at 4x the batch: torch.compile, and torch.compile replaying CUDA graphs."""
+    rows = [
+        ProbeRow(
+            f"batch{batch_size * factor}",
+            f"batch {batch_size * factor}, lr {lr * math.sqrt(factor):.2e}",
+            dict(batch_size=batch_size * factor, lr=lr * math.sqrt(factor)),
+        )
+        for factor in (1, 2, 4, 8)
+    ]
+    wide = rows[2].overrides
+    if options:
+        rows += [
+            ProbeRow("foreach-adamw", f"batch {wide['batch_size']}, plain AdamW", {**wide, "fused_adamw": "off"}),
+            ProbeRow("channels-last", f"batch {wide['batch_size']}, channels-last", {**wide, "channels_last": True}),
+        ]
+    if compiled:
+        rows += [
+            ProbeRow("compile", f"batch {wide['batch_size']}, torch.compile", {**wide, "compile": True}),
+            ProbeRow(
+                "cuda-graphs",
+                f"batch {wide['batch_size']}, torch.compile reduce-overhead (CUDA graphs)",
+                {**wide, "compile": True, "compile_mode": "reduce-overhead"},
+            ),
+        ]
+    return rows
+
+
+def measure_row(row: Row, steps: int, profile: bool) -> dict[str, Any]:
+    """In this (child) process: a CPU row from the shipped lite weights (BASE plus its overrides)."""
     import torch
 
     from training.config import preset
-    from training.data import TrainingData
-    from training.distributed import DistributedContext
-    from training.trainer import Trainer
 
     if not row.wide_transposed:
         import model.convolution
 
         model.convolution.WIDE_KERNEL = sys.maxsize  # every 1xk conv a plain nn.Conv2d, as before
-    overrides = {**BASE, **row.overrides, "max_steps": steps + 2, "out_dir": "runs/bench-train-speed"}
-    config = preset("pretrain", schedule="constant", **overrides)
-    device = torch.device("cpu")
-    trainer = Trainer(config, DistributedContext(0, 1, 0), device, None, ROOT / "model/weights/lite.pt")
+    config = preset("pretrain", schedule="constant", **{**BASE, **row.overrides, "out_dir": "runs/bench-train-speed"})
+    result = measure(config, ROOT / "model/weights/lite.pt", torch.device("cpu"), steps, profile=profile)
+    return {**result, "threads": torch.get_num_threads()}
+
+
+def measure(
+    config: Any,
+    weights: Path,
+    device: Any,
+    steps: int,
+    max_seconds: float = math.inf,
+    profile: bool = False,
+) -> dict[str, Any]:
+    """Time `steps` optimiser steps of the real `training.trainer.Trainer` (`config`, a TrainConfig,
+    starting from `weights`) on `device`, after WARMUP_STEPS untimed ones (a compiled step compiles
+    in the first); stops early once `max_seconds` have passed and MIN_TIMED_STEPS are timed.
+
+    Returns seconds per step (median, the batch fetch included: data made on the critical path
+    counts), of which `data_s` fetching the batch, pairs/s, the first step's seconds (compilation
+    and autotuning show there), the steps timed, and the peak memory (GiB, CUDA only)."""
+    import torch
+
+    from training.data import TrainingData
+    from training.distributed import DistributedContext
+    from training.trainer import Trainer
+
+    on_cuda = device.type == "cuda"
+
+    def sync() -> None:
+        if on_cuda:
+            torch.cuda.synchronize(device)
+
+    trainer = Trainer(config, DistributedContext(0, 1, 0), device, None, weights)
     trainer.network.train()
+    if on_cuda:
+        torch.cuda.reset_peak_memory_stats(device)
     batches = TrainingData(config, 0, device).batches(0)
-    seconds = []
-    for index in range(steps + 2):
+    step_seconds: list[float] = []
+    data_seconds: list[float] = []
+    first_step_s = 0.0
+    begin = time.perf_counter()
+    for index in range(WARMUP_STEPS + steps):
         start = time.perf_counter()
         batch = next(batches)
-        if profile and index == steps + 1:
+        sync()
+        fetched = time.perf_counter()
+        if profile and index == WARMUP_STEPS + steps - 1:
             with torch.profiler.profile() as prof:
                 trainer.train_step(batch)
             print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=20), file=sys.stderr)
         else:
             trainer.train_step(batch)
-        seconds.append(time.perf_counter() - start)
-    step_s = statistics.median(seconds[2:])
-    return {"step_s": step_s, "pairs_per_s": config.batch_size / step_s, "threads": torch.get_num_threads()}
+        sync()
+        end = time.perf_counter()
+        if index == 0:
+            first_step_s = end - start
+        if index >= WARMUP_STEPS:
+            step_seconds.append(end - start)
+            data_seconds.append(fetched - start)
+            if len(step_seconds) >= MIN_TIMED_STEPS and end - begin > max_seconds:
+                break
+    step_s = statistics.median(step_seconds)
+    return {
+        "step_s": step_s,
+        "data_s": statistics.median(data_seconds),
+        "pairs_per_s": config.batch_size / step_s,
+        "first_step_s": first_step_s,
+        "timed_steps": len(step_seconds),
+        "peak_gib": round(torch.cuda.max_memory_allocated(device) / 2**30, 2) if on_cuda else None,
+    }
 
 
 def main() -> None:
@@ -107,7 +213,7 @@ def main() -> None:
     parser.add_argument("--one", help=argparse.SUPPRESS)  # child mode: a row name
     args = parser.parse_args()
     if args.one:
-        print(json.dumps(measure(ROWS[args.one], args.steps, args.one == args.profile)))
+        print(json.dumps(measure_row(ROWS[args.one], args.steps, args.one == args.profile)))
         return
 
     import torch

@@ -4,6 +4,7 @@ what a GPU machine will run, at tiny sizes, so that its first run there is not i
 import argparse
 import importlib.util
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -13,7 +14,7 @@ import pytest
 from model.weights import read_weights
 
 REPO = Path(__file__).resolve().parents[2]
-STAGES = ("environment", "tests", "bench", "service", "train")
+STAGES = ("environment", "tests", "bench", "service", "probe", "train")
 
 
 @pytest.fixture
@@ -21,6 +22,7 @@ def gpu_check(monkeypatch):
     spec = importlib.util.spec_from_file_location("gpu_check", REPO / "bench/gpu_check.py")
     module = importlib.util.module_from_spec(spec)
     monkeypatch.setitem(sys.modules, "gpu_check", module)  # its dataclasses look their module up
+    monkeypatch.syspath_prepend(str(REPO / "bench"))  # it imports its sibling scripts, as run from bench/
     spec.loader.exec_module(module)
     return module
 
@@ -66,6 +68,11 @@ def test_the_cpu_smoke_run_passes_every_stage_and_keeps_to_the_output_limits(tmp
     assert all(row["skipped"] == "n/a: CUDA graphs need CUDA" for row in bench["rows"] if row["graphs"])
     assert [row["model"] for row in bench["accuracy"]] == ["lite", "full"]
 
+    assert "## Training throughput (CPU)" in summary
+    assert re.search(r"^\| lite \| batch1 \| batch 1, lr 1\.00e-04 \| [0-9.]+ \| 1\.00x \|", summary, re.MULTILINE), (
+        summary
+    )
+
     checkpoint = read_weights(out / "checkpoint.pt")
     shipped = read_weights(REPO / "model/weights/lite.pt")
     assert checkpoint["step"] == shipped["step"] + 2 and checkpoint["model_name"] == "lite"
@@ -88,3 +95,52 @@ def test_stages_are_chosen_by_name_and_run_in_their_fixed_order(gpu_check):
     assert gpu_check.stage_list("train,environment") == ("environment", "train")
     with pytest.raises(argparse.ArgumentTypeError, match="stages are environment, tests"):
         gpu_check.stage_list("environment,warp")
+
+
+def test_the_throughput_probe_scales_the_batch_and_the_lr_by_its_square_root_then_tries_the_options(gpu_check):
+    from train_speed import probe_rows
+
+    rows = probe_rows(16, 2e-4, options=True, compiled=True)
+    assert [row.name for row in rows] == [
+        "batch16",
+        "batch32",
+        "batch64",
+        "batch128",
+        "foreach-adamw",
+        "channels-last",
+        "compile",
+        "cuda-graphs",
+    ]
+    assert [row.overrides["batch_size"] for row in rows[:4]] == [16, 32, 64, 128]
+    assert [row.overrides["lr"] for row in rows[:4]] == pytest.approx([2e-4, 2.828e-4, 4e-4, 5.657e-4], rel=1e-3)
+    assert rows[-1].overrides == {
+        "batch_size": 64,
+        "lr": pytest.approx(4e-4),
+        "compile": True,
+        "compile_mode": "reduce-overhead",
+    }
+    assert [row.name for row in probe_rows(2, 1e-4, options=False, compiled=False)] == [
+        "batch2",
+        "batch4",
+        "batch8",
+        "batch16",
+    ]
+
+
+def test_training_settings_are_given_as_json_values_or_plain_text(gpu_check):
+    args = gpu_check.parse_arguments(["--train-set", "batch_size=64", "--train-set", "schedule=constant"])
+    assert args.train_set == [("batch_size", 64), ("schedule", "constant")]
+    assert gpu_check.parse_arguments(["--train-set", "train_iters=[2,4,8]"]).train_set == [("train_iters", [2, 4, 8])]
+    with pytest.raises(SystemExit):
+        gpu_check.parse_arguments(["--train-set", "batch_size"])
+
+
+def test_the_training_recipe_is_the_campaigns_data_with_each_models_own_iterations(gpu_check):
+    args = gpu_check.parse_arguments(["--train-set", "batch_size=64"])
+    full = gpu_check.recipe_of("full", gpu_check.GPU, args)
+    lite = gpu_check.recipe_of("lite", gpu_check.GPU, args)
+    shipped = read_weights(REPO / "model/weights/lite.pt")["train_config"]
+    assert (full.model, lite.model) == ("full", "lite")
+    assert full.train_iters is None and lite.train_iters is None  # each network's own counts
+    assert full.max_disparity == lite.max_disparity == shipped["max_disparity"]
+    assert (full.crop_height, full.crop_width, full.batch_size, full.device) == (384, 512, 64, "cuda")
