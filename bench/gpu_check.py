@@ -4,7 +4,7 @@ and the next stage runs), within one time budget:
 
     environment  torch, the device, nvidia-smi
     tests        the CUDA tests (tests/gpu, the CUDA test of stereo_data)
-    bench        inference table: lite and full at 384x1248 and 480x640, batch 1 and 8, fp32 and
+    bench        inference table: lite and full at 384x1248, batch 1 and 8, fp32 and
                  bf16, eager and CUDA-graph replay (StereoPredictor.predict_batch, as the service
                  runs it); then bf16 against fp32 and graph against eager on the dev pairs
     service      `python -m service` on loopback with CRESTEREO_DEVICE=cuda: a real pair over HTTP,
@@ -94,7 +94,9 @@ class Plan:
     probe run that measures the step rate; decay_fraction: the share of the run's steps over which
     flat-decay brings the lr to 0; train_tail_seconds: kept after the training time for the last
     validation, the checkpoint and the process's start; throughput_steps: timed steps per row of the
-    throughput probe, which stops a row after throughput_row_seconds and starts none with less left.
+    throughput probe (of throughput_models, at throughput_factors times the recipe's batch, after
+    throughput_warmup untimed steps), which stops a row after throughput_row_seconds and starts
+    none with less left.
     """
 
     device: str
@@ -116,6 +118,9 @@ class Plan:
     probe_steps: int
     decay_fraction: float
     train_tail_seconds: float
+    throughput_models: tuple[ModelName, ...]
+    throughput_factors: tuple[int, ...]
+    throughput_warmup: int
     throughput_steps: int
     throughput_row_seconds: float
     label: str = ""
@@ -126,21 +131,24 @@ GPU = Plan(
     minutes=9.0,
     tests=("tests/gpu", "tests/stereo_data/test_synthetic_scenes.py::test_generator_runs_and_is_deterministic_on_cuda"),
     models=("lite", "full"),
-    sizes=((384, 1248), (480, 640)),
+    sizes=((384, 1248),),
     batches=(1, 8),
     iters=None,
     warmup_calls=3,
     timed_runs=20,
-    accuracy_pairs=9,
+    accuracy_pairs=4,
     service_models=("lite", "full"),
     service_requests=16,
-    stage_seconds={"environment": 60, "tests": 150, "bench": 210, "service": 120, "probe": 120},
+    stage_seconds={"environment": 60, "tests": 150, "bench": 90, "service": 120, "probe": 120},
     reserve_seconds={"environment": 420, "tests": 330, "bench": 150, "service": 90, "probe": 120},
     train=dict(GPU_RECIPE, log_every=25),  # the weights' recipe (scenes, max disparity, iterations) on the GPU step
     train_steps=1_000_000,
     probe_steps=40,
     decay_fraction=0.4,
     train_tail_seconds=75,
+    throughput_models=("lite", "full"),
+    throughput_factors=(1, 2, 4, 8),
+    throughput_warmup=2,
     throughput_steps=8,
     throughput_row_seconds=8.0,
     label="GPU",
@@ -176,6 +184,9 @@ CPU_SMOKE = Plan(
     probe_steps=2,
     decay_fraction=0.4,
     train_tail_seconds=20,
+    throughput_models=("lite",),
+    throughput_factors=(1, 2),
+    throughput_warmup=1,
     throughput_steps=1,
     throughput_row_seconds=2.0,
     label="CPU smoke run (no GPU: no number here is a GPU number)",
@@ -252,6 +263,7 @@ def run_stages(
             command += ["--cpu-smoke"] * args.cpu_smoke + ["--train-compile"] * args.train_compile
             command += ["--model", args.model] + (["--weights", str(args.weights)] if args.weights else [])
             command += [f"--train-set={key}={json.dumps(value)}" for key, value in args.train_set]
+            command += ["--adopt"] * args.adopt + ["--probe-result", str(scratch / "probe.json")]
             command += ["--data", str(data)] if data is not None else []
             result = run_child(command, seconds, environments[stage], log, result_file)
         results[stage] = result
@@ -289,6 +301,13 @@ def parse_arguments(argv: Sequence[str] | None) -> argparse.Namespace:
         help="a TrainConfig field of the training stage (VALUE as JSON, else text), e.g. batch_size=64; repeatable",
     )
     parser.add_argument("--train-compile", action="store_true", help="torch.compile the training step")
+    parser.add_argument(
+        "--adopt",
+        action="store_true",
+        help="the training stage takes the probe's best setting for --model: the row that trains the most "
+        "pairs in the time left (its pairs/s times that time less its first step, where compiling shows)",
+    )
+    parser.add_argument("--probe-result", type=Path, help=argparse.SUPPRESS)
     parser.add_argument("--stage", choices=STAGES, help=argparse.SUPPRESS)  # child mode
     parser.add_argument("--seconds", type=float, help=argparse.SUPPRESS)
     parser.add_argument("--result", type=Path, help=argparse.SUPPRESS)
@@ -853,11 +872,15 @@ def probe_stage(plan: Plan, deadline: float, args: argparse.Namespace, save: Cal
     on_cuda = device.type == "cuda"
     data: dict[str, Any] = {"device": torch.cuda.get_device_name(device) if on_cuda else "CPU", "rows": []}
     scratch = Path(tempfile.mkdtemp(prefix="probe-"))
-    for model in plan.models:
+    for model in plan.throughput_models:
         weights = weights_for(model, args)
         recipe = replace(recipe_of(model, plan, args), out_dir=str(scratch), val_data=None)
-        for row in probe_rows(recipe.batch_size, recipe.lr, options=model == "lite", compiled=on_cuda):
+        rows = probe_rows(
+            recipe.batch_size, recipe.lr, plan.throughput_factors, options=model == "lite", compiled=on_cuda
+        )
+        for row in rows:
             entry: dict[str, Any] = {"model": model, "row": row.name, "setting": row.description}
+            entry["overrides"] = row.overrides
             if deadline - time.monotonic() < plan.throughput_row_seconds + 5:
                 entry["skipped"] = "no time left"
             else:
@@ -868,6 +891,7 @@ def probe_stage(plan: Plan, deadline: float, args: argparse.Namespace, save: Cal
                         device,
                         plan.throughput_steps,
                         max_seconds=plan.throughput_row_seconds,
+                        warmup_steps=plan.throughput_warmup,
                     )
                 except Exception as error:  # out of memory, a compile failure: the next row still runs
                     entry["skipped"] = f"{type(error).__name__}: {str(error)[:160]}"
@@ -910,6 +934,15 @@ def probe_table(data: dict[str, Any]) -> list[str]:
     return lines
 
 
+def adopted_row(rows: list[dict[str, Any]], model: str, seconds: float) -> dict[str, Any] | None:
+    """The probe row that trains `model` on the most pairs in `seconds`: pairs/s times the seconds
+    left after its first step (compilation); None without a measured row."""
+    measured = [row for row in rows if row["model"] == model and "skipped" not in row]
+    if not measured:
+        return None
+    return max(measured, key=lambda row: row["pairs_per_s"] * max(0.0, seconds - row["first_step_s"]))
+
+
 def train_stage(plan: Plan, deadline: float, args: argparse.Namespace, save: Callable[..., None]) -> StageResult:
     import torch
 
@@ -926,6 +959,13 @@ def train_stage(plan: Plan, deadline: float, args: argparse.Namespace, save: Cal
     source = {"resume": shipped} if resumable else {"init_weights": shipped}
     first_step = int(saved["step"]) if resumable else 0
     recipe = recipe_of(args.model, plan, args)
+    adopted = None
+    if args.adopt and args.probe_result is not None and args.probe_result.is_file():
+        probe_rows_seen = json.loads(args.probe_result.read_text())["data"].get("rows", [])
+        adopted = adopted_row(probe_rows_seen, args.model, deadline - time.monotonic())
+        if adopted is not None:
+            recipe = replace(recipe, **adopted["overrides"])
+            print(f"adopted the probe's row {adopted['row']}: {adopted['setting']}", flush=True)
 
     def probe(config: TrainConfig) -> float:
         """Train plan.probe_steps steps into a scratch folder; the step rate after the first window."""
@@ -977,6 +1017,7 @@ def train_stage(plan: Plan, deadline: float, args: argparse.Namespace, save: Cal
     data: dict[str, Any] = dict(
         model=args.model,
         weights=str(shipped),
+        adopted=None if adopted is None else adopted["row"],
         resumed=resumable,
         steps=result.step - first_step,
         planned_steps=size.steps,

@@ -40,7 +40,6 @@ class Row:
     wide_transposed: bool = True  # 1x15 gate convs computed as transposed 15x1 (model.update)
 
 
-WARMUP_STEPS = 2
 MIN_TIMED_STEPS = 3
 BASE = dict(crop_height=128, crop_width=256, batch_size=2, train_iters=(1, 2, 3), max_disparity=64.0)
 CAMPAIGN = dict(num_workers=1, crop_width=320, max_disparity=128.0)  # the lite campaign's settings since stretch 2
@@ -92,20 +91,21 @@ class ProbeRow:
     overrides: dict[str, Any]
 
 
-def probe_rows(batch_size: int, lr: float, options: bool, compiled: bool) -> list[ProbeRow]:
-    """The probe's rows around a recipe of `batch_size` pairs per step at `lr`: the batch times 1,
-    2, 4 and 8, the lr scaled by the square root of the batch ratio (the usual rule for Adam); with
-    `options`, at 4x the batch: plain (foreach) AdamW instead of the fused kernel, and channels-last;
-    with `compiled`, at 4x the batch: torch.compile, and torch.compile replaying CUDA graphs."""
+def probe_rows(batch_size: int, lr: float, factors: tuple[int, ...], options: bool, compiled: bool) -> list[ProbeRow]:
+    """The probe's rows around a recipe of `batch_size` pairs per step at `lr`: the batch times each
+    of `factors`, the lr scaled by the square root of the batch ratio (the usual rule for Adam);
+    with `options`, at the third factor's batch (else the last's): plain (foreach) AdamW instead of
+    the fused kernel, and channels-last; with `compiled`, at that batch: torch.compile, and
+    torch.compile replaying CUDA graphs."""
     rows = [
         ProbeRow(
             f"batch{batch_size * factor}",
             f"batch {batch_size * factor}, lr {lr * math.sqrt(factor):.2e}",
             dict(batch_size=batch_size * factor, lr=lr * math.sqrt(factor)),
         )
-        for factor in (1, 2, 4, 8)
+        for factor in factors
     ]
-    wide = rows[2].overrides
+    wide = rows[min(2, len(rows) - 1)].overrides
     if options:
         rows += [
             ProbeRow("foreach-adamw", f"batch {wide['batch_size']}, plain AdamW", {**wide, "fused_adamw": "off"}),
@@ -144,10 +144,11 @@ def measure(
     device: Any,
     steps: int,
     max_seconds: float = math.inf,
+    warmup_steps: int = 2,
     profile: bool = False,
 ) -> dict[str, Any]:
     """Time `steps` optimiser steps of the real `training.trainer.Trainer` (`config`, a TrainConfig,
-    starting from `weights`) on `device`, after WARMUP_STEPS untimed ones (a compiled step compiles
+    starting from `weights`) on `device`, after `warmup_steps` untimed ones (a compiled step compiles
     in the first); stops early once `max_seconds` have passed and MIN_TIMED_STEPS are timed.
 
     Returns seconds per step (median, the batch fetch included: data made on the critical path
@@ -174,12 +175,12 @@ def measure(
     data_seconds: list[float] = []
     first_step_s = 0.0
     begin = time.perf_counter()
-    for index in range(WARMUP_STEPS + steps):
+    for index in range(warmup_steps + steps):
         start = time.perf_counter()
         batch = next(batches)
         sync()
         fetched = time.perf_counter()
-        if profile and index == WARMUP_STEPS + steps - 1:
+        if profile and index == warmup_steps + steps - 1:
             with torch.profiler.profile() as prof:
                 trainer.train_step(batch)
             print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=20), file=sys.stderr)
@@ -189,7 +190,7 @@ def measure(
         end = time.perf_counter()
         if index == 0:
             first_step_s = end - start
-        if index >= WARMUP_STEPS:
+        if index >= warmup_steps:
             step_seconds.append(end - start)
             data_seconds.append(fetched - start)
             if len(step_seconds) >= MIN_TIMED_STEPS and end - begin > max_seconds:

@@ -39,7 +39,7 @@ def test_without_fastapi_the_service_stage_is_skipped_saying_so(gpu_check, monke
 def test_the_cpu_smoke_run_passes_every_stage_and_keeps_to_the_output_limits(tmp_path):
     out = tmp_path / "out"
     completed = subprocess.run(
-        [sys.executable, "bench/gpu_check.py", "--cpu-smoke", "--out", str(out)],
+        [sys.executable, "bench/gpu_check.py", "--cpu-smoke", "--adopt", "--out", str(out)],
         cwd=REPO,
         capture_output=True,
         text=True,
@@ -73,6 +73,9 @@ def test_the_cpu_smoke_run_passes_every_stage_and_keeps_to_the_output_limits(tmp
         summary
     )
 
+    adopted = re.search(r'"adopted": "(\w+)"', summary)
+    assert adopted is not None and f"| lite | {adopted.group(1)} |" in summary  # the training took a probe row
+
     checkpoint = read_weights(out / "checkpoint.pt")
     shipped = read_weights(REPO / "model/weights/lite.pt")
     assert checkpoint["step"] == shipped["step"] + 2 and checkpoint["model_name"] == "lite"
@@ -100,7 +103,7 @@ def test_stages_are_chosen_by_name_and_run_in_their_fixed_order(gpu_check):
 def test_the_throughput_probe_scales_the_batch_and_the_lr_by_its_square_root_then_tries_the_options(gpu_check):
     from train_speed import probe_rows
 
-    rows = probe_rows(16, 2e-4, options=True, compiled=True)
+    rows = probe_rows(16, 2e-4, (1, 2, 4, 8), options=True, compiled=True)
     assert [row.name for row in rows] == [
         "batch16",
         "batch32",
@@ -119,11 +122,11 @@ def test_the_throughput_probe_scales_the_batch_and_the_lr_by_its_square_root_the
         "compile": True,
         "compile_mode": "reduce-overhead",
     }
-    assert [row.name for row in probe_rows(2, 1e-4, options=False, compiled=False)] == [
+    assert [row.name for row in probe_rows(2, 1e-4, (1, 2), options=True, compiled=False)] == [
         "batch2",
         "batch4",
-        "batch8",
-        "batch16",
+        "foreach-adamw",
+        "channels-last",
     ]
 
 
@@ -144,3 +147,16 @@ def test_the_training_recipe_is_the_campaigns_data_with_each_models_own_iteratio
     assert full.train_iters is None and lite.train_iters is None  # each network's own counts
     assert full.max_disparity == lite.max_disparity == shipped["max_disparity"]
     assert (full.crop_height, full.crop_width, full.batch_size, full.device) == (384, 512, 64, "cuda")
+
+
+def test_adoption_takes_the_row_that_trains_the_most_pairs_in_the_time_left(gpu_check):
+    rows = [
+        {"model": "lite", "row": "batch16", "pairs_per_s": 40.0, "first_step_s": 2.0},
+        {"model": "lite", "row": "batch64", "pairs_per_s": 120.0, "first_step_s": 3.0},
+        {"model": "lite", "row": "compile", "pairs_per_s": 200.0, "first_step_s": 150.0},
+        {"model": "lite", "row": "batch128", "skipped": "OutOfMemoryError: CUDA out of memory"},
+        {"model": "full", "row": "batch16", "pairs_per_s": 500.0, "first_step_s": 1.0},
+    ]
+    assert gpu_check.adopted_row(rows, "lite", 300.0)["row"] == "batch64"  # 120 x 297 > 200 x 150
+    assert gpu_check.adopted_row(rows, "lite", 600.0)["row"] == "compile"  # 200 x 450 > 120 x 597
+    assert gpu_check.adopted_row(rows[3:4], "lite", 600.0) is None
