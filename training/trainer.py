@@ -38,6 +38,9 @@ from .schedule import build_scheduler
 from .weight_average import WeightAverage
 
 CHECKPOINT_NAME = "checkpoint.pt"
+STABLE_NAME = "stable.pt"
+"""A flat-decay run's checkpoint at the step where its decay begins (warmup-stable-decay): the next
+run resumes from it and goes on at the peak lr, instead of restarting from the decayed weights."""
 LOG_COLUMNS = ("step", "pairs_seen", "minutes", "loss", "train_epe", "lr", "pairs_per_second")
 """Columns of log.csv: loss and train_epe (px, final prediction) are means over the steps since
 the previous row and over all processes; minutes is the cumulative wall time of every run in
@@ -221,10 +224,20 @@ class Trainer:
                 window_start = time.monotonic()
             if (step % config.checkpoint_every == 0 or finished) and self.context.is_main:
                 self.save(step, run_minutes)
+            if step == self.decay_start and not finished and self.context.is_main:
+                write_weights(self.checkpoint(step, run_minutes), self.out_dir / STABLE_NAME)
             if out_of_time:
                 break
         bar.close()
         return TrainResult(step, self.out_dir / CHECKPOINT_NAME, out_of_time, self.network)
+
+    @property
+    def decay_start(self) -> int | None:
+        """The step where a flat-decay schedule leaves its peak lr (None for other schedules)."""
+        config = self.config
+        if config.schedule != "flat-decay" or config.decay_steps >= config.schedule_length:
+            return None
+        return config.schedule_length - config.decay_steps
 
     def run_pairs(self, step: int) -> int:
         """Training pairs this run has seen when its step counter is at `step` (all processes)."""
@@ -268,7 +281,6 @@ class Trainer:
     def save(self, step: int, run_minutes: float) -> None:
         """Rank 0: validate (when configured), then write the checkpoint and the curves."""
         record = self.record
-        record.last_step, record.pairs, record.minutes = step, self.run_pairs(step), run_minutes
         served = self.network if self.average is None else self.average.network
         if self.validation_log is not None:
             record.validation = validate(served, self.config, self.device)
@@ -285,6 +297,15 @@ class Trainer:
                     **raw,
                 )
             )
+        write_weights(self.checkpoint(step, run_minutes), self.out_dir / CHECKPOINT_NAME)
+        draw_curves(self.out_dir)
+
+    def checkpoint(self, step: int, run_minutes: float) -> WeightsFile:
+        """Everything a resumed run needs at `step`: the served weights (the average, when kept),
+        the trained ones, optimiser, schedule, random states and the training record so far."""
+        record = self.record
+        record.last_step, record.pairs, record.minutes = step, self.run_pairs(step), run_minutes
+        served = self.network if self.average is None else self.average.network
         checkpoint = WeightsFile(
             model=served.state_dict(),
             config=self.model_config.to_dict(),
@@ -298,8 +319,7 @@ class Trainer:
         )
         if self.average is not None:
             checkpoint["train_model"] = self.network.state_dict()
-        write_weights(checkpoint, self.out_dir / CHECKPOINT_NAME)
-        draw_curves(self.out_dir)
+        return checkpoint
 
 
 def follow_config(
