@@ -303,3 +303,26 @@ def test_with_ema_validation_logs_the_served_average_and_the_raw_weights(tmp_pat
     assert [int(r["step"]) for r in rows] == [1, 2]
     assert all(float(r["raw_epe"]) >= 0 and 0 <= float(r["raw_bad2"]) <= 100 for r in rows)
     assert any(r["raw_epe"] != r["epe"] for r in rows)  # two different networks were validated
+
+
+def test_a_flat_decay_run_keeps_its_stable_branch_where_the_decay_begins_and_a_resume_goes_on_at_the_peak_lr(
+    tmp_path, real_pairs
+):
+    decayed = tiny(
+        tmp_path / "decayed", sources=(real_pairs,), max_steps=4, schedule="flat-decay", decay_steps=2, lr=1e-4
+    )
+    train(decayed, progress=False)
+    # the same run stopped where its decay begins: the stable branch, saved beside the decayed end
+    flat = replace(decayed, out_dir=str(tmp_path / "flat"), max_steps=2, schedule_steps=4)
+    train(flat, progress=False)
+    stable = read_weights(tmp_path / "decayed" / "stable.pt")
+    reference = read_weights(tmp_path / "flat" / "checkpoint.pt")
+    assert stable["step"] == 2 and stable["scheduler"]["last_epoch"] == 2
+    assert all(torch.equal(stable["model"][name], reference["model"][name]) for name in reference["model"])
+    assert stable["training"]["runs"][-1]["last_step"] == 2
+
+    # the next run resumes the stable branch with a later horizon: its first steps are at the peak lr
+    onward = replace(decayed, out_dir=str(tmp_path / "onward"), max_steps=6, schedule_steps=6)
+    train(onward, resume=tmp_path / "decayed" / "stable.pt", progress=False)
+    assert [float(row["lr"]) for row in read_csv(tmp_path / "onward" / "log.csv")][:2] == [1e-4, 1e-4]
+    assert not (tmp_path / "flat" / "stable.pt").exists()  # a run that ends where its decay begins keeps none
