@@ -17,6 +17,7 @@ from typing import TypedDict
 
 import uvicorn
 
+from service.admission import largest_image_file
 from service.settings import Settings
 from service.worker import any_busy
 
@@ -27,14 +28,15 @@ class ServerLimits(TypedDict):
     limit_concurrency: int
     timeout_keep_alive: int
     h11_max_incomplete_event_size: int
-    ws_max_size: int
+    ws_per_message_deflate: bool
 
 
 SERVER_LIMITS: ServerLimits = {
     # Open connections (idle and slow ones included) before uvicorn answers 503 (text) itself:
     # far above what the app serves at once (CRESTEREO_MAX_REQUESTS, JSON 503 `overloaded`
-    # beyond it), so that idle connections cannot lock the probes out; far below the file
-    # descriptors a process has. Beyond it, connection floods are a reverse proxy's job.
+    # beyond it; CRESTEREO_MAX_STREAMS WebSockets, refused and closed at once beyond it), so that
+    # idle connections cannot lock the probes out; far below the file descriptors a process has.
+    # Beyond it, connection floods are a reverse proxy's job.
     "limit_concurrency": 1000,
     # Seconds an idle keep-alive connection is held open.
     "timeout_keep_alive": 5,
@@ -42,9 +44,10 @@ SERVER_LIMITS: ServerLimits = {
     # head reaches the app, which answers 431 (JSON) over 16 KiB. Worst case in memory:
     # limit_concurrency x 1 MiB = 1 GiB, only with 1000 connections each sending a 1 MiB head.
     "h11_max_incomplete_event_size": 1024 * 1024,
-    # Bytes of one WebSocket message (`/disparity/stream`: one image file) before uvicorn closes
-    # the connection (1009): the request body limit's default, which holds two images.
-    "ws_max_size": 32 * 1024 * 1024,
+    # WebSocket messages uncompressed: with permessage-deflate, a few KiB on the wire could
+    # inflate to a whole message of zeros. A message's size (`ws_max_size`, from the settings)
+    # then bounds what a client must send, byte for byte.
+    "ws_per_message_deflate": False,
 }
 SHUTDOWN_MARGIN_S = 5
 """After SIGTERM the service's drain (CRESTEREO_DRAIN_TIMEOUT_S) answers every admitted request;
@@ -63,7 +66,8 @@ def main(argv: list[str] | None = None) -> None:
 
 def serve(host: str, port: int) -> None:
     """Serve the app under uvicorn on host:port until SIGTERM or SIGINT (then drain)."""
-    shutdown_s = math.ceil(Settings.from_env().drain_timeout_s) + SHUTDOWN_MARGIN_S
+    settings = Settings.from_env()
+    shutdown_s = math.ceil(settings.drain_timeout_s) + SHUTDOWN_MARGIN_S
     uvicorn.run(
         "service.app:create_app",
         factory=True,
@@ -75,6 +79,11 @@ def serve(host: str, port: int) -> None:
         # long request line with its own text 400 before the app can answer its JSON 414).
         http="h11",
         loop="asyncio",
+        # Named too: this one reads no further than one whole message ahead of the app.
+        ws="websockets-sansio",
+        # Bytes of one WebSocket message (`/disparity/stream`: one image file) before uvicorn closes
+        # the connection (1009), unread: the largest file an image within the pixel limit makes.
+        ws_max_size=largest_image_file(settings.max_image_pixels, settings.max_body_bytes),
         **SERVER_LIMITS,
     )
     # Only reached where SIGTERM does not end the process (uvicorn re-raises it; PID 1 ignores

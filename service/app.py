@@ -8,9 +8,15 @@ from contextlib import asynccontextmanager
 from fastapi import FastAPI
 
 from model import load_model
+from service.admission import ByteBudget, StreamSlots
 from service.errors import install_error_handlers
 from service.logs import configure_logging
-from service.middleware import ConcurrencyLimitMiddleware, RequestContextMiddleware, RequestSizeLimitMiddleware
+from service.middleware import (
+    ConcurrencyLimitMiddleware,
+    RequestContextMiddleware,
+    RequestSizeLimitMiddleware,
+    UploadBudgetMiddleware,
+)
 from service.routes import disparity, docs, health, metrics, models, page, stream
 from service.runtime import ModelLoader, ServiceRuntime
 from service.settings import Settings
@@ -55,6 +61,9 @@ def create_app(
     )
     app.state.runtime = runtime
     install_error_handlers(app, runtime.metrics)
+    app.state.uploads = ByteBudget(settings.max_upload_bytes)  # request bodies and stream images together
+    app.state.streams = StreamSlots(settings.max_streams, settings.max_streams_per_client)
+    app.add_middleware(UploadBudgetMiddleware, budget=app.state.uploads, metrics=runtime.metrics)
     app.add_middleware(RequestSizeLimitMiddleware, max_bytes=settings.max_body_bytes, metrics=runtime.metrics)
     app.add_middleware(ConcurrencyLimitMiddleware, max_requests=settings.max_requests, metrics=runtime.metrics)
     app.add_middleware(RequestContextMiddleware, metrics=runtime.metrics)

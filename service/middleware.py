@@ -1,4 +1,5 @@
-"""ASGI middleware: request ids, access log and request metrics; the request size limits."""
+"""ASGI middleware: request ids, access log and request metrics; the request size limits; the
+count of requests and the bytes of their bodies held at once."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ import uuid
 
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from service.admission import ByteBudget
 from service.errors import ApiError, error_response
 from service.logs import request_id_var
 from service.metrics import Metrics
@@ -93,7 +95,8 @@ in a few hundred bytes), so no later check of the query costs more than this muc
 class RequestSizeLimitMiddleware:
     """Refuses query strings over MAX_QUERY_BYTES with 414, header blocks over MAX_HEADER_BYTES
     with 431, and bodies over `max_bytes` with 413: at once from `Content-Length`, else as soon as
-    the streamed body passes the limit (chunked uploads)."""
+    the streamed body passes the limit (chunked uploads). A WebSocket handshake gets the same 414
+    and 431 (JSON HTTP answers, before the connection opens)."""
 
     def __init__(self, app: ASGIApp, max_bytes: int, metrics: Metrics) -> None:
         self.app = app
@@ -101,7 +104,7 @@ class RequestSizeLimitMiddleware:
         self.metrics = metrics
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] != "http":
+        if scope["type"] not in ("http", "websocket"):
             await self.app(scope, receive, send)
             return
         refusal = self._refusal(scope)
@@ -120,7 +123,7 @@ class RequestSizeLimitMiddleware:
                     raise ApiError(413, "body_too_large", self._message(), reject_reason="too_large")
             return message
 
-        await self.app(scope, limited_receive, send)
+        await self.app(scope, limited_receive if scope["type"] == "http" else receive, send)
 
     def _refusal(self, scope: Scope) -> tuple[int, str, str] | None:
         """(status, code, message) for a request whose query, headers or declared body are over
@@ -131,13 +134,71 @@ class RequestSizeLimitMiddleware:
         header_bytes = sum(len(name) + len(value) for name, value in scope["headers"])
         if header_bytes > MAX_HEADER_BYTES:
             return 431, "headers_too_large", f"request headers of {header_bytes} bytes; the limit is {MAX_HEADER_BYTES}"
-        declared = dict(scope["headers"]).get(b"content-length")
-        if declared is not None and declared.isdigit() and int(declared) > self.max_bytes:
+        declared = declared_length(scope)
+        if declared is not None and declared > self.max_bytes:
             return 413, "body_too_large", self._message()
         return None
 
     def _message(self) -> str:
         return f"request body larger than {self.max_bytes} bytes"
+
+
+def declared_length(scope: Scope) -> int | None:
+    """The body's length from `Content-Length`, where given (uvicorn refuses malformed ones)."""
+    declared = dict(scope["headers"]).get(b"content-length")
+    return int(declared) if declared is not None and declared.isdigit() else None
+
+
+class UploadBudgetMiddleware:
+    """Holds each request's body against the upload budget (shared with the streams) until the
+    request ends: a body declared by `Content-Length` is counted whole before it is read, and
+    refused unread where it does not fit; one without (chunked) is counted as it arrives, and
+    refused at the chunk that does not fit. Refused: 503 `overloaded` with `Retry-After`."""
+
+    def __init__(self, app: ASGIApp, budget: ByteBudget, metrics: Metrics) -> None:
+        self.app = app
+        self.budget = budget
+        self.metrics = metrics
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        declared = declared_length(scope)
+        held = 0
+        if declared is not None:
+            if not self.budget.take(declared):
+                self.metrics.reject("overloaded")
+                refused = self._overloaded(declared)
+                response = error_response(refused.status, refused.code, refused.message, refused.headers)
+                await response(scope, receive, send)
+                return
+            held = declared
+
+        async def counted_receive() -> Message:
+            nonlocal held
+            message = await receive()
+            size = len(message.get("body", b"")) if message["type"] == "http.request" else 0
+            if not self.budget.take(size):
+                raise self._overloaded(size)
+            held += size
+            return message
+
+        try:
+            await self.app(scope, receive if declared is not None else counted_receive, send)
+        finally:
+            self.budget.give_back(held)
+
+    def _overloaded(self, size: int) -> ApiError:
+        """The 503 for a body of which `size` more bytes do not fit (the rest of it goes unread: the
+        connection is closed)."""
+        return ApiError(
+            503,
+            "overloaded",
+            self.budget.refusal(size),
+            reject_reason="overloaded",
+            headers={"Retry-After": "1", "Connection": "close"},
+        )
 
 
 class ConcurrencyLimitMiddleware:

@@ -12,7 +12,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from model.config import MODEL_NAMES, ModelName
 from model.inference import BackendChoice, PrecisionChoice
@@ -89,6 +89,30 @@ class Settings(BaseModel):
         "memory that request bodies can hold.",
     )
     max_body_bytes: int = Field(32 * 1024 * 1024, ge=1, description="Largest request body in bytes (413 beyond).")
+    max_upload_bytes: int = Field(
+        192 * 1024 * 1024,
+        ge=1,
+        description="Most bytes of uploads held at once, request bodies and stream images together (a body counts "
+        "from its `Content-Length` before it is read, else as it arrives); beyond it 503 `overloaded` with "
+        "`Retry-After` (a stream: closed with 1013). At least `max_body_bytes`. The default holds six of the "
+        "largest bodies, or `max_requests` pairs of 4 MiB.",
+    )
+    max_streams: int = Field(
+        16, ge=1, description="Most `/disparity/stream` connections open at once; beyond it 1013 `overloaded`."
+    )
+    max_streams_per_client: int = Field(
+        4,
+        ge=1,
+        description="Most streams open at once from one client address (as uvicorn sees it: behind a proxy, "
+        "let uvicorn read `X-Forwarded-For` with `FORWARDED_ALLOW_IPS`); beyond it 1013 `overloaded`.",
+    )
+    stream_idle_timeout_s: float = Field(
+        5.0,
+        gt=0,
+        description="Longest a stream waits for its next image: a pair's left image (then it is closed, 1000) or "
+        "its right one (1008 `body_timeout`). As long as uvicorn keeps an idle HTTP connection: a camera sends "
+        "its next pair well within it, and an idle stream gives back its place and memory soon.",
+    )
     max_image_pixels: int = Field(
         DEFAULT_MAX_IMAGE_PIXELS,
         ge=1,
@@ -134,6 +158,12 @@ class Settings(BaseModel):
     log_level: Literal["debug", "info", "warning", "error"] = Field(
         "info", description="Level of the JSON logs on stderr."
     )
+
+    @model_validator(mode="after")
+    def _budget_holds_a_body(self) -> Settings:
+        if self.max_upload_bytes < self.max_body_bytes:
+            raise ValueError("max_upload_bytes must be at least max_body_bytes, or the largest bodies are never taken")
+        return self
 
     @field_validator("models", mode="before")
     @classmethod

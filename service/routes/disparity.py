@@ -11,11 +11,12 @@ from __future__ import annotations
 import asyncio
 import time
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from functools import partial
 from typing import Annotated
 
 from fastapi import APIRouter, Depends, Header, Query, Request, Response
+from pydantic import BeforeValidator
 from starlette.concurrency import run_in_threadpool
 from starlette.requests import ClientDisconnect
 
@@ -35,6 +36,14 @@ router = APIRouter(tags=["disparity"])
 
 MAX_TIMEOUT_MS = 3_600_000
 _ABANDON_POLL_S = 0.2  # how often a request whose images are being read checks whether it is abandoned
+
+
+def _plain_digits(value: object) -> object:
+    """`X-Request-Timeout-Ms` is plain digits, as numbers in the query are plain decimals:
+    `3_600_000` or `+5` are refused, not read as numbers."""
+    if isinstance(value, str) and not (value.isascii() and value.isdigit()):
+        raise ValueError(f"expected a whole number of milliseconds such as 5000, got {value[:32]!r}")
+    return value
 
 
 @router.post(
@@ -59,6 +68,7 @@ async def estimate_disparity(
             description="Deadline in milliseconds from arrival: a request that cannot be computed "
             "in time is dropped before computing and answered 503 `deadline_exceeded`.",
         ),
+        BeforeValidator(_plain_digits),
     ] = None,
 ) -> Response:
     """Send the two images as multipart files `left` and `right`, and for a raw (unrectified) pair
@@ -69,7 +79,9 @@ async def estimate_disparity(
     """
     deadline = None if timeout_ms is None else time.monotonic() + timeout_ms / 1000
     request.state.model = options.model  # for the access log and the metrics
-    _refuse_repeated_options(request)
+    repeated = repeated_option(request.query_params.multi_items())
+    if repeated is not None:
+        raise bad_input(422, "invalid_request", repeated)
     _refuse_repeated_headers(request)
     batcher = runtime.batcher_for(options.model)
     settings = runtime.settings
@@ -127,7 +139,7 @@ async def _read_body(request: Request, timeout_s: float) -> bytes:
         ) from None
     except ClientDisconnect:  # gone mid-upload: nobody reads the answer; logged and counted as 499
         raise client_gone("client disconnected during the upload") from None
-    return b"".join(chunks)
+    return await asyncio.to_thread(b"".join, chunks)  # a copy of up to max_body_bytes: off the event loop
 
 
 async def _abandoned(
@@ -152,13 +164,13 @@ def _refuse_repeated_headers(request: Request) -> None:
         raise bad_input(422, "invalid_request", "header.X-Request-Timeout-Ms: given more than once")
 
 
-def _refuse_repeated_options(request: Request) -> None:
-    """`?model=lite&model=full` is ambiguous: 422 rather than silently taking one of them (one
-    pass over the query, linear in its length; the middleware bounds that length)."""
-    counts = Counter(name for name, _ in request.query_params.multi_items())
-    repeated = sorted(name for name, count in counts.items() if count > 1)
-    if repeated:
-        raise bad_input(422, "invalid_request", f"query.{repeated[0]}: given more than once")
+def repeated_option(items: Iterable[tuple[str, str]]) -> str | None:
+    """What is wrong with a query that gives an option more than once (`?model=lite&model=full` is
+    ambiguous: refused rather than silently taking one), else None. One pass over the query, linear
+    in its length (which the middleware bounds); `/disparity/stream` checks its query with it too."""
+    counts = Counter(name for name, _ in items)
+    repeated = min((name for name, count in counts.items() if count > 1), default=None)
+    return None if repeated is None else f"query.{repeated}: given more than once"
 
 
 def _result_headers(predictor: Predictor, weights: str, size: ImageHeader, result: JobResult[Maps]) -> dict[str, str]:

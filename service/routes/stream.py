@@ -8,6 +8,10 @@ message per pair: the answer in `format` (text for `json`, binary otherwise), or
 `{"error": {"code", "message"}, "frame": N}` for a frame that could not be computed (the
 connection stays open). The same image limits, decoder processes, batching, and bearer key apply
 as to `POST /disparity`.
+
+What a stream may hold is bounded: a place among `max_streams` (`max_streams_per_client` per client
+address), one pair at a time, each image no larger than its model's pixel limit allows and counted
+against the upload budget that request bodies share, and `stream_idle_timeout_s` to send each.
 """
 
 from __future__ import annotations
@@ -15,7 +19,8 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Iterator
+from contextlib import ExitStack, contextmanager
 
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 from pydantic import ValidationError
@@ -23,11 +28,13 @@ from starlette.concurrency import run_in_threadpool
 from starlette.websockets import WebSocketState
 
 from model import WarmStart, parse_iterations
+from service.admission import ByteBudget, StreamSlots, largest_image_file
 from service.batching import BatchingError
 from service.dependencies import bearer_accepted
 from service.encoding import render
 from service.errors import ApiError, bad_input, batching_answer
 from service.images import ImageHeader
+from service.routes.disparity import repeated_option
 from service.runtime import ServiceRuntime, weights_identity
 from service.schemas import DisparityOptions, OutputFormat
 from service.stereo_batches import StereoPair, stereo_key
@@ -36,7 +43,7 @@ from service.uploads import ImageLimits, UploadError
 logger = logging.getLogger(__name__)
 router = APIRouter()
 
-GOING_AWAY, UNSUPPORTED_DATA, POLICY_VIOLATION, TRY_AGAIN_LATER = 1001, 1003, 1008, 1013
+GOING_AWAY, UNSUPPORTED_DATA, POLICY_VIOLATION, MESSAGE_TOO_BIG, TRY_AGAIN_LATER = 1001, 1003, 1008, 1009, 1013
 """WebSocket close codes (RFC 6455, 7.4.1; 1013 from the IANA registry)."""
 
 
@@ -56,25 +63,29 @@ async def stream_disparity(websocket: WebSocket) -> None:
     if not bearer_accepted(runtime.settings, token if scheme.lower() == "bearer" else None):
         await websocket.close(code=POLICY_VIOLATION, reason="missing or wrong bearer token")  # HTTP 403
         return
-    await websocket.accept()
-    try:
-        options, warm_start = _options(websocket)
-        await _serve(websocket, runtime, options, warm_start)
-    except _Closing as closing:
-        if closing.error is not None:
-            await websocket.send_text(json.dumps({"error": {"code": closing.error, "message": closing.reason}}))
-        await websocket.close(code=closing.code, reason=closing.reason[:120])
-    except WebSocketDisconnect:
-        return
+    streams: StreamSlots = websocket.app.state.streams
+    uploads: ByteBudget = websocket.app.state.uploads
+    with streams.place(websocket.client.host if websocket.client else "") as refusal:
+        await websocket.accept()
+        try:
+            if refusal is not None:
+                raise _Closing(TRY_AGAIN_LATER, "overloaded", refusal)
+            options, warm_start = _options(websocket)
+            await _serve(websocket, runtime, uploads, options, warm_start)
+        except _Closing as closing:
+            if closing.error is not None:
+                await websocket.send_text(json.dumps({"error": {"code": closing.error, "message": closing.reason}}))
+            await websocket.close(code=closing.code, reason=closing.reason[:120])
+        except WebSocketDisconnect:
+            return
 
 
 def _options(websocket: WebSocket) -> tuple[DisparityOptions, WarmStart]:
     """The stream's options from the query string (an error message and close where invalid)."""
     items = websocket.query_params.multi_items()
-    names = [name for name, _ in items]
-    repeated = sorted({name for name in names if names.count(name) > 1})
-    if repeated:
-        raise _Closing(POLICY_VIOLATION, "invalid_request", f"query.{repeated[0]}: given more than once")
+    repeated = repeated_option(items)
+    if repeated is not None:
+        raise _Closing(POLICY_VIOLATION, "invalid_request", repeated)
     query = dict(items)
     warm_iters = query.pop("warm_iters", None)
     try:
@@ -92,34 +103,43 @@ def _options(websocket: WebSocket) -> tuple[DisparityOptions, WarmStart]:
     return options, WarmStart(options.inference, warm)
 
 
-async def _serve(websocket: WebSocket, runtime: ServiceRuntime, options: DisparityOptions, frames: WarmStart) -> None:
+async def _serve(
+    websocket: WebSocket, runtime: ServiceRuntime, uploads: ByteBudget, options: DisparityOptions, frames: WarmStart
+) -> None:
     settings = runtime.settings
     limits = ImageLimits(options.model, settings.pixel_limit(options.model), settings.min_image_side)
+    largest = largest_image_file(limits.max_pixels, settings.max_body_bytes)
+    timeout_s = settings.stream_idle_timeout_s
     index = 0
     while True:
-        try:
-            left = await _image(websocket, settings.body_timeout_s, "left")
-        except TimeoutError:
-            raise _Closing(1000, None, f"no frame for {settings.body_timeout_s:g} s") from None
-        try:
-            right = await _image(websocket, settings.body_timeout_s, "right")
-        except TimeoutError:
-            raise _Closing(
-                POLICY_VIOLATION, "body_timeout", "the right image did not follow the left one in time"
-            ) from None
-        try:
-            await _answer(websocket, runtime, options, frames, limits, left, right)
-        except (UploadError, ApiError, BatchingError) as error:
-            status, code, message = _error(error)
-            await websocket.send_text(json.dumps({"error": {"code": code, "message": message}, "frame": index}))
-            logger.info("stream frame refused", extra={"status": status, "code": code, "frame": index})
-            if code in ("draining", "unavailable"):  # no later frame can be computed here
-                raise _Closing(GOING_AWAY if code == "draining" else TRY_AGAIN_LATER, None, message) from None
+        with ExitStack() as holding:  # the pair's images count against the upload budget until it is answered
+            try:
+                left = await _image(websocket, timeout_s, "left", largest)
+            except TimeoutError:
+                raise _Closing(1000, None, f"no frame for {timeout_s:g} s") from None
+            holding.enter_context(_held(uploads, left))
+            try:
+                right = await _image(websocket, timeout_s, "right", largest)
+            except TimeoutError:
+                raise _Closing(
+                    POLICY_VIOLATION,
+                    "body_timeout",
+                    f"the right image did not follow the left one within {timeout_s:g} s",
+                ) from None
+            holding.enter_context(_held(uploads, right))
+            try:
+                await _answer(websocket, runtime, options, frames, limits, left, right)
+            except (UploadError, ApiError, BatchingError) as error:
+                status, code, message = _error(error)
+                await websocket.send_text(json.dumps({"error": {"code": code, "message": message}, "frame": index}))
+                logger.info("stream frame refused", extra={"status": status, "code": code, "frame": index})
+                if code in ("draining", "unavailable"):  # no later frame can be computed here
+                    raise _Closing(GOING_AWAY if code == "draining" else TRY_AGAIN_LATER, None, message) from None
         index += 1
 
 
-async def _image(websocket: WebSocket, timeout_s: float, side: str) -> bytes:
-    """The next message, which must be an image file (binary)."""
+async def _image(websocket: WebSocket, timeout_s: float, side: str, largest: int) -> bytes:
+    """The next message, which must be an image file (binary) of at most `largest` bytes."""
     async with asyncio.timeout(timeout_s):
         message = await websocket.receive()
     if message["type"] == "websocket.disconnect":
@@ -127,7 +147,25 @@ async def _image(websocket: WebSocket, timeout_s: float, side: str) -> bytes:
     data: bytes | None = message.get("bytes")
     if data is None:
         raise _Closing(UNSUPPORTED_DATA, "invalid_message", f"expected the {side} image as a binary message, got text")
+    if len(data) > largest:
+        raise _Closing(
+            MESSAGE_TOO_BIG,
+            "image_too_large",
+            f"the {side} image file has {len(data)} bytes; one within the model's pixel limit has {largest} at most",
+        )
     return data
+
+
+@contextmanager
+def _held(uploads: ByteBudget, data: bytes) -> Iterator[None]:
+    """Count `data` against the upload budget during the block; where it does not fit, end the
+    stream (1013 `overloaded`)."""
+    if not uploads.take(len(data)):
+        raise _Closing(TRY_AGAIN_LATER, "overloaded", uploads.refusal(len(data)))
+    try:
+        yield
+    finally:
+        uploads.give_back(len(data))
 
 
 async def _answer(

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import base64
 import itertools
+import socket
 import subprocess
 import threading
 import warnings
@@ -20,6 +21,7 @@ import httpx
 import numpy as np
 import pytest
 from fastapi import FastAPI
+from websockets.sync.client import ClientConnection, connect
 
 from model import load_model
 from service.app import create_app
@@ -192,6 +194,34 @@ def run_uvicorn(tmp_path: Path, **env: str) -> Iterator[Server]:
         yield Server(service.base_url, service.process, log_path)
     finally:
         service.stop()
+
+
+def read_answer(sock: socket.socket) -> str:
+    """One HTTP answer read off a raw socket: its head and its Content-Length body."""
+    sock.settimeout(10)
+    data = b""
+    while b"\r\n\r\n" not in data:
+        data += sock.recv(65536)
+    head, _, body = data.partition(b"\r\n\r\n")
+    length = next(
+        int(line.split(b":")[1]) for line in head.split(b"\r\n") if line.lower().startswith(b"content-length")
+    )
+    while len(body) < length:
+        body += sock.recv(65536)
+    return (head + b"\r\n\r\n" + body).decode("latin-1")
+
+
+def ws_url(base_url: str, query: str = "") -> str:
+    """The URL of `/disparity/stream` on the server at `base_url`, with `query`."""
+    return base_url.replace("http://", "ws://") + "/disparity/stream" + (f"?{query}" if query else "")
+
+
+def open_stream(base_url: str, query: str = "", source: str = "127.0.0.1") -> ClientConnection:
+    """A WebSocket on `/disparity/stream` from the loopback address `source` (127.0.0.x: as many
+    clients as a test needs, told apart by address)."""
+    host, port = base_url.removeprefix("http://").split(":")
+    sock = socket.create_connection((host, int(port)), source_address=(source, 0))
+    return connect(ws_url(base_url, query), sock=sock, open_timeout=10)
 
 
 # --- fixtures, imported by the conftest of every folder whose tests need a server -----------------

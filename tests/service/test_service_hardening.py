@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 
 from service.images import ImageError, read_header
-from service_helpers import REPO, encode, metric_total, run_uvicorn, stereo_pair
+from service_helpers import REPO, encode, metric_total, read_answer, run_uvicorn, stereo_pair
 
 
 def tiff_with_repeated_size_tags(first: int, second: int) -> bytes:
@@ -234,21 +234,6 @@ def test_oversized_request_headers_get_a_json_431_and_the_server_stays_up(defaul
     assert response.status_code == 431
     assert response.json()["error"]["code"] == "headers_too_large"
     assert httpx.get(default_server.base_url + "/health/live").status_code == 200
-
-
-def read_answer(sock: socket.socket) -> str:
-    """One HTTP answer read off a raw socket: its head and its Content-Length body."""
-    sock.settimeout(10)
-    data = b""
-    while b"\r\n\r\n" not in data:
-        data += sock.recv(65536)
-    head, _, body = data.partition(b"\r\n\r\n")
-    length = next(
-        int(line.split(b":")[1]) for line in head.split(b"\r\n") if line.lower().startswith(b"content-length")
-    )
-    while len(body) < length:
-        body += sock.recv(65536)
-    return (head + b"\r\n\r\n" + body).decode("latin-1")
 
 
 def live_seconds_while(work: Callable[[], list[httpx.Response]], base_url: str) -> tuple[list[httpx.Response], float]:

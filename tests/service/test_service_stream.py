@@ -14,7 +14,7 @@ from websockets.sync.client import connect
 
 from client import ServiceError, StereoClient
 from model import InferenceOptions
-from service_helpers import assert_same_maps, encode, quiet_load_model, run_uvicorn
+from service_helpers import assert_same_maps, encode, quiet_load_model, run_uvicorn, ws_url
 from stereo_data.synthetic import SceneConfig, SceneGenerator
 
 
@@ -22,10 +22,6 @@ def panned_frames(count: int) -> list[tuple[np.ndarray, np.ndarray]]:
     """Consecutive RGB pairs (64x96) of a static procedural scene seen by a panning camera."""
     generator = SceneGenerator(SceneConfig(height=64, width=96, surfaces=6, min_surfaces=3, photometric=None))
     return [batch.pair() for batch in generator.pan(seed=7, frames=count, step=(3.0, 0.0))]
-
-
-def ws_url(base_url: str, query: str = "") -> str:
-    return base_url.replace("http://", "ws://") + "/disparity/stream" + (f"?{query}" if query else "")
 
 
 def test_a_stream_answers_each_pair_in_order_warm_started_as_the_library_computes_a_sequence(default_server):

@@ -1,0 +1,219 @@
+"""What the server holds at once, each limit against a real uvicorn process on loopback: streams
+(places in all and per client, idle time, image size, uncompressed messages), the bytes of uploads
+(request bodies and stream images under one budget), and the query checks both routes share."""
+
+from __future__ import annotations
+
+import json
+import socket
+import time
+from contextlib import ExitStack
+from typing import Any
+
+import httpx
+import pytest
+from pydantic import ValidationError
+from websockets.exceptions import ConnectionClosed, InvalidStatus
+from websockets.sync.client import ClientConnection
+
+from service.routes.disparity import repeated_option
+from service.settings import Settings
+from service_helpers import (
+    encode,
+    lite_settings,
+    open_stream,
+    pair_files,
+    read_answer,
+    run_uvicorn,
+    serve_asgi,
+    stereo_pair,
+)
+
+
+def closing_words(stream: ClientConnection) -> tuple[dict[str, Any], int | None]:
+    """The error a stream was closed with (its last text message) and its close code."""
+    said = json.loads(stream.recv(timeout=10))
+    with pytest.raises(ConnectionClosed):
+        stream.recv(timeout=10)
+    return said["error"], stream.close_code
+
+
+def assert_open(stream: ClientConnection) -> None:
+    """The stream was given a place: nothing is said to it and it stays open."""
+    with pytest.raises(TimeoutError):
+        stream.recv(timeout=0.5)
+
+
+def live_seconds(base_url: str) -> float:
+    started = time.perf_counter()
+    assert httpx.get(base_url + "/health/live", timeout=5).status_code == 200
+    return time.perf_counter() - started
+
+
+def stalled_upload(base_url: str, declared: int) -> socket.socket:
+    """A connection that declares a body of `declared` bytes, sends a little of it and stalls."""
+    host, port = base_url.removeprefix("http://").split(":")
+    sock = socket.create_connection((host, int(port)))
+    sock.sendall(
+        b"POST /disparity HTTP/1.1\r\nHost: x\r\nContent-Length: %d\r\n"
+        b"Content-Type: multipart/form-data; boundary=b\r\n\r\n" % declared + b"\0" * 1000
+    )
+    return sock
+
+
+@pytest.mark.slow
+def test_idle_streams_fill_only_their_own_places_and_the_probes_keep_answering(tmp_path):
+    limits = {"max_streams": "3", "max_streams_per_client": "2", "stream_idle_timeout_s": "30"}
+    with run_uvicorn(tmp_path, **limits) as server, ExitStack() as streams:
+        first, second = (streams.enter_context(open_stream(server.base_url)) for _ in range(2))
+        third_from_one_client = streams.enter_context(open_stream(server.base_url))
+        other = streams.enter_context(open_stream(server.base_url, source="127.0.0.2"))
+        one_too_many = streams.enter_context(open_stream(server.base_url, source="127.0.0.3"))
+        probes = [live_seconds(server.base_url) for _ in range(5)]
+        ready = httpx.get(server.base_url + "/health/ready", timeout=5)
+        for stream in (first, second, other):
+            assert_open(stream)
+        per_client, per_client_code = closing_words(third_from_one_client)
+        in_all, in_all_code = closing_words(one_too_many)
+        first.close()
+        time.sleep(0.3)
+        with open_stream(server.base_url) as again:  # a place comes back once a stream ends
+            assert_open(again)
+    assert per_client["code"] == "overloaded" and "from 127.0.0.1" in per_client["message"]
+    assert in_all["code"] == "overloaded" and "3 streams are open" in in_all["message"]
+    assert per_client_code == in_all_code == 1013
+    assert ready.status_code == 200 and max(probes) < 1.0, probes
+
+
+@pytest.mark.slow
+def test_an_idle_stream_and_a_half_pair_are_closed_within_the_idle_timeout(tmp_path):
+    left, _ = stereo_pair()
+    with run_uvicorn(tmp_path, stream_idle_timeout_s="0.5") as server:
+        with open_stream(server.base_url) as idle:
+            started = time.monotonic()
+            with pytest.raises(ConnectionClosed):
+                idle.recv(timeout=10)
+            idle_seconds = time.monotonic() - started
+        with open_stream(server.base_url) as half_pair:
+            half_pair.send(encode(left))
+            started = time.monotonic()
+            error, code = closing_words(half_pair)
+            half_pair_seconds = time.monotonic() - started
+    assert idle.close_code == 1000 and 0.4 < idle_seconds < 3
+    assert error["code"] == "body_timeout" and code == 1008 and half_pair_seconds < 3
+
+
+@pytest.mark.slow
+def test_stream_images_are_uncompressed_bounded_by_the_pixel_limit_and_count_against_the_upload_budget(tmp_path):
+    image = b"\0" * 1_100_000  # under the lite limit's largest file (10,000 px x 8 B + 1 MiB); held, unread
+    settings = {"model_max_pixels": "lite=10000", "max_body_bytes": "1500000", "max_upload_bytes": "2500000"}
+    with run_uvicorn(tmp_path, stream_idle_timeout_s="30", **settings) as server, ExitStack() as streams:
+        with open_stream(server.base_url) as too_large:
+            offered_deflate = "permessage-deflate" in too_large.request.headers.get("Sec-WebSocket-Extensions", "")
+            took_deflate = too_large.response.headers.get("Sec-WebSocket-Extensions")
+            too_large.send(b"\0" * 1_200_000)
+            too_large_error, too_large_code = closing_words(too_large)
+        holding = [streams.enter_context(open_stream(server.base_url, source=f"127.0.0.{n}")) for n in (1, 2)]
+        for stream in holding:  # two left images wait for their right ones: 2.2 MB of 2.5 held
+            stream.send(image)
+        time.sleep(0.5)
+        with open_stream(server.base_url, source="127.0.0.3") as third:
+            third.send(image)
+            over_budget, over_budget_code = closing_words(third)
+        host, port = server.base_url.removeprefix("http://").split(":")
+        with socket.create_connection((host, int(port))) as sock:  # a request body shares the budget
+            sock.sendall(b"POST /disparity HTTP/1.1\r\nHost: x\r\nContent-Length: 400000\r\n\r\n")
+            upload = read_answer(sock)
+        holding[0].close()
+        time.sleep(0.3)
+        with open_stream(server.base_url, source="127.0.0.3") as fits_again:
+            fits_again.send(image)
+            assert_open(fits_again)
+    assert offered_deflate and took_deflate is None
+    assert too_large_error["code"] == "image_too_large" and too_large_code == 1009
+    assert over_budget["code"] == "overloaded" and over_budget_code == 1013
+    assert upload.startswith("HTTP/1.1 503") and '"overloaded"' in upload and "retry-after: 1" in upload.lower()
+
+
+@pytest.mark.slow
+def test_a_body_past_the_upload_budget_is_refused_unread_while_the_probes_keep_answering(tmp_path):
+    with run_uvicorn(tmp_path, max_body_bytes="1500000", max_upload_bytes="2500000") as server:
+        stalled = stalled_upload(server.base_url, 1_400_000)
+        try:
+            time.sleep(0.3)
+            host, port = server.base_url.removeprefix("http://").split(":")
+            started = time.perf_counter()
+            with socket.create_connection((host, int(port))) as sock:  # declares its body and sends none of it
+                sock.sendall(
+                    b"POST /disparity HTTP/1.1\r\nHost: x\r\nContent-Length: 1200000\r\n"
+                    b"Content-Type: multipart/form-data; boundary=b\r\n\r\n"
+                )
+                refused = read_answer(sock)
+            refused_seconds = time.perf_counter() - started
+            probe = live_seconds(server.base_url)
+        finally:
+            stalled.close()
+        time.sleep(0.3)
+        served = httpx.post(server.base_url + "/disparity", files=pair_files(*stereo_pair()), timeout=60)
+    assert refused.startswith("HTTP/1.1 503") and '"overloaded"' in refused and "retry-after: 1" in refused.lower()
+    assert refused_seconds < 1.0 and probe < 1.0
+    assert served.status_code == 200  # the budget comes back once the stalled body goes
+
+
+@pytest.mark.anyio
+async def test_a_chunked_body_is_refused_at_the_chunk_that_passes_the_upload_budget():
+    async with serve_asgi(lite_settings(max_body_bytes=100_000, max_upload_bytes=150_000)) as h:
+        budget = h.app.state.uploads
+        assert budget.take(100_000)  # as if another upload held it
+
+        async def chunks() -> Any:  # no Content-Length: counted as it arrives
+            for _ in range(10):
+                yield b"\0" * 10_000
+
+        refused = await h.client.post(
+            "/disparity", content=chunks(), headers={"Content-Type": "multipart/form-data; boundary=b"}
+        )
+        budget.give_back(100_000)
+        assert budget.held == 0  # what the refused body held is given back
+    assert refused.status_code == 503 and refused.json()["error"]["code"] == "overloaded"
+    assert refused.headers["Retry-After"] == "1"
+
+
+def test_a_stream_query_over_the_limit_is_refused_before_the_connection_opens(default_server):
+    query = "scale=1&" * 750  # 6,000 bytes: over the 4 KiB limit, under the handshake's own 8 KiB
+    started = time.perf_counter()
+    with pytest.raises(InvalidStatus) as refused, open_stream(default_server.base_url, query):
+        pass
+    assert refused.value.response.status_code == 414
+    assert json.loads(refused.value.response.body)["error"]["code"] == "query_too_long"
+    assert time.perf_counter() - started < 1.0
+
+
+def test_both_routes_refuse_a_repeated_option_alike_in_linear_time(default_server):
+    with open_stream(default_server.base_url, "model=lite&iters=2&model=lite") as stream:
+        error, code = closing_words(stream)
+    posted = httpx.post(
+        default_server.base_url + "/disparity?model=lite&iters=2&model=lite", files=pair_files(*stereo_pair())
+    )
+    assert code == 1008 and error["message"] == "query.model: given more than once"
+    assert posted.status_code == 422 and posted.json()["error"]["message"] == error["message"]
+    started = time.perf_counter()
+    assert repeated_option([(f"o{i % 50_000}", "1") for i in range(100_000)]) == "query.o0: given more than once"
+    assert time.perf_counter() - started < 0.5
+
+
+@pytest.mark.anyio
+@pytest.mark.parametrize("value", ["3_600_000", "+5000"])
+async def test_a_deadline_header_is_plain_digits_as_numbers_in_the_query_are(value):
+    async with serve_asgi() as h:
+        response = await h.client.post(
+            "/disparity", files=pair_files(*stereo_pair()), headers={"X-Request-Timeout-Ms": value}
+        )
+    assert response.status_code == 422 and response.json()["error"]["code"] == "invalid_request"
+    assert "header.X-Request-Timeout-Ms" in response.json()["error"]["message"]
+    assert h.predictors["lite"].calls == []
+
+
+def test_an_upload_budget_smaller_than_one_body_stops_the_service_from_starting():
+    with pytest.raises(ValidationError, match="max_upload_bytes"):
+        Settings.from_env({"CRESTEREO_MAX_BODY_BYTES": "1000", "CRESTEREO_MAX_UPLOAD_BYTES": "999"})
