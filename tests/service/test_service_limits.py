@@ -197,9 +197,10 @@ def test_both_routes_refuse_a_repeated_option_alike_in_linear_time(default_serve
     )
     assert code == 1008 and error["message"] == "query.model: given more than once"
     assert posted.status_code == 422 and posted.json()["error"]["message"] == error["message"]
+    items = [(f"o{i % 50_000}", "1") for i in range(100_000)]  # counted name by name: 10^10 steps
     started = time.perf_counter()
-    assert repeated_option([(f"o{i % 50_000}", "1") for i in range(100_000)]) == "query.o0: given more than once"
-    assert time.perf_counter() - started < 0.5
+    assert repeated_option(items) == "query.o0: given more than once"
+    assert time.perf_counter() - started < 2.0
 
 
 @pytest.mark.anyio
