@@ -121,6 +121,7 @@ def load_model(
     precision: PrecisionChoice = "auto",
     cuda_graphs: bool = True,
     cache_dir: str | Path | None = None,
+    prepare_iters: Sequence[Iterations] = (),
 ) -> StereoPredictor:
     """Build the ``name`` network (``lite`` | ``full``) and load its weights.
 
@@ -129,7 +130,9 @@ def load_model(
     randomly initialised (seed 0, so every process gets the same one) with a warning.
     ``backend`` and ``precision``: see ``resolve_backend`` and ``resolve_precision``; the
     predictor's ``backend`` and ``precision`` say what was picked. ``cuda_graphs`` and
-    ``cache_dir``: see ``StereoPredictor``.
+    ``cache_dir``: see ``StereoPredictor``. ``prepare_iters``: iteration settings whose fast
+    paths, for cold and warm starts, are made ready in the background at once (``prepare`` with
+    ``wait=False``: OpenVINO reads their graphs from the cache or exports them).
     """
     device = torch.device(device)
     chosen = resolve_backend(backend, device)
@@ -149,26 +152,30 @@ def load_model(
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(0)
             network = CREStereoPP(ModelConfig.preset(name))
-        return StereoPredictor(network, name, None, device, **options)
-
-    payload = read_weights(path)
-    if not is_trained(payload.get("training")):
-        warnings.warn(
-            f"the {name!r} weights at {path} are untrained (no validation on real pairs reaching "
-            f"{USABLE_BAD2:g} % bad-2): their maps are not usable",
-            RuntimeWarning,
-            stacklevel=2,
+        predictor = StereoPredictor(network, name, None, device, **options)
+    else:
+        payload = read_weights(path)
+        if not is_trained(payload.get("training")):
+            warnings.warn(
+                f"the {name!r} weights at {path} are untrained (no validation on real pairs reaching "
+                f"{USABLE_BAD2:g} % bad-2): their maps are not usable",
+                RuntimeWarning,
+                stacklevel=2,
+            )
+        calibration = payload.get("calibration")
+        predictor = StereoPredictor(
+            network_from_weights(payload, name),
+            name,
+            file_sha256(path),
+            device,
+            UncertaintyCalibration.from_dict(calibration) if calibration is not None else None,
+            payload.get("training"),
+            **options,
         )
-    calibration = payload.get("calibration")
-    return StereoPredictor(
-        network_from_weights(payload, name),
-        name,
-        file_sha256(path),
-        device,
-        UncertaintyCalibration.from_dict(calibration) if calibration is not None else None,
-        payload.get("training"),
-        **options,
-    )
+    for iters in prepare_iters:
+        for warm_start in (False, True):
+            predictor.prepare(iters, warm_start=warm_start, wait=False)
+    return predictor
 
 
 def two_pass_possible(height: int, width: int) -> bool:
@@ -271,9 +278,9 @@ class StereoPredictor:
     precision: "fp32", or "bf16" (see ``Precision``; the maps stay float32; bench/gpu_check.py
     and the model card measure how far they move); may be changed at any time.
     backend: "torch", or "openvino" to run every forward through ``openvino`` (an
-    ``OpenVINOForward``, with torch as its fallback while a graph is being exported; its graphs
-    are cached under the weights' hash in ``cache_dir``, by default ``$CRESTEREO_CACHE_DIR`` or
-    ``~/.cache/crestereo-pp``). ``prepare`` makes a graph ready before timing.
+    ``OpenVINOForward``: its graphs are cached under the weights' hash in ``cache_dir``, by
+    default ``$CRESTEREO_CACHE_DIR`` or ``~/.cache/crestereo-pp``; calls whose graph is not in
+    the cache run on torch, and only ``prepare`` exports one).
     graphs: on a CUDA device with ``cuda_graphs``, the CUDA-graph replay (``model.cuda_graphs``)
     that ``predict_batch`` runs its forward through, one graph per padded shape; else None.
     """

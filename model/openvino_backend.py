@@ -9,20 +9,26 @@ cache; OpenVINO's own ``CACHE_DIR`` keeps the compiled blobs, so a restart neith
 compiles again. Precision is OpenVINO's inference precision hint: ``f32``, or ``bf16`` where the
 CPU computes bf16 natively (AVX512-BF16, AMX).
 
-An export takes about a minute of CPU. It never blocks a caller that did not ask to wait: a graph
-that is not ready yet is exported in a child process (watched by a background thread) while its
-calls run on torch in fp32 (logged once); a graph whose export fails runs on torch from then on
-(logged once).
+A graph is exported only when asked for (``prepare``; ``crestereo-pp prepare`` from the shell),
+never by a call: a call whose graph is neither in memory nor in the disk cache runs on torch in
+fp32. An export takes minutes of CPU (README, "Benchmarks"); it runs in a child process (one at a
+time per process, watched by a background thread) that ends with the process that started it,
+and its files reach the cache complete, under their final names, or not at all. A graph whose
+export fails runs on torch from then on (logged once).
 """
 
 from __future__ import annotations
 
+import ctypes
+import io
 import logging
 import os
+import signal
 import subprocess
 import sys
 import tempfile
 import threading
+import time
 import uuid
 import warnings
 from collections import OrderedDict
@@ -30,6 +36,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from importlib.util import find_spec
 from pathlib import Path
+from types import FrameType
 from typing import Any
 
 import numpy as np
@@ -50,6 +57,12 @@ MAX_SIDE = 8192
 """Largest batch and padded side (px) an exported graph accepts."""
 
 BF16_CPU_FLAGS = ("amx_bf16", "avx512_bf16")
+
+PR_SET_PDEATHSIG = 1
+"""Linux's prctl option: the signal a process gets when the thread that started it ends."""
+
+_EXPORT_LOCK = threading.Lock()
+"""One export at a time in a process: each keeps every core busy for minutes."""
 
 
 def openvino_available() -> bool:
@@ -161,7 +174,8 @@ def export_graph(network: nn.Module, kind: GraphKind) -> Any:
 class OpenVINOForward:
     """A ``Forward`` (see ``model.cuda_graphs``) computed by OpenVINO on the CPU.
 
-    network: the eval-mode network to export. fallback: the torch forward for graphs not ready.
+    network: the eval-mode network to export. fallback: the torch forward of calls whose graph is
+    not ready (neither in memory nor in the disk cache; ``prepare`` exports it).
     cache_key: names these weights in the disk cache (their hash); None keeps graphs in memory
     only. cache_dir: the cache's root (``default_cache_dir()``); graphs and blobs go to its
     ``openvino/`` folder. max_shapes: compiled shapes kept in memory (least recently used dropped first).
@@ -187,6 +201,8 @@ class OpenVINOForward:
         self.max_shapes = max_shapes
         directory = (cache_dir or default_cache_dir()) / "openvino"
         self.graph_dir = None if cache_key is None else directory / f"{cache_key}-v{EXPORT_VERSION}"
+        if self.graph_dir is not None and self.graph_dir.is_dir():
+            _remove_abandoned_exports(self.graph_dir)
         self.core = ov.Core()
         compiled_dir = directory / "compiled"
         if cache_key is not None and _writable(compiled_dir):
@@ -197,14 +213,14 @@ class OpenVINOForward:
         self.exports = self.compiles = self.runs = self.fallback_runs = 0
         self._pending: dict[GraphKind, threading.Event] = {}  # set when the export has ended
         self._lock = threading.Lock()
-        self._export_lock = threading.Lock()  # one export at a time
 
     def __call__(self, left: Tensor, right: Tensor, init: Tensor | None, iters: StageCounts, bf16: bool) -> Maps:
         kind = GraphKind((*iters,), init is not None)
-        graph = self._graph_or_prepare(kind)
-        if graph is None:
-            with self._lock:
+        with self._lock:
+            graph = self._cached(kind)
+            if graph is None:
                 self.fallback_runs += 1
+        if graph is None:
             return self.fallback(left, right, init, iters, False)  # the torch reference, in fp32
         compiled = self._compiled(kind, graph, tuple(left.shape), bf16)
         given = (left, right) if init is None else (left, right, init)
@@ -224,35 +240,23 @@ class OpenVINOForward:
             return self._cached(GraphKind((*iters,), warm_start)) is not None
 
     def prepare(self, iters: StageCounts, warm_start: bool = False, *, wait: bool = True) -> bool:
-        """Load or export the graph of this kind (in the background unless `wait`); returns
-        whether it is ready (False after a failed export: that kind runs on torch)."""
+        """Load the graph of this kind from the disk cache, else export it (in the background
+        unless `wait`); returns whether it is ready (False after a failed export: that kind runs
+        on torch)."""
         kind = GraphKind((*iters,), warm_start)
-        if self._graph_or_prepare(kind) is not None:
-            return True
         with self._lock:
+            if self._cached(kind) is not None:
+                return True
+            if kind not in self.failed and kind not in self._pending:
+                self._pending[kind] = threading.Event()
+                # A daemon thread: an export under way never holds up the process's exit (its
+                # child process ends with this process, see _end_with_parent).
+                thread = threading.Thread(target=self._export, args=(kind,), name="openvino-export", daemon=True)
+                thread.start()
             pending = self._pending.get(kind)
         if wait and pending is not None:
             pending.wait()
         return self.ready(iters, warm_start)
-
-    def _graph_or_prepare(self, kind: GraphKind) -> Any | None:
-        """The kind's graph if it is in memory or on disk; else None, with its export under way."""
-        with self._lock:
-            graph = self._cached(kind)
-            if graph is not None or kind in self.failed or kind in self._pending:
-                return graph
-            path = self._path(kind)
-            logger.info(
-                "openvino: exporting the graph for iterations %s (%s start) in the background, once "
-                "(about a minute); these calls run on torch until it is ready",
-                kind.iters,
-                "warm" if kind.warm_start else "cold",
-            )
-            self._pending[kind] = threading.Event()
-            # A daemon thread: an export under way never holds up the process's exit (the graph
-            # reaches the disk cache complete or not at all).
-            threading.Thread(target=self._export, args=(kind, path), name="openvino-export", daemon=True).start()
-            return None
 
     def _path(self, kind: GraphKind) -> Path | None:
         return None if self.graph_dir is None else self.graph_dir / f"{kind.file_stem}.xml"
@@ -265,35 +269,50 @@ class OpenVINOForward:
             if path is None or not path.is_file():
                 return None
             self.graphs[kind] = self.core.read_model(path)
+            logger.info("openvino: the graph for %s is ready, read from the cache", _described(kind))
         return self.graphs[kind]
 
-    def _export(self, kind: GraphKind, path: Path | None) -> None:
-        with self._export_lock:
-            self._export_one(kind, path)
+    def _export(self, kind: GraphKind) -> None:
+        with _EXPORT_LOCK:
+            self._export_one(kind)
         with self._lock:
             self._pending.pop(kind).set()
 
-    def _export_one(self, kind: GraphKind, path: Path | None) -> None:
+    def _export_one(self, kind: GraphKind) -> None:
+        with self._lock:
+            if self._cached(kind) is not None:  # exported meanwhile, by another predictor or process
+                return
+        logger.info("openvino: exporting the graph for %s; its calls run on torch until it is ready", _described(kind))
+        start = time.monotonic()
         try:
-            graph = self._exported(kind, path)
+            graph = self._exported(kind, self._path(kind))
         except Exception:
-            logger.exception("openvino: export failed for iterations %s; they run on torch", kind.iters)
+            logger.exception("openvino: export failed for %s; its calls run on torch", _described(kind))
             with self._lock:
                 self.failed.add(kind)
             return
         with self._lock:
             self.graphs[kind] = graph
             self.exports += 1
+        logger.info(
+            "openvino: the graph for %s is ready, exported in %.0f s; its calls run on OpenVINO from now on",
+            _described(kind),
+            time.monotonic() - start,
+        )
 
     def _exported(self, kind: GraphKind, path: Path | None) -> Any:
         """The kind's graph, exported by a child process straight into the disk cache where it can
         be written (then read from there), else into a temporary folder (kept in memory only)."""
         if path is not None and _writable(path.parent):
-            # unique per export: two predictors of one process may export the same graph at once
+            # unique per export (two processes may export the same graph at once), and named by
+            # this process, so that a later one can tell the files of an abandoned export
             partial = path.with_name(f".{os.getpid()}-{uuid.uuid4().hex[:8]}-{path.name}")
-            _export_in_child(self.network, kind, partial)
-            partial.with_suffix(".bin").replace(path.with_suffix(".bin"))
-            partial.replace(path)  # the .xml last: a graph on disk is complete
+            try:
+                _export_in_child(self.network, kind, partial)
+                partial.with_suffix(".bin").replace(path.with_suffix(".bin"))
+                partial.replace(path)  # the .xml last: a graph on disk is complete
+            finally:
+                _remove_graph(partial)  # nothing left once renamed, or after a failed export
             return self.core.read_model(path)
         if path is not None:
             logger.warning("openvino: %s cannot be written; the graph lives in memory only", path.parent)
@@ -329,31 +348,84 @@ class OpenVINOForward:
             return compiled
 
 
+def _described(kind: GraphKind) -> str:
+    return f"iterations {kind.iters} ({'warm' if kind.warm_start else 'cold'} start)"
+
+
 def _export_in_child(network: nn.Module, kind: GraphKind, graph_file: Path) -> None:
     """`export_graph` in a child process (``python -m model.openvino_backend``), saved as
-    OpenVINO IR at `graph_file` (.xml, with its .bin beside it).
+    OpenVINO IR at `graph_file` (.xml, with its .bin beside it). The network reaches it through
+    its standard input: no file of it is left behind, however this process ends.
 
     Not in a thread of this process: the exporter traces the network under torch's dispatch modes
     (fake tensors, functionalisation), which other threads running the network would meet too."""
-    with tempfile.TemporaryDirectory(prefix="crestereo-export-") as folder:
-        network_file = Path(folder) / "network.pt"
-        torch.save(network, network_file)
-        n16, n8, n4 = kind.iters
-        command = [sys.executable, "-m", "model.openvino_backend", str(network_file), str(n16), str(n8), str(n4)]
-        command += ["warm" if kind.warm_start else "cold", str(graph_file)]
-        done = subprocess.run(command, capture_output=True, text=True, check=False)
+    network_bytes = io.BytesIO()
+    torch.save(network, network_bytes)
+    n16, n8, n4 = kind.iters
+    command = [sys.executable, "-m", "model.openvino_backend", str(os.getpid()), str(n16), str(n8), str(n4)]
+    command += ["warm" if kind.warm_start else "cold", str(graph_file)]
+    done = subprocess.run(command, input=network_bytes.getvalue(), capture_output=True, check=False)
     if done.returncode != 0:
-        raise RuntimeError(f"the export process failed ({done.returncode}): {done.stderr[-2000:]}")
+        error = done.stderr.decode(errors="replace")[-2000:]
+        raise RuntimeError(f"the export process failed ({done.returncode}): {error}")
 
 
 def _export_main(arguments: Sequence[str]) -> None:
-    """The export process: NETWORK_FILE N16 N8 N4 cold|warm GRAPH_XML."""
+    """The export process: PARENT_PID N16 N8 N4 cold|warm GRAPH_XML, the network on stdin."""
     import openvino as ov
 
-    network_file, n16, n8, n4, start, graph_file = arguments
-    network = torch.load(network_file, weights_only=False)  # written by the parent process just now
+    parent, n16, n8, n4, start, graph_file = arguments
+    _end_with_parent(int(parent))
+    network = torch.load(io.BytesIO(sys.stdin.buffer.read()), weights_only=False)  # from the parent, just now
     graph = export_graph(network, GraphKind((int(n16), int(n8), int(n4)), start == "warm"))
-    ov.save_model(graph, graph_file, compress_to_fp16=False)
+    try:
+        ov.save_model(graph, graph_file, compress_to_fp16=False)
+    except BaseException:  # stopped while writing (see _end_with_parent): no partial graph is left
+        _remove_graph(Path(graph_file))
+        raise
+
+
+def _end_with_parent(parent: int) -> None:
+    """Have the kernel send this process SIGTERM when the thread that started it ends (Linux's
+    PR_SET_PDEATHSIG; that thread waits for this process, so it ends first only when its whole
+    process ends, by exit or by signal), and make SIGTERM a SystemExit, which removes the
+    temporary files on its way out. Ends now if the parent has already ended."""
+    signal.signal(signal.SIGTERM, _stop)
+    if sys.platform == "linux":
+        libc = ctypes.CDLL(None, use_errno=True)
+        if libc.prctl(PR_SET_PDEATHSIG, signal.SIGTERM) != 0:
+            raise OSError(ctypes.get_errno(), "prctl(PR_SET_PDEATHSIG) failed")
+    if os.getppid() != parent:
+        raise SystemExit("the process that asked for this export has ended")
+
+
+def _stop(signum: int, frame: FrameType | None) -> None:
+    raise SystemExit(f"stopped by signal {signum}")
+
+
+def _remove_graph(xml: Path) -> None:
+    """Remove the .xml and .bin of a graph, where they exist."""
+    for path in (xml, xml.with_suffix(".bin")):
+        path.unlink(missing_ok=True)
+
+
+def _remove_abandoned_exports(folder: Path) -> None:
+    """Remove the partial files (``.PID-...``) of exports whose process has ended between its
+    child writing them and itself renaming them."""
+    for path in folder.glob(".*-iters*"):
+        pid = path.name[1:].split("-", 1)[0]
+        if pid.isdigit() and not _running(int(pid)):
+            path.unlink(missing_ok=True)
+
+
+def _running(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # it exists, as another user's
+        pass
+    return True
 
 
 def _writable(directory: Path) -> bool:
