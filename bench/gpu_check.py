@@ -62,6 +62,9 @@ if TYPE_CHECKING:
 
 REPO = Path(__file__).resolve().parents[1]
 
+RESUME_DIR = REPO / "training" / "resume"
+"""The stable branch of each model's last GPU run (its stable.pt), committed beside the shipped
+weights so that the next run goes on at the peak lr (warmup-stable-decay)."""
 STAGES = ("environment", "tests", "bench", "service", "probe", "train")
 MAX_FILES = 8
 MAX_FILE_BYTES = 16 * 2**20
@@ -155,7 +158,7 @@ GPU = Plan(
 )
 CPU_SMOKE = Plan(
     device="cpu",
-    minutes=3.0,
+    minutes=5.0,  # what the stages need on a quiet machine is about one minute; a busy one needs room
     tests=("tests/gpu/test_cuda_graphs.py", "tests/gpu/test_cuda_paths.py"),
     models=("lite", "full"),
     sizes=((32, 64),),
@@ -166,7 +169,7 @@ CPU_SMOKE = Plan(
     accuracy_pairs=1,
     service_models=("lite",),
     service_requests=3,
-    stage_seconds={"environment": 30, "tests": 60, "bench": 60, "service": 60, "probe": 30},
+    stage_seconds={"environment": 30, "tests": 90, "bench": 90, "service": 60, "probe": 60},
     reserve_seconds={"environment": 60, "tests": 50, "bench": 40, "service": 30, "probe": 20},
     train=dict(
         crop_height=64,
@@ -281,7 +284,7 @@ def parse_arguments(argv: Sequence[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", type=Path, help="output folder [$GPU_CHECK_OUT, else $OUT]")
     parser.add_argument("--cpu-smoke", action="store_true", help="the same stages on the CPU, tiny sizes")
-    parser.add_argument("--minutes", type=float, help="time budget of all stages [9; smoke: 3]")
+    parser.add_argument("--minutes", type=float, help="time budget of all stages [9; smoke: 5]")
     parser.add_argument(
         "--stages",
         type=stage_list,
@@ -841,10 +844,14 @@ def median_rate(rows: list[dict[str, str]]) -> float:
 
 
 def weights_for(model: str, args: argparse.Namespace) -> Path:
-    """The weights file a stage trains `model` from: --weights for the --model, else the shipped file."""
+    """The weights file a stage trains `model` from: --weights for the --model, else the stable
+    branch of its last GPU run (training/resume/MODEL.pt, where one was kept), else the shipped file."""
     from model.weights import WEIGHTS_DIR
 
-    return args.weights if args.weights is not None and model == args.model else WEIGHTS_DIR / f"{model}.pt"
+    if args.weights is not None and model == args.model:
+        return Path(args.weights)
+    stable = RESUME_DIR / f"{model}.pt"
+    return stable if stable.is_file() else WEIGHTS_DIR / f"{model}.pt"
 
 
 def recipe_of(model: ModelName, plan: Plan, args: argparse.Namespace) -> Any:
@@ -878,10 +885,13 @@ def probe_stage(plan: Plan, deadline: float, args: argparse.Namespace, save: Cal
         rows = probe_rows(
             recipe.batch_size, recipe.lr, plan.throughput_factors, options=model == "lite", compiled=on_cuda
         )
+        last_seconds, last_batch = 0.0, 1  # the wall time of the model's previous row, and its batch
         for row in rows:
             entry: dict[str, Any] = {"model": model, "row": row.name, "setting": row.description}
             entry["overrides"] = row.overrides
-            if deadline - time.monotonic() < plan.throughput_row_seconds + 5:
+            expected = max(plan.throughput_row_seconds, last_seconds * row.overrides["batch_size"] / last_batch)
+            started = time.monotonic()
+            if deadline - started < expected + 5:
                 entry["skipped"] = "no time left"
             else:
                 try:
@@ -899,6 +909,7 @@ def probe_stage(plan: Plan, deadline: float, args: argparse.Namespace, save: Cal
                     torch._dynamo.reset()
                     if on_cuda:
                         torch.cuda.empty_cache()
+                last_seconds, last_batch = time.monotonic() - started, row.overrides["batch_size"]
             print(json.dumps(entry), flush=True)
             data["rows"].append(entry)
             save(StageResult("passed", f"{len(data['rows'])} rows", data=data))  # kept if the stage is killed
@@ -946,10 +957,10 @@ def adopted_row(rows: list[dict[str, Any]], model: str, seconds: float) -> dict[
 def train_stage(plan: Plan, deadline: float, args: argparse.Namespace, save: Callable[..., None]) -> StageResult:
     import torch
 
-    from model.weights import read_weights
+    from model.weights import network_from_weights, read_weights, weights_of, write_weights
     from training.config import TrainConfig
     from training.records import read_csv
-    from training.trainer import train
+    from training.trainer import STABLE_NAME, train, validate
 
     shipped = weights_for(args.model, args)
     saved = read_weights(shipped)
@@ -967,7 +978,7 @@ def train_stage(plan: Plan, deadline: float, args: argparse.Namespace, save: Cal
             recipe = replace(recipe, **adopted["overrides"])
             print(f"adopted the probe's row {adopted['row']}: {adopted['setting']}", flush=True)
 
-    def probe(config: TrainConfig) -> float:
+    def rate_run(config: TrainConfig) -> float:
         """Train plan.probe_steps steps into a scratch folder; the step rate after the first window."""
         folder = Path(tempfile.mkdtemp(prefix="probe-"))
         log_every = max(1, plan.probe_steps // 4)
@@ -987,11 +998,11 @@ def train_stage(plan: Plan, deadline: float, args: argparse.Namespace, save: Cal
 
     start = time.monotonic()
     try:
-        steps_per_second = probe(recipe)
+        steps_per_second = rate_run(recipe)
     except Exception as error:  # a lent GPU is minutes long: retry once in the plainest setting, not never
         print(f"probe failed ({type(error).__name__}: {error}); again in fp32 with plain AdamW", flush=True)
         recipe = replace(recipe, precision="fp32", fused_adamw="off")
-        steps_per_second = probe(recipe)
+        steps_per_second = rate_run(recipe)
     probe_seconds = time.monotonic() - start
     seconds = deadline - time.monotonic() - plan.train_tail_seconds
     size = size_run(steps_per_second, seconds, plan, recipe.ema_decay)
@@ -1012,8 +1023,16 @@ def train_stage(plan: Plan, deadline: float, args: argparse.Namespace, save: Cal
         f"(step {first_step}) for {size.steps} steps, at most {seconds / 60.0:.2f} min: {json.dumps(config.to_dict())}",
         flush=True,
     )
+    start_dev = None
+    if config.val_data is not None:  # the starting point, as the run's validations measure it
+        start_dev = validate(network_from_weights(saved, args.model).to(plan.device), config, torch.device(plan.device))
     result = train(config, **source, progress=False)
     rows = read_csv(args.out / "log.csv")
+    compacted = []
+    for path in (result.checkpoint, args.out / STABLE_NAME):
+        if path.is_file() and path.stat().st_size >= MAX_FILE_BYTES:  # full's training state does not fit
+            write_weights(weights_of(read_weights(path), half=True), path)
+            compacted.append(path.name)
     data: dict[str, Any] = dict(
         model=args.model,
         weights=str(shipped),
@@ -1034,7 +1053,11 @@ def train_stage(plan: Plan, deadline: float, args: argparse.Namespace, save: Cal
         final_train_epe=float(rows[-1]["train_epe"]),
         peak_gib=round(torch.cuda.max_memory_allocated() / 2**30, 1) if plan.device == "cuda" else None,
         checkpoint_mib=round(result.checkpoint.stat().st_size / 2**20, 1),
+        stable_step=read_weights(args.out / STABLE_NAME)["step"] if (args.out / STABLE_NAME).is_file() else None,
+        weights_only_fp16=compacted,
     )
+    if start_dev is not None:
+        data["start_dev"] = {k: round(v, 3) for k, v in start_dev.items() if k in ("epe", "bad1", "bad2")}
     validation = read_csv(args.out / "validation.csv")
     if validation:
         data["dev"] = [
