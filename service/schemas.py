@@ -6,13 +6,13 @@ import re
 from enum import StrEnum
 from typing import Literal
 
-import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, field_validator, model_validator
 
 from model.config import ModelName
 from model.inference import scaled_size
 from model.options import InferenceOptions, TwoPass, parse_iterations
 from stereo_data.pointcloud import MIN_DISPARITY, Calibration
+from stereo_data.rig import MAX_FOCAL_BASELINE
 
 
 class OutputFormat(StrEnum):
@@ -34,7 +34,6 @@ class Frame(StrEnum):
     original = "original"
 
 
-FLOAT32_MAX = float(np.finfo(np.float32).max)
 _DECIMAL = re.compile(r"[+-]?([0-9]+\.?[0-9]*|\.[0-9]+)([eE][+-]?[0-9]+)?")
 
 
@@ -192,9 +191,9 @@ class DisparityOptions(BaseModel):
         if (
             self.focal_px is not None
             and self.baseline_m is not None
-            and (self.focal_px * self.baseline_m > FLOAT32_MAX)
+            and (self.focal_px * self.baseline_m > MAX_FOCAL_BASELINE)
         ):
-            raise ValueError(f"focal_px x baseline_m must be at most {FLOAT32_MAX:.4g} (depth is float32)")
+            raise ValueError(f"focal_px x baseline_m must be at most {MAX_FOCAL_BASELINE:.4g} (depth is float32)")
         return self
 
 

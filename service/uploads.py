@@ -18,12 +18,11 @@ from python_multipart.exceptions import MultipartParseError
 from python_multipart.multipart import MultipartParser, parse_options_header
 
 from service.images import ImageError, ImageHeader, decode_rgb, read_header
+from stereo_data.calibration_files import MAX_CALIBRATION_BYTES
 from stereo_data.rig import RigError, parse_rig
 
 IMAGE_FIELDS = ("left", "right")
 CALIBRATION_FIELD = "calibration"
-MAX_CALIBRATION_BYTES = 256 << 10
-"""Largest calibration part (a calibration file is a few kilobytes)."""
 MAX_PARTS = 16
 """Most parts a form may have before it is refused (it needs two)."""
 MAX_BOUNDARY_PADDING = 64

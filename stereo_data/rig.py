@@ -13,12 +13,16 @@ or 14), and R, T take a point from the left camera's frame into the right camera
 camera to the right of the left one has T[0] < 0); T's unit is the depth's unit (metres here).
 A ROS pair of ``sensor_msgs/CameraInfo`` files carries its rectification already (R and P per
 camera): it is used as given. Disparity is in rectified pixels, positive: left x matches right
-x - d on the same rectified row.
+x - d on the same rectified row. A rig is refused (RigError naming the entry) unless its images
+are 1 to MAX_IMAGE_SIDE px a side, R (ROS: each rectification matrix) is a rotation by at most
+MAX_TURN_DEGREES, and its focal length x baseline is positive and at most MAX_FOCAL_BASELINE, the
+bound of a query's focal_px x baseline_m.
 """
 
 from __future__ import annotations
 
 import json
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, fields
 from pathlib import Path
@@ -26,19 +30,28 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from .calibration_files import RigError, Value, parse_entries
 from .pointcloud import Calibration
 
-__all__ = ["RigError", "StereoRig", "Rectifier", "read_rig", "parse_rig"]
+__all__ = [
+    "MAX_FOCAL_BASELINE",
+    "MAX_IMAGE_SIDE",
+    "MAX_TURN_DEGREES",
+    "RigError",
+    "StereoRig",
+    "Rectifier",
+    "read_rig",
+    "parse_rig",
+]
 
 DISTORTION_LENGTHS = (4, 5, 8, 12, 14)
-
-
-class RigError(ValueError):
-    """A calibration that cannot be used; ``field`` names what is wrong (e.g. ``"T"``)."""
-
-    def __init__(self, field: str, message: str) -> None:
-        super().__init__(f"{field}: {message}")
-        self.field, self.reason = field, message
+MAX_IMAGE_SIDE = 32766
+"""Widest and highest image a rig may be for: OpenCV's remap (rectification) takes sides under 32767 px."""
+MAX_FOCAL_BASELINE = float(np.finfo(np.float32).max)
+"""Largest focal length (px) x baseline (m), a rig's or a query's: depth f B / d is float32."""
+MAX_TURN_DEGREES = 30.0
+"""Largest turn of the right camera against the left (OpenCV's R), or of a camera into its rectified
+frame (ROS's rectification matrix): beyond it the rectified views barely overlap (none at 90)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -92,11 +105,9 @@ class StereoRig:
             return _shaped(key, value.reshape(-1), shapes)
 
         width, height = array("image_size", [(2,)])
-        if not (width >= 1 and height >= 1 and width.is_integer() and height.is_integer()):
-            raise RigError("image_size", f"expected positive whole numbers of pixels, got {width}x{height}")
         distortion = [(n,) for n in DISTORTION_LENGTHS]
         rig = StereoRig(
-            (int(width), int(height)),
+            _pixels(float(width), float(height)),
             array("k1", [(3, 3)]),
             array("d1", distortion),
             array("k2", [(3, 3)]),
@@ -106,14 +117,13 @@ class StereoRig:
             array("p1", [(3, 4)]),
             array("p2", [(3, 4)]),
         )
-        if not (rig.focal_px > 0 and rig.baseline > 0):
-            raise RigError("calibration", "the rectified cameras need a positive focal length and baseline")
-        return rig
+        return _with_depth(rig, "calibration")
 
 
 def read_rig(paths: str | Path | Sequence[str | Path]) -> StereoRig:
     """The rig of one OpenCV calibration file (YAML or JSON as ``cv2.FileStorage`` writes it) or
-    of two ROS ``camera_info`` YAML files (left, then right). RigError where it is unusable."""
+    of two ROS ``camera_info`` YAML files (left, then right), read strictly by
+    `stereo_data.calibration_files` (never by OpenCV's parser). RigError where it is unusable."""
     files = [Path(paths)] if isinstance(paths, str | Path) else [Path(p) for p in paths]
     if len(files) not in (1, 2):
         raise RigError("calibration", f"give one OpenCV file or two ROS camera_info files, got {len(files)}")
@@ -127,8 +137,10 @@ def read_rig(paths: str | Path | Sequence[str | Path]) -> StereoRig:
 def parse_rig(text: str, right_text: str | None = None) -> StereoRig:
     """``read_rig`` on file contents: one OpenCV calibration, or the left and right camera_info."""
     if right_text is None:
-        return _opencv_rig(_storage(text, "calibration"))
-    return _ros_rig(_storage(text, "left camera_info"), _storage(right_text, "right camera_info"))
+        return _opencv_rig(parse_entries(text, "calibration"))
+    return _ros_rig(
+        parse_entries(text, "left camera_info", "left."), parse_entries(right_text, "right camera_info", "right.")
+    )
 
 
 class Rectifier:
@@ -205,30 +217,14 @@ class Rectifier:
         return self.to_original((depth * along).astype(np.float32), np.inf)
 
 
-def _storage(text: str, what: str) -> cv2.FileStorage:
-    try:
-        storage = cv2.FileStorage(text, cv2.FILE_STORAGE_READ | cv2.FILE_STORAGE_MEMORY)
-    except (cv2.error, SystemError):  # OpenCV's parser fails either way on text it cannot read
-        storage = None
-    if storage is None or not storage.isOpened():
-        raise RigError(what, "not a YAML or JSON file that OpenCV can read")
-    return storage
-
-
-def _matrix(storage: cv2.FileStorage, key: str, shapes: Sequence[tuple[int, ...]]) -> np.ndarray:
-    """An OpenCV matrix entry, as float64 of one of `shapes` (flat lengths match any layout)."""
-    node = storage.getNode(key)
-    if node.empty():
-        raise RigError(key, "missing")
-    value = _numbers(node) if node.isSeq() else node.mat()
+def _entry(entries: dict[str, Value], prefix: str, key: str, shapes: Sequence[tuple[int, ...]]) -> np.ndarray:
+    """A matrix or list entry as float64 of one of `shapes` (flat lengths match any layout)."""
+    value = entries.get(key)
     if value is None:
-        raise RigError(key, "expected a matrix or a list of numbers")
-    return _shaped(key, np.asarray(value, np.float64), shapes)
-
-
-def _numbers(sequence: cv2.FileNode) -> np.ndarray:
-    """A YAML/JSON list of numbers as float64."""
-    return np.array([sequence.at(i).real() for i in range(sequence.size())], np.float64)
+        raise RigError(prefix + key, "missing")
+    if not isinstance(value, np.ndarray):
+        raise RigError(prefix + key, f"expected a matrix or a list of numbers, got {str(value)[:32]!r}")
+    return _shaped(prefix + key, value.reshape(-1), shapes)
 
 
 def _shaped(key: str, value: np.ndarray, shapes: Sequence[tuple[int, ...]]) -> np.ndarray:
@@ -242,16 +238,24 @@ def _shaped(key: str, value: np.ndarray, shapes: Sequence[tuple[int, ...]]) -> n
     raise RigError(key, f"expected {wanted} values, got {value.size}")
 
 
-def _image_size(storage: cv2.FileStorage) -> tuple[int, int]:
-    if not storage.getNode("image_size").empty():
-        width, height = _matrix(storage, "image_size", [(2,)])
-    else:
-        nodes = [storage.getNode(key) for key in ("image_width", "image_height")]
-        if any(node.empty() for node in nodes):
-            raise RigError("image_size", "missing: give image_size [width, height], or image_width and image_height")
-        width, height = (node.real() for node in nodes)
-    if not (width >= 1 and height >= 1 and float(width).is_integer() and float(height).is_integer()):
-        raise RigError("image_size", f"expected positive whole numbers of pixels, got {width}x{height}")
+def _image_size(entries: dict[str, Value]) -> tuple[int, int]:
+    if "image_size" in entries:
+        width, height = _entry(entries, "", "image_size", [(2,)]).tolist()
+        return _pixels(width, height)
+    width, height = (entries.get(key) for key in ("image_width", "image_height"))
+    if width is None or height is None:
+        raise RigError("image_size", "missing: give image_size [width, height], or image_width and image_height")
+    if not (isinstance(width, float) and isinstance(height, float)):
+        raise RigError("image_size", f"image_width and image_height are numbers, got {width!r:.32} and {height!r:.32}")
+    return _pixels(width, height)
+
+
+def _pixels(width: float, height: float) -> tuple[int, int]:
+    """An image size in whole pixels, from 1 to MAX_IMAGE_SIDE a side."""
+    if not all(1 <= side <= MAX_IMAGE_SIDE and side.is_integer() for side in (width, height)):
+        raise RigError(
+            "image_size", f"expected whole numbers of pixels from 1 to {MAX_IMAGE_SIDE}, got {width:g}x{height:g}"
+        )
     return int(width), int(height)
 
 
@@ -260,20 +264,52 @@ def _camera(k: np.ndarray, k_name: str) -> None:
         raise RigError(k_name, "not a camera matrix: expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0")
 
 
-def _opencv_rig(storage: cv2.FileStorage) -> StereoRig:
-    size = _image_size(storage)
-    k1, k2 = (_matrix(storage, key, [(3, 3)]) for key in ("K1", "K2"))
-    d1, d2 = (_matrix(storage, key, [(n,) for n in DISTORTION_LENGTHS]) for key in ("D1", "D2"))
+def _rotation(field: str, matrix: np.ndarray, turned: str) -> None:
+    """RigError unless `matrix` is a rotation (orthonormal to 1e-3, determinant +1) by at most
+    MAX_TURN_DEGREES; `turned` says what it turns, for the message."""
+    if not (
+        np.abs(matrix).max() <= 1.001  # first: larger entries would overflow the product
+        and np.allclose(matrix @ matrix.T, np.eye(3), atol=1e-3)
+        and np.linalg.det(matrix) > 0
+    ):
+        raise RigError(field, "not a rotation matrix (orthonormal, determinant 1)")
+    degrees = math.degrees(math.acos(min(1.0, max(-1.0, (float(np.trace(matrix)) - 1) / 2))))
+    if degrees > MAX_TURN_DEGREES:
+        raise RigError(
+            field,
+            f"{turned} by {degrees:.1f} degrees; at most {MAX_TURN_DEGREES:g} (beyond, the rectified views "
+            "barely overlap)",
+        )
+
+
+def _with_depth(rig: StereoRig, field: str) -> StereoRig:
+    """`rig`, once its rectified cameras give depth as a query's focal_px and baseline_m do: both
+    positive, their product at most MAX_FOCAL_BASELINE."""
+    focal, baseline = rig.focal_px, rig.baseline
+    if not (focal > 0 and baseline > 0):
+        raise RigError(
+            field, f"the rectified cameras need a positive focal length and baseline, got {focal:.4g}, {baseline:.4g}"
+        )
+    if focal * baseline > MAX_FOCAL_BASELINE:
+        raise RigError(
+            field,
+            f"focal length x baseline is {focal * baseline:.4g}, more than {MAX_FOCAL_BASELINE:.4g} (depth is float32)",
+        )
+    return rig
+
+
+def _opencv_rig(entries: dict[str, Value]) -> StereoRig:
+    size = _image_size(entries)
+    k1, k2 = (_entry(entries, "", key, [(3, 3)]) for key in ("K1", "K2"))
+    d1, d2 = (_entry(entries, "", key, [(n,) for n in DISTORTION_LENGTHS]) for key in ("D1", "D2"))
     _camera(k1, "K1")
     _camera(k2, "K2")
-    rotation = _matrix(storage, "R", [(3, 3), (3,)])
+    rotation = _entry(entries, "", "R", [(3, 3), (3,)])
     if rotation.shape == (3,):
         rotation = cv2.Rodrigues(rotation)[0]  # a rotation vector
-    if not (np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-3) and np.linalg.det(rotation) > 0):
-        raise RigError("R", "not a rotation matrix (orthonormal, determinant 1)")
-    translation = _matrix(storage, "T", [(3,)])
-    baseline = float(np.linalg.norm(translation))
-    if baseline == 0:
+    _rotation("R", rotation, "the right camera is turned against the left")
+    translation = _entry(entries, "", "T", [(3,)])
+    if not translation.any():
         raise RigError("T", "the baseline is zero: the two cameras are at one place")
     if abs(translation[0]) < 2 * max(abs(translation[1]), abs(translation[2])):
         raise RigError(
@@ -286,33 +322,29 @@ def _opencv_rig(storage: cv2.FileStorage) -> StereoRig:
     r1, r2, p1, p2, *_ = cv2.stereoRectify(
         k1, d1, k2, d2, size, rotation, translation.reshape(3, 1), flags=cv2.CALIB_ZERO_DISPARITY, alpha=0.0
     )
-    if not (np.isfinite(p1).all() and np.isfinite(p2).all() and p1[0, 0] > 0):
+    if not (np.isfinite(p1).all() and np.isfinite(p2).all()):
         raise RigError("calibration", "OpenCV cannot rectify these cameras")
-    return StereoRig(size, k1, d1, k2, d2, r1, r2, p1, p2)
+    return _with_depth(StereoRig(size, k1, d1, k2, d2, r1, r2, p1, p2), "T")
 
 
 RosCamera = tuple[tuple[int, int], np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 """image size, K, D, rectification R, projection P of one ROS camera_info."""
 
 
-def _ros_camera(storage: cv2.FileStorage, side: str) -> RosCamera:
-    def entry(key: str, shapes: Sequence[tuple[int, ...]]) -> np.ndarray:
-        node = storage.getNode(key)
-        data = node.getNode("data") if not node.empty() and node.isMap() else node
-        if node.empty() or data.empty() or not data.isSeq():
-            raise RigError(f"{side}.{key}", "missing (a ROS camera_info entry with data: [...])")
-        return _shaped(f"{side}.{key}", _numbers(data), shapes)
-
-    size = _image_size(storage)
-    k = entry("camera_matrix", [(3, 3)])
-    _camera(k, f"{side}.camera_matrix")
-    d = entry("distortion_coefficients", [(n,) for n in DISTORTION_LENGTHS])
-    r = entry("rectification_matrix", [(3, 3)])
-    p = entry("projection_matrix", [(3, 4)])
+def _ros_camera(entries: dict[str, Value], side: str) -> RosCamera:
+    prefix = f"{side}."
+    size = _image_size(entries)
+    k = _entry(entries, prefix, "camera_matrix", [(3, 3)])
+    _camera(k, f"{prefix}camera_matrix")
+    d = _entry(entries, prefix, "distortion_coefficients", [(n,) for n in DISTORTION_LENGTHS])
+    r = _entry(entries, prefix, "rectification_matrix", [(3, 3)])
+    _rotation(f"{prefix}rectification_matrix", r, "the rectification turns the camera")
+    p = _entry(entries, prefix, "projection_matrix", [(3, 4)])
+    _camera(p[:, :3], f"{prefix}projection_matrix")
     return size, k, d, r, p
 
 
-def _ros_rig(left: cv2.FileStorage, right: cv2.FileStorage) -> StereoRig:
+def _ros_rig(left: dict[str, Value], right: dict[str, Value]) -> StereoRig:
     size, k1, d1, r1, p1 = _ros_camera(left, "left")
     right_size, k2, d2, r2, p2 = _ros_camera(right, "right")
     if right_size != size:
@@ -320,8 +352,4 @@ def _ros_rig(left: cv2.FileStorage, right: cv2.FileStorage) -> StereoRig:
             "image_size",
             f"the left camera_info is for {size[0]}x{size[1]}, the right for {right_size[0]}x{right_size[1]}",
         )
-    if not p2[0, 3] < 0:
-        raise RigError(
-            "right.projection_matrix", "P[0][3] must be -fx * baseline < 0 (the right camera of a rectified pair)"
-        )
-    return StereoRig(size, k1, d1, k2, d2, r1, r2, p1, p2)
+    return _with_depth(StereoRig(size, k1, d1, k2, d2, r1, r2, p1, p2), "right.projection_matrix")

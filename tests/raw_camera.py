@@ -35,6 +35,41 @@ def opencv_file(path: Path, **entries: object) -> Path:
     return path
 
 
+def opencv_yaml_with(path: Path, key: str, text: str) -> str:
+    """The calibration as cv2.FileStorage writes it (YAML), with the entry `key` written as `text`
+    (raw YAML, what follows `key:`) instead."""
+    return opencv_file(path, **{key: None}).read_text() + f"{key}: {text}\n"
+
+
+HANG = "%YAML:1.0\n---\nK1: !!binary |\n  " + "A" * 32 + "\n"
+"""A calibration that held OpenCV's own parser (cv2.FileStorage) for 10-22 s."""
+
+MATRIX = "!!opencv-matrix\n   rows: {rows}\n   cols: {cols}\n   dt: {dt}\n   data: [ {data} ]"
+IDENTITY = "1., 0., 0., 0., 1., 0., 0., 0., 1."
+MALFORMED = {
+    # id: (entry, its YAML text, the field the refusal names)
+    "1e5x1e5 matrix": ("K1", MATRIX.format(rows=100000, cols=100000, dt="d", data=IDENTITY), "K1"),
+    "2^31 rows": ("K1", MATRIX.format(rows=2**31, cols=1, dt="d", data=IDENTITY), "K1"),
+    "-3 rows": ("K1", MATRIX.format(rows=-3, cols=-3, dt="d", data=IDENTITY), "K1"),
+    "data of another length": ("K1", MATRIX.format(rows=3, cols=3, dt="d", data="1., 0., 0., 1."), "K1"),
+    "dt x": ("K1", MATRIX.format(rows=3, cols=3, dt="x", data=IDENTITY), "K1"),
+    "3-channel dt": ("K1", MATRIX.format(rows=3, cols=1, dt='"3d"', data=IDENTITY), "K1"),
+    "nd-matrix": ("K1", f"!!opencv-nd-matrix\n   sizes: [ 3, 3, 1 ]\n   dt: d\n   data: [ {IDENTITY} ]", "K1"),
+    "K1 a map": ("K1", "\n   fx: 400.\n   fy: 400.", "K1"),
+    "K1 a string": ("K1", "camera", "K1"),
+    "K1 a nested map": ("K1", "\n   rows:\n      cols: 3", "K1"),
+    "1e309": ("T", "[ -0.12, 1e309, 0. ]", "T"),
+    "binary tag": ("K1", "!!binary |\n  AAAA", "K1"),
+    "anchor": ("T", "&t [ -0.12, 0., 0. ]", "T"),
+    "alias": ("K2", "*k1", "K2"),
+    "block scalar": ("R", "|\n  1 0 0", "R"),
+    "width 1e300": ("image_width", "1e300", "image_size"),
+    "width 2^31": ("image_width", str(2**31), "image_size"),
+    'width "256"': ("image_width", '"256"', "image_size"),
+}
+"""Calibrations OpenCV would read, or choke on, that are not a calibration: each refused."""
+
+
 def texture(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """Grey levels of the plane at metric coordinates (x, y): smooth, with detail at many scales."""
     value = sum(np.sin(f * x + 1.3 * k) * np.cos(0.8 * f * y + k) / (k + 1) for k, f in enumerate((9, 23, 41, 67)))

@@ -4,9 +4,12 @@ field named) before anything is computed."""
 
 from __future__ import annotations
 
+import asyncio
 import io
+import time
 
 import cv2
+import httpx
 import numpy as np
 import pytest
 from raw_camera import (
@@ -14,14 +17,17 @@ from raw_camera import (
     D2,
     DEV_BASELINE_M,
     DEV_FOCAL_PX,
+    HANG,
     HEIGHT,
     K1,
     K2,
+    MALFORMED,
     PLANE_Z,
     WIDTH,
     R,
     T,
     opencv_file,
+    opencv_yaml_with,
     raw_view,
     ros_camera_info_files,
     share_within,
@@ -30,6 +36,8 @@ from raw_camera import (
 )
 
 from client import ServiceError, StereoClient
+from service.decoding import DecoderLimits, DecoderPool
+from service.uploads import ImageLimits, UploadError
 from service_helpers import decode_array, pair_files, serve_asgi, stereo_pair
 
 MIDDLE = (slice(60, -60), slice(100, -60))  # the plane, away from the borders rectification leaves black
@@ -102,6 +110,8 @@ BAD_CALIBRATIONS = [
     ({"R": np.diag([1.0, 1.0, -1.0])}, "R"),  # a reflection: no rotation
     ({"image_width": 640}, "image_size"),  # not the pair's size
     ({"T": np.array([0.0, -0.12, 0.0])}, "T"),  # one camera above the other: cannot be rectified for rows
+    ({"T": np.array([-1e300, 0.0, 0.0])}, "T"),  # focal_px x baseline_m beyond what a query may give
+    ({"R": cv2.Rodrigues(np.array([0.0, np.pi / 2, 0.0]))[0]}, "R"),  # turned 90 degrees: no pixel would match
 ]
 
 
@@ -159,6 +169,51 @@ async def test_calibration_parts_that_are_not_one_calibration_and_options_that_c
         assert (answers[name].status_code, error["code"]) == (status, code), name
         assert message in error["message"], name
     assert calls == []
+
+
+async def test_a_malformed_calibration_is_answered_422_by_the_decoder_which_is_not_replaced(raw_pair, tmp_path):
+    """Each shape of raw_camera.MALFORMED, and the !!binary scalar that held OpenCV's parser for
+    10-22 s of CPU, is refused as the calibration it is not: no crash, no timeout, no new process."""
+    calibrations = {
+        name: opencv_yaml_with(tmp_path / "c.yaml", key, text) for name, (key, text, _) in MALFORMED.items()
+    }
+    calibrations["binary tag held OpenCV"] = HANG
+    fields = {name: field for name, (_, _, field) in MALFORMED.items()} | {"binary tag held OpenCV": "K1"}
+    pool = DecoderPool(DecoderLimits(workers=1, memory_bytes=768 << 20, cpu_seconds=5.0))
+    await pool.start()
+
+    async def never() -> Exception:
+        await asyncio.sleep(3600)
+        raise AssertionError("unreachable")
+
+    try:
+        for name, calibration in calibrations.items():
+            files = [*raw_pair.items(), ("calibration", ("c.yaml", calibration.encode()))]
+            request = httpx.Request("POST", "http://service/disparity", files=files)
+            with pytest.raises(UploadError) as refused:
+                await pool.read_pair(
+                    request.read(), request.headers["content-type"], ImageLimits("lite", 4_194_304, 32), never
+                )
+            assert (refused.value.status, refused.value.code) == (422, "invalid_calibration"), name
+            assert refused.value.message.startswith(f"calibration `{fields[name]}`: "), (name, refused.value.message)
+        assert pool.restarts == 0
+    finally:
+        await pool.close()
+
+
+def test_a_request_under_a_kilobyte_that_held_a_decoder_for_seconds_gets_422_at_once(default_server):
+    grey = np.full((32, 32), 128, np.uint8)
+    files = [*pair_files(grey, grey).items(), ("calibration", ("c.yaml", HANG.encode()))]
+    with httpx.Client(base_url=default_server.base_url, timeout=60) as http:
+        request = http.build_request("POST", "/disparity", files=files)
+        size = len(request.read())
+        started = time.perf_counter()
+        response = http.send(request)
+        elapsed = time.perf_counter() - started
+    assert size < 1000  # bytes
+    assert response.status_code == 422 and response.json()["error"]["code"] == "invalid_calibration"
+    assert response.json()["error"]["message"].startswith("calibration `K1`: ")
+    assert elapsed < 1.0, elapsed  # OpenCV's parser: 10-22 s
 
 
 def test_the_client_sends_a_calibration_file_over_http(default_server, raw_pair, tmp_path):
