@@ -4,12 +4,13 @@ A scene is a background plane plus many foreground surfaces. Each surface is a p
 ``d(x, y) = a*x + b*y + c`` (slanted or fronto-parallel), optionally curved by a quadratic term
 (``curve_probability``: domes, bowls, saddles, cylinders), cut to a random shape (star polygon:
 triangles to 8-gons and stars, near-ellipses, thin bars; optionally with an elliptic hole) and
-painted with a texture attached to the surface. Both views are rendered exactly: in each view, every
-pixel shows the surface with the largest disparity there (z-buffer). A right pixel ``x_r`` sees
-surface S at the left coordinate ``x_l`` solving ``x_l - d_S(x_l, y) = x_r`` (for a plane
-``x_l = (x_r + b*y + c) / (1 - a)``; for a curved surface the root of a quadratic), and shows S's
-texture at ``(x_l, y)``; so warping the right view by the left ground truth reproduces the left view
-wherever the match is visible.
+painted with a texture attached to the surface (options aimed at hard cases: thin structures, flat
+planes, repetitive patterns, wide disparity ranges, drawn in `stereo_data.hard_cases`). Both views
+are rendered exactly: in each view, every pixel shows the surface with the largest disparity there
+(z-buffer). A right pixel ``x_r`` sees surface S at the left coordinate ``x_l`` solving
+``x_l - d_S(x_l, y) = x_r`` (for a plane ``x_l = (x_r + b*y + c) / (1 - a)``; for a curved surface
+the root of a quadratic), and shows S's texture at ``(x_l, y)``; so warping the right view by the
+left ground truth reproduces the left view wherever the match is visible.
 
 Coordinates: x to the right, y down, in pixels of the output images, pixel centres at integers.
 Disparity is positive, in pixels of the LEFT view: left pixel (x, y) matches right pixel (x - d, y).
@@ -31,6 +32,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from .hard_cases import REPETITIVE_TEXTURES, SurfaceKinds, repetitive_period_texels, scene_max_disparity
 from .photos import load_photos
 
 __all__ = ["PhotometricConfig", "SceneConfig", "Scene", "SyntheticBatch", "SceneGenerator"]
@@ -100,6 +102,21 @@ class SceneConfig:
     the floor's texture is seen in perspective as a road's ground is, and the foreground surfaces
     stand on the floor in front of the wall.
 
+    Hard cases (`stereo_data.hard_cases` has their ranges), each off at 0:
+    - ``thin_probability``: foreground surfaces that are thin structures (wires, stems, pipes, chair
+      legs): bars 1-6 px wide and 0.2-1 frame widths long, often crossing, with their disparity in the
+      nearer half of [the background's highest, max_disparity]: in front of the background by at
+      least (1 - background_max_fraction) / 2 of the largest disparity (in road and room scenes: of
+      the ground under their centre).
+    - ``flat_probability``: surfaces (of those not thin; the background too) that are large weakly
+      textured planes (walls, tables, floors): 0.5-1 frame widths across, texture std 1-4 grey
+      levels, a brightness ramp of a third to all of ``shading`` across them, never curved.
+    - ``repetitive_probability``: surfaces (of those not flat) painted with a periodic pattern
+      (stripes, checkers, grid lines or dots) of period 4-40 px repeating along the rows (turned by
+      at most 10 degrees): ambiguous matches one period apart.
+    - ``wide_range_probability``: scenes whose largest disparity is drawn uniformly in
+      [max_disparity, wide_max_disparity] instead of max_disparity.
+
     Scale/crop augmentation: each scene is magnified by a random ``s = 2**U(log2_scale)``: every
     length (shape sizes, bar widths, texel sizes) is its unscaled length times s. A random crop of a
     procedural scene is distributed like the scene itself, so the crop is implicit: shapes are
@@ -110,6 +127,7 @@ class SceneConfig:
     height: int = 384
     width: int = 512
     max_disparity: float | None = None  # px; None means 192 * width / 512
+    wide_max_disparity: float | None = None  # px, wide-range scenes; None means max(max_disparity, 256 * width / 512)
     surfaces: int = 24  # foreground surface slots per scene
     min_surfaces: int = 8  # a scene uses U{min_surfaces..surfaces} of them
     size: tuple[float, float] = (0.02, 0.35)  # unscaled shape radius / width, log-uniform
@@ -134,16 +152,25 @@ class SceneConfig:
     specular_probability: float = 0.0  # surfaces of lit scenes with highlights, which differ between the views
     road_probability: float = 0.0  # scenes laid out as a road under a sky (see `_Road`); the others as before
     room_probability: float = 0.0  # scenes laid out as a room: a floor meeting a back wall (not road scenes)
+    thin_probability: float = 0.0  # foreground surfaces that are thin structures near the camera
+    flat_probability: float = 0.0  # surfaces that are large weakly textured planes with slow shading
+    repetitive_probability: float = 0.0  # surfaces painted with a pattern repeating every 4-40 px along the rows
+    wide_range_probability: float = 0.0  # scenes whose largest disparity is drawn up to wide_max_disparity
     supersample: int = 1  # anti-aliasing: images are the mean of supersample x supersample samples per pixel
     photometric: PhotometricConfig | None = field(default_factory=PhotometricConfig)
 
     def __post_init__(self) -> None:
         max_disparity = 192.0 * self.width / 512.0 if self.max_disparity is None else self.max_disparity
         object.__setattr__(self, "max_disparity", max_disparity)
+        wide_max = self.wide_max_disparity
+        wide_max = max(max_disparity, 256.0 * self.width / 512.0) if wide_max is None else wide_max
+        object.__setattr__(self, "wide_max_disparity", wide_max)
         if self.height < 1 or self.width < 1:
             raise ValueError(f"image size must be positive, got {self.height}x{self.width}")
         if not 0 < max_disparity:
             raise ValueError(f"max_disparity must be positive, got {max_disparity}")
+        if self.wide_range_probability > 0 and not wide_max >= max_disparity:
+            raise ValueError(f"wide_max_disparity must be at least max_disparity, got {wide_max}")
         if not 0 <= self.max_slope < 1:
             raise ValueError("max_slope must be in [0, 1): the right view needs 1 - a > 0")
         if not 1 <= self.min_surfaces <= self.surfaces:
@@ -158,6 +185,10 @@ class SceneConfig:
             "curve_probability",
             "lighting_probability",
             "specular_probability",
+            "thin_probability",
+            "flat_probability",
+            "repetitive_probability",
+            "wide_range_probability",
         ):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)}")
@@ -272,8 +303,9 @@ class SyntheticBatch:
     """A batch of rendered pairs.
 
     left, right: (B, 3, H, W) float32 RGB in [0, 255].
-    disparity: (B, 1, H, W) float32 px of the LEFT view, in [0, max_disparity]; left pixel (x, y)
-        matches right pixel (x - d, y). Dense and exact, occluded pixels included.
+    disparity: (B, 1, H, W) float32 px of the LEFT view, in [0, max_disparity] (wide-range scenes:
+        [0, wide_max_disparity]); left pixel (x, y) matches right pixel (x - d, y). Dense and exact,
+        occluded pixels included.
     valid: (B, 1, H, W) bool, where the ground truth is defined: everywhere (kept for the contract
         shared with real datasets).
     occluded: (B, 1, H, W) bool, left pixels whose match is hidden by a nearer surface in the right
@@ -302,7 +334,7 @@ class _Draw:
         self.generator = generator
         self.device = device
 
-    def uniform(self, shape: tuple[int, ...], low: float, high: float) -> torch.Tensor:
+    def uniform(self, shape: tuple[int, ...], low: float, high: float | torch.Tensor) -> torch.Tensor:
         sample = torch.rand(shape, generator=self.generator, device=self.device)
         return low + (high - low) * sample
 
@@ -385,9 +417,11 @@ class SceneGenerator:
         cfg = self.config
         shape = (batch_size, cfg.surfaces + 1)  # surface 0 is the background
         scale = 2 ** draw.uniform((batch_size, 1), *cfg.log2_scale)  # magnification s
-        shapes, road = _Shapes.draw(shape, scale, cfg, draw)
-        plane, curvature = _disparity_planes(shapes, road, cfg, draw)
-        look = _Appearance.draw(shapes, road, scale, cfg, draw)
+        kinds = SurfaceKinds.draw(shape, cfg, draw)
+        max_disparity = scene_max_disparity(batch_size, cfg, draw)
+        shapes, road = _Shapes.draw(shape, scale, kinds, max_disparity, cfg, draw)
+        plane, curvature = _disparity_planes(shapes, road, kinds, max_disparity, cfg, draw)
+        look = _Appearance.draw(shapes, road, scale, kinds, cfg, draw)
         lighting = (
             _Lighting.draw(shape, cfg, draw) if cfg.lighting_probability > 0 else _Lighting.none(shape, cfg, draw)
         )
@@ -437,20 +471,28 @@ class _Shapes:
 
     @staticmethod
     def draw(
-        shape: tuple[int, int], scale: torch.Tensor, cfg: SceneConfig, draw: _Draw
+        shape: tuple[int, int],
+        scale: torch.Tensor,
+        kinds: SurfaceKinds,
+        max_disparity: float | torch.Tensor,
+        cfg: SceneConfig,
+        draw: _Draw,
     ) -> tuple[_Shapes, _Road | None]:
-        """The shapes of B scenes of S surfaces magnified by `scale` (B, 1), and the road layout
-        where the config has roads (it reshapes surfaces 0 and 1)."""
+        """The shapes of B scenes of S surfaces magnified by `scale` (B, 1), thin ones bars and flat
+        ones large (`kinds`), and the road layout where the config has roads (it reshapes surfaces 0
+        and 1) under each scene's `max_disparity` px (see `scene_max_disparity`)."""
         height, width = cfg.height, cfg.width
         batch_size = shape[0]
         centre_x = draw.uniform(shape, -0.1 * width, 1.1 * width)
         centre_y = draw.uniform(shape, -0.1 * height, 1.1 * height)
         radius = scale * width * draw.log_uniform(shape, *cfg.size)
+        radius = torch.where(kinds.flat, scale * width * kinds.flat_radius, radius)
         aspect = 2 ** draw.uniform(shape, -1, 1)
-        bar = draw.chance(shape, cfg.bar_probability)
+        bar = (draw.chance(shape, cfg.bar_probability) & ~kinds.flat) | kinds.thin
         bar_length, bar_width = width * draw.uniform(shape, 0.1, 0.5), draw.uniform(shape, 1.0, 4.0)
         radius_x = torch.where(bar, scale * bar_length, radius * aspect.sqrt())
         radius_y = torch.where(bar, scale * bar_width, radius / aspect.sqrt())
+        radius_y = torch.where(kinds.thin, kinds.thin_width / 2, radius_y)  # in output px, not scaled
         angle = draw.uniform(shape, 0, 2 * math.pi)
         round_shape = draw.chance(shape, cfg.round_probability) & ~bar
         sides = torch.where(round_shape, MAX_SIDES, draw.integers(shape, 3, 8))
@@ -476,7 +518,8 @@ class _Shapes:
         centre_x[:, 0], centre_y[:, 0] = (width - 1) / 2, (height - 1) / 2
         extent = torch.maximum(radius_x, radius_y) * radii.amax(-1)  # shape within this of its centre
         extent[:, 0] = math.hypot(width, height) / 2
-        road = _Road.draw(batch_size, cfg, draw) if cfg.road_probability > 0 or cfg.room_probability > 0 else None
+        layout = cfg.road_probability > 0 or cfg.room_probability > 0
+        road = _Road.draw(batch_size, max_disparity, cfg, draw) if layout else None
         if road is not None:  # the ground (surface 1) covers the whole plane, as the background does
             centre_x[:, 1] = torch.where(road.present, centre_x[:, 0], centre_x[:, 1])
             centre_y[:, 1] = torch.where(road.present, centre_y[:, 0], centre_y[:, 1])
@@ -500,14 +543,20 @@ class _Shapes:
 
 
 def _disparity_planes(
-    shapes: _Shapes, road: _Road | None, cfg: SceneConfig, draw: _Draw
+    shapes: _Shapes,
+    road: _Road | None,
+    kinds: SurfaceKinds,
+    scene_max: float | torch.Tensor,
+    cfg: SceneConfig,
+    draw: _Draw,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Each surface's disparity (`Scene.plane`, `Scene.curvature`): the background spans at most
+    """Each surface's disparity (`Scene.plane`, `Scene.curvature`), under each scene's largest
+    disparity max (`scene_max` px: one number, or (B,)): the background spans at most
     [0, background_max_fraction * max], the foreground surfaces at most [the background's lowest
-    disparity, max] (in road scenes, from the ground under them); curved ones keep room for their
-    bulge."""
-    assert cfg.max_disparity is not None  # __post_init__ resolved it
-    max_disparity = float(cfg.max_disparity)
+    disparity, max] (in road scenes, from the ground under them), thin ones the nearer half of
+    [the background's highest disparity (or the ground's), max]; curved ones keep room for their
+    bulge; flat ones stay planes."""
+    max_disparity = scene_max[:, None] if isinstance(scene_max, torch.Tensor) else scene_max  # (B, 1) or a number
     centre_x, centre_y, extent = shapes.centre_x, shapes.centre_y, shapes.extent
     shape = (extent.shape[0], extent.shape[1])
     gradient = torch.where(draw.chance(shape, cfg.slant_probability), draw.uniform(shape, 0, cfg.max_slope), 0.0)
@@ -524,14 +573,20 @@ def _disparity_planes(
     )
     foreground_low = background_disparity - background_gradient * extent[:, :1]
     if road is not None:  # things stand on the ground (nearer than it at their centre row), before the sky or wall
-        on_ground = road.disparity(centre_x[:, 1:], centre_y[:, 1:]).clamp(0, 0.9 * max_disparity)
+        on_ground = road.disparity(centre_x[:, 1:], centre_y[:, 1:]).clamp_min(0).clamp_max(0.9 * max_disparity)
         on_ground = torch.maximum(on_ground, road.planes[:, 0, 2:])
         foreground_low = torch.where(road.present[:, None], on_ground, foreground_low)
-    foreground_high = torch.full_like(foreground_low, max_disparity)
+    foreground_high = torch.zeros_like(foreground_low) + max_disparity
+    if cfg.thin_probability > 0:  # thin structures: the nearer half of [what is behind them, max]
+        behind = background_disparity + background_gradient * extent[:, :1]  # the background's nearest point
+        if road is not None:
+            behind = torch.where(road.present[:, None], foreground_low, behind)  # the ground under them
+        foreground_low = torch.where(kinds.thin[:, 1:], (behind + foreground_high) / 2, foreground_low)
     bulge = torch.zeros_like(gradient[:, 1:])  # px: the curved term's reach within the shape
     if curve is not None:  # room for the bulge: less slope for the plane, a narrower span
         if road is not None:
             curve.present[:, 1] &= ~road.present  # the ground stays a plane
+        curve.present &= ~kinds.flat
         bulge = curve.bulge(extent[:, 1:], foreground_high - foreground_low, cfg.max_slope)
         gradient[:, 1:] = torch.minimum(gradient[:, 1:], cfg.max_slope - 2 * bulge / extent[:, 1:])
     foreground_gradient, foreground_disparity = _fit_plane(
@@ -567,11 +622,17 @@ class _Appearance:
     ramp: torch.Tensor
 
     @staticmethod
-    def draw(shapes: _Shapes, road: _Road | None, scale: torch.Tensor, cfg: SceneConfig, draw: _Draw) -> _Appearance:
+    def draw(
+        shapes: _Shapes, road: _Road | None, scale: torch.Tensor, kinds: SurfaceKinds, cfg: SceneConfig, draw: _Draw
+    ) -> _Appearance:
+        """The look of each surface; flat and repetitive ones (`kinds`) as `SurfaceKinds` says."""
         centre_x, centre_y, extent = shapes.centre_x, shapes.centre_y, shapes.extent
         shape = (extent.shape[0], extent.shape[1])
         texel = scale * draw.log_uniform(shape, *cfg.texel_size)  # output px per texel
+        repetitive_texel = kinds.repetitive_period / repetitive_period_texels(cfg.texture_size)
+        texel = torch.where(kinds.repetitive, repetitive_texel, texel)
         texture_angle = draw.uniform(shape, 0, 2 * math.pi)
+        texture_angle = torch.where(kinds.repetitive, kinds.repetitive_tilt, texture_angle)  # the pattern's u along x
         cos, sin = torch.cos(texture_angle) / texel, torch.sin(texture_angle) / texel
         to_texture = _affine(
             torch.stack([torch.stack([cos, sin], -1), torch.stack([-sin, cos], -1)], -2),
@@ -583,12 +644,14 @@ class _Appearance:
         fade_disparity = torch.zeros(shape, device=draw.device)
         grey = draw.uniform((*shape, 1), 20, 235)
         base = grey + draw.uniform((*shape, 3), -30, 30)
-        contrast = draw.log_uniform(shape, *cfg.contrast)
+        contrast = torch.where(kinds.flat, kinds.flat_contrast, draw.log_uniform(shape, *cfg.contrast))
         ramp_angle = draw.uniform(shape, 0, 2 * math.pi)
         ramp_size = draw.uniform(shape, -cfg.shading, cfg.shading) / (2 * extent)
+        ramp_size = torch.where(kinds.flat, kinds.flat_shading / (2 * extent), ramp_size)
         ramp_x, ramp_y = ramp_size * torch.cos(ramp_angle), ramp_size * torch.sin(ramp_angle)
         ramp = torch.stack([ramp_x, ramp_y, -ramp_x * centre_x - ramp_y * centre_y], dim=-1)
         texture = draw.integers(shape, 0, cfg.texture_count - 1)
+        texture = torch.where(kinds.repetitive, cfg.texture_count + kinds.repetitive_texture, texture)
         if road is not None:
             to_texture[:, 1] = torch.where(road.present[:, None, None], road.to_texture, to_texture[:, 1])
             projective[:, 1] = road.present
@@ -710,9 +773,9 @@ class _Road:
     sky_contrast: torch.Tensor
 
     @staticmethod
-    def draw(batch_size: int, cfg: SceneConfig, draw: _Draw) -> _Road:
-        assert cfg.max_disparity is not None
-        height, width, max_disparity = cfg.height, cfg.width, float(cfg.max_disparity)
+    def draw(batch_size: int, max_disparity: float | torch.Tensor, cfg: SceneConfig, draw: _Draw) -> _Road:
+        """The layouts of B scenes under each one's largest disparity, `max_disparity` px (one number, or (B,))."""
+        height, width = cfg.height, cfg.width
         shape = (batch_size,)
         sky = draw.chance(shape, cfg.road_probability)
         horizon = height * draw.uniform(shape, -0.5, 0.6)  # may lie above the frame
@@ -1058,7 +1121,9 @@ def _texture_bank(batch_size: int, cfg: SceneConfig, draw: _Draw, photos: list[t
 
     Slots [0, noise) are 1/f^alpha noise, then dead leaves, then patterns, then photo crops;
     leaves and patterns carry some of their slot's noise on top, so that no texture is perfectly
-    clean. Photo crops wrap with a seam, which both views show alike.
+    clean. Photo crops wrap with a seam, which both views show alike. With repetitive_probability,
+    REPETITIVE_TEXTURES clean patterns follow (after texture_count slots), repeating every
+    `repetitive_period_texels` texels along u.
     """
     size, count = cfg.texture_size, cfg.texture_count
     procedural = count - cfg.photo_textures
@@ -1075,6 +1140,10 @@ def _texture_bank(batch_size: int, cfg: SceneConfig, draw: _Draw, photos: list[t
     parts = [noise[:, : cfg.noise_textures], textured]
     if cfg.photo_textures:
         parts.append(_standardise(_photo_crops((batch_size, cfg.photo_textures), size, draw, photos)))
+    if cfg.repetitive_probability > 0:
+        period = repetitive_period_texels(size)
+        repetitive = _patterns((batch_size, REPETITIVE_TEXTURES), size, draw, period=(period, period), turn=0.0)
+        parts.append(_standardise(repetitive))
     return _standardise(torch.cat(parts, dim=1))
 
 
@@ -1145,14 +1214,21 @@ def _dead_leaves(shape: tuple[int, int], size: int, draw: _Draw, discs: int = 64
     return torch.gather(colors, 2, top.flatten(2)[..., None].expand(-1, -1, -1, 3)).view(*shape, size, size, 3)
 
 
-def _patterns(shape: tuple[int, int], size: int, draw: _Draw) -> torch.Tensor:
+def _patterns(
+    shape: tuple[int, int],
+    size: int,
+    draw: _Draw,
+    period: tuple[float, float] = (3.0, 40.0),
+    turn: float = math.pi,
+) -> torch.Tensor:
     """(B, K, T, T, 3) two-colour periodic patterns: stripes, checkers, grid lines or dots, with
-    periods of 3-40 texels at any orientation (integer wave vectors keep them periodic in T)."""
+    periods log-uniform in `period` texels, turned from repeating along u by up to `turn` radians
+    (integer wave vectors keep them periodic in T)."""
     u, v = _texel_grid(size, draw.device)
-    period = draw.log_uniform(shape, 3.0, 40.0)
-    orientation = draw.uniform(shape, 0, math.pi)
-    kx = torch.round(size / period * torch.cos(orientation))
-    ky = torch.round(size / period * torch.sin(orientation))
+    period_texels = draw.log_uniform(shape, *period)
+    orientation = draw.uniform(shape, 0, turn)
+    kx = torch.round(size / period_texels * torch.cos(orientation))
+    ky = torch.round(size / period_texels * torch.sin(orientation))
     kx = torch.where((kx == 0) & (ky == 0), 1.0, kx)
     kx, ky = kx[..., None, None], ky[..., None, None]
     phase_a, phase_b = (draw.uniform((*shape, 1, 1), 0, 2 * math.pi) for _ in range(2))

@@ -3,12 +3,14 @@
 import math
 from dataclasses import replace
 
+import cv2
 import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
 
 from stereo_data import synthetic
+from stereo_data.hard_cases import repetitive_period_texels
 from stereo_data.photos import PHOTOS, load_photos
 from stereo_data.synthetic import MAX_SIDES, PhotometricConfig, Scene, SceneConfig, SceneGenerator
 
@@ -67,6 +69,11 @@ def test_default_max_disparity_is_192_at_512_px_and_scales_with_width() -> None:
         {"curve_probability": -0.1},
         {"lighting_probability": 2.0},
         {"specular_probability": -1.0},
+        {"thin_probability": 1.5},
+        {"flat_probability": -0.1},
+        {"repetitive_probability": 2.0},
+        {"wide_range_probability": -1.0},
+        {"max_disparity": 100.0, "wide_max_disparity": 90.0, "wide_range_probability": 0.5},  # narrower
     ],
 )
 def test_config_rejects_settings_the_generator_cannot_honour(bad: dict) -> None:
@@ -80,9 +87,10 @@ def test_supersampling_allows_texels_down_to_one_sample() -> None:
         SceneConfig(texel_size=(0.4, 2.0), supersample=2)
 
 
-def test_anti_aliased_scenes_keep_the_point_ground_truth_and_blend_only_edge_pixels() -> None:
-    point = SceneGenerator(replace(CLEAN, height=96, width=192))
-    smooth = SceneGenerator(replace(CLEAN, height=96, width=192, supersample=2))
+@pytest.mark.parametrize("layout", [{}, {"thin_probability": 0.5}])
+def test_anti_aliased_scenes_keep_the_point_ground_truth_and_blend_only_edge_pixels(layout: dict) -> None:
+    point = SceneGenerator(replace(CLEAN, height=96, width=192, **layout))
+    smooth = SceneGenerator(replace(CLEAN, height=96, width=192, supersample=2, **layout))
     scene = point.sample_scene(batch_size=2, seed=4)
     scene.contrast.zero_()  # every surface one flat colour: a pixel shows one surface or blends several
     scene.ramp.zero_()
@@ -136,6 +144,10 @@ def test_different_seeds_give_different_scenes() -> None:
         {"room_probability": 1.0},
         {"curve_probability": 1.0},
         {"lighting_probability": 1.0, "curve_probability": 0.5},
+        {"thin_probability": 0.5},
+        {"wide_range_probability": 1.0},
+        {"flat_probability": 0.3},
+        {"repetitive_probability": 0.5},
     ],
 )
 def test_right_view_warped_by_ground_truth_reproduces_left_where_not_occluded(layout: dict) -> None:
@@ -151,8 +163,9 @@ def test_right_view_warped_by_ground_truth_reproduces_left_where_not_occluded(la
     assert zero_disparity_error.mean() > 15 * error.mean()
 
 
-def test_warp_is_exact_when_every_surface_is_at_an_integer_fronto_parallel_disparity() -> None:
-    generator = SceneGenerator(replace(CLEAN, height=96, width=192))
+@pytest.mark.parametrize("layout", [{}, {"thin_probability": 0.5}, {"wide_range_probability": 1.0}])
+def test_warp_is_exact_when_every_surface_is_at_an_integer_fronto_parallel_disparity(layout: dict) -> None:
+    generator = SceneGenerator(replace(CLEAN, height=96, width=192, **layout))
     scene = generator.sample_scene(batch_size=4, seed=3)
     scene.plane[..., :2] = 0.0
     scene.plane[..., 2] = scene.plane[..., 2].round()
@@ -359,20 +372,22 @@ def test_images_hold_both_flat_and_strongly_textured_regions() -> None:
     assert (gradient > 15).float().mean() > 0.05
 
 
-def one_square_scene() -> Scene:
-    """A flat background at disparity 10 (grey 50) and, in front, a square at disparity 30 (grey 200)
-    covering columns 100..159 and rows 20..59 of a 80 x 200 left view."""
+def one_square_scene(background: float = 10.0, square: float = 30.0, first_column: int = 100) -> Scene:
+    """A flat background at disparity `background` (grey 50) and, in front, a square at disparity
+    `square` (grey 200) covering columns first_column..first_column + 59 and rows 20..59 of an 80-row
+    left view (by default columns 100..159 of an 80 x 200 view)."""
 
     def pair(background: list[float], square: list[float]) -> torch.Tensor:
         return torch.tensor([[background, square]], dtype=torch.float32)
 
     no_texture = pair([0.0] * 6, [0.0] * 6).view(1, 2, 2, 3)
+    centre = first_column + 29.5
     return Scene(
-        plane=pair([0, 0, 10], [0, 0, 30]),
+        plane=pair([0, 0, background], [0, 0, square]),
         curvature=torch.zeros(1, 2, 3),
         apex=torch.zeros(1, 2, 2),
-        # Background: everywhere. Square: u = (x - 129.5) / 30, v = (y - 39.5) / 20.
-        to_shape=torch.tensor([[[[0.0, 0, 0], [0, 0, 0]], [[1 / 30, 0, -129.5 / 30], [0, 1 / 20, -39.5 / 20]]]]),
+        # Background: everywhere. Square: u = (x - centre) / 30, v = (y - 39.5) / 20.
+        to_shape=torch.tensor([[[[0.0, 0, 0], [0, 0, 0]], [[1 / 30, 0, -centre / 30], [0, 1 / 20, -39.5 / 20]]]]),
         sides=torch.tensor([[4, 4]]),
         phase=torch.full((1, 2), math.pi / 4),
         radii=torch.full((1, 2, MAX_SIDES), math.sqrt(2)),  # corners at (+-1, +-1) in the shape frame
@@ -410,6 +425,21 @@ def test_occluded_pixels_are_exactly_those_whose_match_is_hidden_or_out_of_frame
     # match x - 10 < 0, out of the right frame.
     hidden = square_rows & (columns >= 80) & (columns <= 99)
     assert torch.equal(batch.occluded[0, 0], hidden | (columns <= 9))
+
+
+def test_ground_truth_and_occlusion_stay_exact_at_a_disparity_of_240_px_in_a_512_px_frame() -> None:
+    scene = one_square_scene(background=12.0, square=240.0, first_column=400)
+    batch = SceneGenerator(SceneConfig(height=80, width=512)).render(scene)
+    rows, columns = torch.arange(80).view(-1, 1), torch.arange(512).view(1, -1)
+    square_rows = (rows >= 20) & (rows <= 59)
+    in_square = square_rows & (columns >= 400) & (columns <= 459)
+    assert torch.equal(batch.disparity[0, 0], torch.where(in_square, 240.0, 12.0))
+    # The right view shows the square 240 px to the left, over columns 160..219, ...
+    in_right_square = square_rows & (columns >= 160) & (columns <= 219)
+    assert torch.equal(batch.right[0, 0], torch.where(in_right_square, 200.0, 50.0))
+    # ... which hides the matches of background pixels 172..231; columns 0..11 match out of the frame.
+    hidden = square_rows & (columns >= 172) & (columns <= 231)
+    assert torch.equal(batch.occluded[0, 0], hidden | (columns <= 11))
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
@@ -542,7 +572,13 @@ def test_a_pan_is_one_scene_rendered_frame_by_frame_and_its_pairs_are_8_bit_imag
 
 
 @pytest.mark.parametrize(
-    "layout", [dict(curve_probability=0.5), dict(road_probability=1.0), dict(room_probability=1.0)]
+    "layout",
+    [
+        dict(curve_probability=0.5),
+        dict(road_probability=1.0),
+        dict(room_probability=1.0),
+        dict(thin_probability=0.5, wide_range_probability=1.0, wide_max_disparity=100.0),  # up to 100 of 128 px
+    ],
 )
 def test_the_z_buffer_evaluates_each_surface_only_inside_a_box_that_holds_all_its_points(layout: dict) -> None:
     """Each surface is evaluated only within its box in the view (the renderer's culling): the
@@ -573,3 +609,187 @@ def test_the_z_buffer_evaluates_each_surface_only_inside_a_box_that_holds_all_it
         assert torch.equal(index, everywhere.indices)
         # the right view's root, computed on other tensor shapes, may round differently (1e-6 px)
         torch.testing.assert_close(nearest, everywhere.values, rtol=0, atol=0 if view == "left" else 1e-4)
+
+
+# Hard cases (stereo_data.hard_cases): off by default, leaving the recipe's batches as they were.
+
+RECIPE_SUMS = {
+    # Sums of (left, right, disparity, occluded) of the batch of 2 of seed 0, recorded before the
+    # hard-case options existed (commit 24d8ab0). A deliberate change of the recipe updates them.
+    "default": (8739779.124498844, 8885206.14743948, 296983.23085546494, 4416.0),
+    "layouts": (4822410.837818973, 3971062.060953174, 344325.7913751602, 5461.0),
+}
+
+
+@pytest.mark.parametrize(
+    ("name", "config"),
+    [
+        ("default", SMALL),
+        (
+            "layouts",
+            replace(
+                SMALL,
+                road_probability=0.5,
+                room_probability=0.5,
+                curve_probability=0.5,
+                lighting_probability=0.5,
+                specular_probability=0.5,
+                supersample=2,
+            ),
+        ),
+    ],
+)
+def test_hard_case_options_at_their_defaults_leave_every_batch_as_it_was(name: str, config: SceneConfig) -> None:
+    assert (config.thin_probability, config.flat_probability, config.repetitive_probability) == (0, 0, 0)
+    assert config.wide_range_probability == 0
+    batch = SceneGenerator(config).generate(batch_size=2, seed=0)
+    sums = [float(getattr(batch, view).double().sum()) for view in ("left", "right", "disparity", "occluded")]
+    # Any extra random draw would change whole scenes (sums by percents); allow only float rounding.
+    assert sums == pytest.approx(RECIPE_SUMS[name], rel=1e-4), name
+
+
+def test_wide_max_disparity_defaults_to_256_at_512_px_and_never_below_max_disparity() -> None:
+    assert SceneConfig(width=512).wide_max_disparity == 256
+    assert SceneConfig(width=1024).wide_max_disparity == 512
+    assert SceneConfig(width=512, max_disparity=300).wide_max_disparity == 300
+
+
+def pixel_grid(config: SceneConfig) -> tuple[torch.Tensor, torch.Tensor]:
+    """The left view's pixel centres: x (1, 1, 1, W) and y (1, 1, H, 1), px."""
+    x = torch.arange(config.width, dtype=torch.float32).view(1, 1, 1, -1)
+    return x, torch.arange(config.height, dtype=torch.float32).view(1, 1, -1, 1)
+
+
+def narrow_rise(disparity: torch.Tensor, reach: int) -> torch.Tensor:
+    """(B, 1, H, W) px: how far each pixel's disparity stands above both of its neighbours `reach` px
+    away along x or along y (the larger; 0 within `reach` of the border): the disparity jump across
+    a structure narrower than about `reach` px."""
+    rise = torch.zeros_like(disparity)
+    for dim in (-1, -2):
+        size = disparity.shape[dim] - 2 * reach
+        before, centre, after = (disparity.narrow(dim, start, size) for start in (0, reach, 2 * reach))
+        inner = rise.narrow(dim, reach, size)
+        inner.copy_(torch.maximum(inner, centre - torch.maximum(before, after)))
+    return rise
+
+
+THIN = replace(CLEAN, height=96, width=192, thin_probability=1.0)
+
+
+def test_thin_structures_are_bars_1_to_6_px_wide_far_in_front_of_the_background() -> None:
+    generator = SceneGenerator(THIN)
+    scene = generator.sample_scene(batch_size=4, seed=5)
+    foreground = scene.present[:, 1:]
+    half_axes = 1 / scene.to_shape[:, 1:, :, :2].norm(dim=-1)  # (B, S, 2) px
+    width, length = 2 * half_axes.amin(-1)[foreground], 2 * half_axes.amax(-1)[foreground]
+    assert width.min() >= 1 - 1e-4 and width.max() <= 6 + 1e-4 and (length > 5 * width).all()
+
+    batch = generator.render(scene)
+    x, y = pixel_grid(THIN)
+    _, surface, _ = synthetic._nearest_surface(scene, x, y, "left")
+    thin = surface > 0
+    a, b, c = (part[:, None, None, None] for part in scene.plane[:, 0].unbind(-1))
+    above_background = (batch.disparity - (a * x + b * y + c))[thin]
+    assert THIN.max_disparity is not None
+    quarter = THIN.max_disparity / 4  # (1 - background_max_fraction) / 2 of the largest disparity
+    assert thin.float().mean() > 0.02 and above_background.min() >= quarter - 1e-3
+    # In the disparity map: regions a few px across that stand far above both of their sides.
+    assert (narrow_rise(batch.disparity, 8)[thin] > quarter).float().mean() > 0.5
+
+
+def test_thin_structures_are_never_broken_into_dashes_in_either_view() -> None:
+    """Each bar alone in front of the background: its pixels form one 8-connected piece in each
+    view (at least a pixel wide, a bar covers a pixel centre in every row or column it crosses)."""
+    generator = SceneGenerator(THIN)
+    scene = generator.sample_scene(batch_size=8, seed=6)
+    scene.present[:, 2:] = False
+    x, y = pixel_grid(THIN)
+    for view in ("left", "right"):
+        _, surface, _ = synthetic._nearest_surface(scene, x, y, view)
+        for n in range(8):
+            bar = (surface[n, 0] == 1).to(torch.uint8).numpy()
+            if bar.any():
+                pieces, _ = cv2.connectedComponents(bar, connectivity=8)
+                assert pieces == 2, (view, n)  # the background label and one piece
+
+
+def test_wide_range_scenes_reach_past_192_px_at_384_x_512_and_stay_within_the_wide_maximum() -> None:
+    config = SceneConfig(height=384, width=512, surfaces=12, texture_size=64, photometric=None)
+    config = replace(config, wide_range_probability=1.0)
+    assert config.max_disparity == 192 and config.wide_max_disparity == 256
+    disparity = SceneGenerator(config).generate(batch_size=4, seed=0).disparity
+    assert disparity.min() >= 0 and disparity.max() <= 256
+    assert disparity.max() > 192  # about 3 in 4 scenes reach past 192 px
+
+
+FLAT = replace(CLEAN, height=96, width=192, flat_probability=1.0)
+
+
+def texture_and_shading(generator: SceneGenerator, scene: Scene) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The left view's grey levels split into texture (grey minus its 7 x 7 mean) and shading (that
+    mean), each (B, 1, H, W), and where a 7 x 7 window lies on one surface (B, 1, H, W) bool, with
+    the surface index there (outside: -1)."""
+    grey = generator.render(scene).left.mean(1, keepdim=True)
+    shading = F.avg_pool2d(grey, 7, 1, 3, count_include_pad=False)
+    _, surface, _ = synthetic._nearest_surface(scene, *pixel_grid(generator.config), "left")
+    index = surface.float()
+    one_surface = F.max_pool2d(index, 7, 1, 3) == -F.max_pool2d(-index, 7, 1, 3)
+    return grey - shading, shading, torch.where(one_surface, surface, -1)
+
+
+def test_flat_surfaces_are_large_weakly_textured_planes_with_slow_shading() -> None:
+    generator = SceneGenerator(FLAT)
+    scene = generator.sample_scene(batch_size=4, seed=7)
+    assert scene.contrast[scene.present].max() <= 4.0 and (scene.curvature == 0).all()
+    half_axes = 1 / scene.to_shape[:, 1:, :, :2].norm(dim=-1)  # (B, S, 2) px
+    radius = half_axes.prod(-1).sqrt()[scene.present[:, 1:]]  # geometric mean of the half axes
+    assert radius.min() >= 0.25 * FLAT.width * 2 ** FLAT.log2_scale[0] - 1e-3
+
+    texture, shading, surface = texture_and_shading(generator, scene)
+    plain_scene = SceneGenerator(replace(FLAT, flat_probability=0.0)).sample_scene(batch_size=4, seed=7)
+    plain_texture, _, plain_surface = texture_and_shading(generator, plain_scene)
+    texture_std = texture[surface >= 0].std()
+    assert texture_std < 2  # grey levels
+    assert plain_texture[plain_surface >= 0].std() > 2 * texture_std
+    for n in range(4):  # the brightness drifts across the largest surface in view, far more than the texture
+        largest = surface[n][surface[n] >= 0].mode().values
+        brightness = shading[n][surface[n] == largest]
+        assert brightness.quantile(0.95) - brightness.quantile(0.05) > 3 * texture_std, n
+
+
+def secondary_peak(image: torch.Tensor, lags: int = 64) -> tuple[torch.Tensor, torch.Tensor]:
+    """The autocorrelation along x of images (B, 3, H, W), normalised and averaged over rows: its
+    highest value past the central peak (after its first local minimum) and that value's lag in
+    px, each (B,)."""
+    grey = image.mean(1)
+    grey = grey - grey.mean(-1, keepdim=True)
+    width = grey.shape[-1]
+    correlation = torch.stack([(grey[..., : width - k] * grey[..., k:]).mean(-1) for k in range(lags)], -1).mean(1)
+    correlation = correlation / correlation[:, :1]
+    values, where = [], []
+    for row in correlation:
+        rising = torch.nonzero(row[1:] > row[:-1]).flatten()
+        first_minimum = int(rising[0]) if len(rising) else lags - 1
+        lag = first_minimum + int(row[first_minimum:].argmax())
+        values.append(row[lag])
+        where.append(lag)
+    return torch.stack(values), torch.tensor(where)
+
+
+REPETITIVE = replace(CLEAN, height=96, width=192, repetitive_probability=1.0)
+
+
+def test_repetitive_surfaces_repeat_every_4_to_40_px_along_the_rows() -> None:
+    generator = SceneGenerator(REPETITIVE)
+    scene = generator.sample_scene(batch_size=6, seed=9)
+    assert (scene.texture[scene.present] >= REPETITIVE.texture_count).all()  # the repetitive slots
+    period = repetitive_period_texels(REPETITIVE.texture_size) / scene.to_texture[..., 0, :2].norm(dim=-1)  # px
+    assert period.min() >= 4 - 1e-3 and period.max() <= 40 + 1e-3
+
+    scene.present[:, 1:] = False  # the background alone fills the frame
+    peak, lag = secondary_peak(generator.render(scene).left)
+    assert (peak > 0.6).all()  # a shifted row matches itself again one period on: ambiguous matches
+    assert ((lag >= 4) & (lag <= 41)).all()  # the period along the row, 40 px turned by up to 10 degrees
+    plain = SceneGenerator(replace(REPETITIVE, repetitive_probability=0.0)).sample_scene(batch_size=6, seed=9)
+    plain.present[:, 1:] = False
+    assert secondary_peak(generator.render(plain).left)[0].median() < 0.3
