@@ -109,6 +109,30 @@ class TrainConfig:
         0.0,
         "procedural scenes: fraction laid out as a room (a floor meeting a back wall, things standing on the floor)",
     )
+    thin_probability: float = _knob(
+        0.0,
+        "procedural scenes: fraction of the foreground surfaces that are thin structures (wires, stems, pipes, "
+        "chair legs: bars 1-6 px wide, often crossing) well in front of the background",
+    )
+    flat_probability: float = _knob(
+        0.0,
+        "procedural scenes: fraction of the surfaces that are large, weakly textured planes whose brightness "
+        "changes slowly across them (walls, tables, floors)",
+    )
+    repetitive_probability: float = _knob(
+        0.0,
+        "procedural scenes: fraction of the surfaces painted with a pattern that repeats every 4-40 px along the "
+        "rows (stripes, checkers, grids, dots: matches one period apart look alike)",
+    )
+    wide_range_probability: float = _knob(
+        0.0,
+        "procedural scenes: fraction whose largest disparity is drawn between max_disparity and wide_max_disparity "
+        "instead of max_disparity (wider disparity ranges)",
+    )
+    wide_max_disparity: float | None = _knob(
+        None,
+        "largest disparity (px) of the wide-range procedural scenes [256 * crop_width / 512, at least max_disparity]",
+    )
     real_scale_range: tuple[float, float] = _knob(
         (0.8, 1.25), "random rescale range of real pairs before cropping (raised where a pair is smaller than the crop)"
     )
@@ -212,6 +236,11 @@ class TrainConfig:
             photometric=PhotometricConfig(vignetting=self.vignetting, jpeg_probability=self.jpeg_probability),
             lighting_probability=self.lighting_probability,
             specular_probability=self.specular_probability,
+            thin_probability=self.thin_probability,
+            flat_probability=self.flat_probability,
+            repetitive_probability=self.repetitive_probability,
+            wide_range_probability=self.wide_range_probability,
+            wide_max_disparity=self.wide_max_disparity,
         )
 
     @property

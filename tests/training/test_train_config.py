@@ -65,6 +65,10 @@ def test_a_source_weight_must_be_positive_and_numeric():
         dict(two_pass_fraction=1.5),
         dict(two_pass_fraction=-0.1),
         dict(two_pass_fraction=0.5, crop_height=96, crop_width=128),  # half of 96 is not a multiple of 32
+        dict(thin_probability=1.5),
+        dict(flat_probability=-0.1),
+        dict(repetitive_probability=2.0),
+        dict(wide_range_probability=0.5, wide_max_disparity=100.0),  # below the 192 px of 384x512 scenes
     ],
 )
 def test_invalid_configs_are_rejected(bad):
@@ -77,6 +81,23 @@ def test_scene_settings_of_the_config_reach_the_procedural_generator():
     scenes = config.scene_config
     assert (scenes.height, scenes.width, scenes.texel_size, scenes.photo_textures) == (64, 128, (1.15, 2.5), 2)
     assert config.scene_max_disparity == scenes.max_disparity == 48.0  # 192 * 128 / 512
+
+
+def test_hard_case_knobs_are_off_by_default_and_reach_the_procedural_generator():
+    default = TrainConfig().scene_config
+    assert (default.thin_probability, default.flat_probability, default.repetitive_probability) == (0, 0, 0)
+    assert default.wide_range_probability == 0 and default.wide_max_disparity == 256.0  # 256 * 512 / 512
+    config = TrainConfig(
+        thin_probability=0.3,
+        flat_probability=0.2,
+        repetitive_probability=0.1,
+        wide_range_probability=0.5,
+        wide_max_disparity=240.0,
+    )
+    scenes = config.scene_config
+    assert (scenes.thin_probability, scenes.flat_probability, scenes.repetitive_probability) == (0.3, 0.2, 0.1)
+    assert (scenes.wide_range_probability, scenes.wide_max_disparity) == (0.5, 240.0)
+    assert TrainConfig.from_dict(config.to_dict()) == config
 
 
 def test_config_round_trips_through_a_dict():
