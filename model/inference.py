@@ -546,6 +546,7 @@ class StereoPredictor:
         counts = self.iterations(iters)
         height, width = left_batch.shape[-2:]
         size = scaled_size(height, width, scale)
+        original_left = left_batch
         if size != (height, width):
             left_batch, right_batch = (shrink(image, size) for image in (left_batch, right_batch))
         if init_disparity is not None:
@@ -558,7 +559,9 @@ class StereoPredictor:
         if size != (height, width):
             disparity = resize_disparity(disparity, height, width)
             uncertainty = F.interpolate(uncertainty, size=(height, width), mode="bilinear", align_corners=False)
-        return disparity[:, 0], (uncertainty if raw_uncertainty else self.served_uncertainty(uncertainty))[:, 0]
+        if not raw_uncertainty:
+            uncertainty = self.served_uncertainty(uncertainty, disparity, original_left)
+        return disparity[:, 0], uncertainty[:, 0]
 
     def forward_cold(
         self, left: Tensor, right: Tensor, counts: StageCounts, two_pass: TwoPass, forward: Forward
@@ -607,10 +610,11 @@ class StereoPredictor:
         )
         return torch.quantile(coarse.flatten(1), 0.99, dim=1) * (width / quarter[1])
 
-    def served_uncertainty(self, raw: Tensor) -> Tensor:
-        """The uncertainty as served from the paper's U (any shape): P(|error| > threshold_px)
-        through the weights' calibration where they carry one, else U itself."""
-        return raw if self.calibration is None else self.calibration.apply(raw)
+    def served_uncertainty(self, raw: Tensor, disparity: Tensor, left: Tensor) -> Tensor:
+        """The uncertainty as served, (B, 1, H, W), from the paper's U `raw` (B, 1, H, W), the
+        `disparity` (B, 1, H, W) and the `left` image (B, 3, H, W) it answers: P(|error| >
+        threshold_px) through the weights' calibration where they carry one, else U itself."""
+        return raw if self.calibration is None else self.calibration.apply(raw, disparity, left)
 
     def forward_padded(
         self,

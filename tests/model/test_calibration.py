@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from model import load_model
-from model.calibration import UncertaintyCalibration
+from model.calibration import FEATURES, UncertaintyCalibration, confidence_features
 
 CALIBRATION = UncertaintyCalibration(
     threshold_px=2.0, knots=(0.1, 0.3, 0.5), probabilities=(0.2, 0.4, 0.9), fitted_on="test"
@@ -17,8 +17,31 @@ CALIBRATION = UncertaintyCalibration(
 def test_the_calibration_interpolates_between_its_points_and_is_flat_beyond():
     raw = torch.tensor([0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.9])
     expected = torch.tensor([0.2, 0.2, 0.3, 0.4, 0.65, 0.9, 0.9])
-    torch.testing.assert_close(CALIBRATION.apply(raw), expected)
+    torch.testing.assert_close(CALIBRATION.probability(raw), expected)
     assert UncertaintyCalibration.from_dict(CALIBRATION.to_dict()) == CALIBRATION
+
+
+def test_a_calibration_without_features_scores_by_u_alone_as_files_fitted_before_them():
+    old_file = {"threshold_px": 2.0, "knots": [0.1, 0.3, 0.5], "probabilities": [0.2, 0.4, 0.9], "fitted_on": "old"}
+    calibration = UncertaintyCalibration.from_dict(old_file)
+    raw = torch.rand(1, 1, 8, 12) * 0.5
+    disparity, left = torch.rand(1, 1, 8, 12) * 5, torch.rand(1, 3, 8, 12) * 255
+    torch.testing.assert_close(calibration.apply(raw, disparity, left), calibration.probability(raw))
+
+
+def test_the_features_see_depth_edges_texture_and_matches_outside_the_right_image():
+    disparity = torch.full((1, 1, 32, 48), 4.0)
+    disparity[..., 24:] = 12.0  # a depth edge at x = 24
+    left = torch.zeros(1, 3, 32, 48)
+    left[..., :12] = torch.rand(1, 3, 32, 12) * 255  # texture on the left only
+    features = dict(zip(FEATURES, confidence_features(torch.zeros(1, 1, 32, 48), disparity, left)[0], strict=True))
+    assert features["disparity_edges"][16, 24] > 1.0 and features["disparity_edges"][16, 40] == pytest.approx(
+        0.0, abs=1e-5
+    )
+    assert features["texture"][16, 4] > 5.0 and features["texture"][16, 36] == 0.0
+    outside = features["outside_right_view"][16]
+    assert outside[:4].tolist() == [1.0] * 4 and outside[4:].sum() == 0.0  # x - 4 < 0 for x < 4 only
+    assert features["log_disparity"][16, 40] == pytest.approx(np.log1p(12.0))
 
 
 @pytest.mark.parametrize(
@@ -38,7 +61,9 @@ def test_a_calibrated_predictor_returns_probabilities_and_the_raw_u_on_request()
     raw = predictor.predict(left, right, iters=(1, 1, 1), raw_uncertainty=True).uncertainty
     predictor.calibration = CALIBRATION  # whatever the loaded weights carried
     calibrated = predictor.predict(left, right, iters=(1, 1, 1))
-    np.testing.assert_allclose(calibrated.uncertainty, CALIBRATION.apply(torch.from_numpy(raw)).numpy(), atol=1e-6)
+    np.testing.assert_allclose(
+        calibrated.uncertainty, CALIBRATION.probability(torch.from_numpy(raw)).numpy(), atol=1e-6
+    )
     np.testing.assert_array_equal(
         predictor.predict(left, right, iters=(1, 1, 1), raw_uncertainty=True).uncertainty, raw
     )

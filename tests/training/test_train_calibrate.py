@@ -7,23 +7,27 @@ import pytest
 import torch
 
 from model import CREStereoPP, ModelConfig, load_model
-from training.calibrate import calibrate_weights_file, fit_calibration
+from model.calibration import FEATURES
+from training.calibrate import calibrate_weights_file, fit_calibration, fit_probability
 
 
-def test_the_fit_recovers_a_known_error_probability_and_is_monotone():
+def test_the_fit_recovers_a_known_error_probability_from_the_features_and_is_monotone():
     rng = np.random.default_rng(0)
-    raw = rng.random(50_000) * 0.5
-    truth = 0.1 + 1.6 * raw  # P(error > 2 px) rises from 0.1 to 0.9 with U
-    errors = np.where(rng.random(raw.size) < truth, 4.0, 0.5)
-    calibration = fit_calibration(raw, errors, 2.0, "test", bins=16)
+    features = rng.random((60_000, len(FEATURES)))
+    # wrong with probability 0.05, or 0.85 where the match falls outside the right image
+    features[:, FEATURES.index("outside_right_view")] = rng.random(60_000) < 0.2
+    truth = np.where(features[:, FEATURES.index("outside_right_view")] > 0, 0.85, 0.05)
+    errors = np.where(rng.random(truth.size) < truth, 4.0, 0.5)
+    calibration = fit_calibration(features, errors, 2.0, "test", bins=16)
     assert all(b > a for a, b in zip(calibration.probabilities, calibration.probabilities[1:], strict=False))
-    fitted = calibration.apply(torch.tensor([0.05, 0.25, 0.45], dtype=torch.float64)).numpy()
-    np.testing.assert_allclose(fitted, [0.18, 0.5, 0.82], atol=0.05)
+    rows = torch.from_numpy(features[:8, :, None, None])  # eight pixels as 1x1 maps
+    predicted = calibration.probability(calibration.feature_score(rows)).flatten().numpy()
+    np.testing.assert_allclose(predicted, truth[:8], atol=0.05)
 
 
-def test_equal_uncertainties_cannot_be_calibrated():
+def test_equal_scores_cannot_be_calibrated():
     with pytest.raises(ValueError, match="all equal"):
-        fit_calibration(np.full(100, 0.5), np.zeros(100), 2.0, "test", bins=8)
+        fit_probability(np.full(100, 0.5), np.zeros(100), 2.0, bins=8)
 
 
 def test_calibrating_a_weights_file_stores_a_fit_that_load_model_applies(tmp_path):
