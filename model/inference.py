@@ -196,7 +196,9 @@ def as_image_batch(image: np.ndarray | Tensor, device: torch.device) -> Tensor:
         if array.ndim != 3 or array.shape[2] not in (1, 3, 4):
             raise ValueError(f"expected an HxW, HxWx1, HxWx3 or HxWx4 image, got shape {image.shape}")
         scale = 255.0 / 65535.0 if array.dtype == np.uint16 else 1.0
-        batch = torch.from_numpy(np.ascontiguousarray(array[..., :3])).to(device).permute(2, 0, 1)[None]
+        # writable: torch warns about every read-only array (decoded from bytes, memory-mapped)
+        pixels = np.require(array[..., :3], requirements=("C", "W"))
+        batch = torch.from_numpy(pixels).to(device).permute(2, 0, 1)[None]
         batch = batch.float() * scale
     elif isinstance(image, Tensor):
         if image.ndim != 4 or image.shape[1] not in (1, 3):

@@ -5,8 +5,10 @@ from __future__ import annotations
 import json
 import logging
 import sys
+import warnings
 from contextvars import ContextVar
 from datetime import UTC, datetime
+from typing import TextIO
 
 request_id_var: ContextVar[str | None] = ContextVar("request_id", default=None)
 
@@ -34,17 +36,33 @@ class JsonFormatter(logging.Formatter):
         return json.dumps(entry, default=str)
 
 
+def log_warning(
+    message: Warning | str,
+    category: type[Warning],
+    filename: str,
+    lineno: int,
+    file: TextIO | None = None,
+    line: str | None = None,
+) -> None:
+    """A Python warning as one line of the `py.warnings` log: its category and message, where it
+    came from in `location` (`logging.captureWarnings` would log the source line too)."""
+    logging.getLogger("py.warnings").warning(
+        "%s: %s", category.__name__, message, extra={"location": f"{filename}:{lineno}"}
+    )
+
+
 def configure_logging(level: str) -> None:
-    """JSON logs for the `service` loggers, Python warnings and uvicorn's server log; uvicorn's
-    own access log is turned off because the service writes a JSON access line per request."""
+    """JSON logs for the `service` and `model` loggers (the OpenVINO exports: when each fast path is
+    ready), Python warnings and uvicorn's server log; uvicorn's own access log is turned off
+    because the service writes a JSON access line per request."""
     handler = logging.StreamHandler(sys.stderr)
     handler.setFormatter(JsonFormatter())
-    for name in ("service", "py.warnings"):  # py.warnings: Python warnings, e.g. random weights
+    for name in ("service", "model", "py.warnings"):  # py.warnings: Python warnings, e.g. untrained weights
         logger = logging.getLogger(name)
         logger.handlers = [handler]
         logger.setLevel(level.upper())
         logger.propagate = False
-    logging.captureWarnings(True)
+    warnings.showwarning = log_warning
     for uvicorn_handler in logging.getLogger("uvicorn.error").handlers + logging.getLogger("uvicorn").handlers:
         uvicorn_handler.setFormatter(JsonFormatter())
     logging.getLogger("uvicorn.access").disabled = True

@@ -25,7 +25,7 @@ from service.worker import DaemonWorker
 
 logger = logging.getLogger(__name__)
 
-ModelLoader = Callable[..., Predictor]  # called as loader(name, weights=..., device=..., precision=...)
+ModelLoader = Callable[..., Predictor]  # called as model.load_model is: loader(name, weights=..., device=..., ...)
 
 
 StereoBatcher = Batcher[StereoKey, StereoPair, Maps]
@@ -162,6 +162,7 @@ class ServiceRuntime:
                         backend=self.settings.backend,
                         precision=self.settings.precision,
                         cache_dir=self.settings.cache_dir,
+                        prepare_iters=self.settings.export_iterations(),
                     ),
                 )
                 logger.info(
@@ -172,6 +173,7 @@ class ServiceRuntime:
                         "weights": weights_identity(self.predictors[name]),
                         "backend": self.predictors[name].backend,
                         "precision": self.predictors[name].precision,
+                        "compiled": self.predictors[name].ready(),
                     },
                 )
         except Exception:
@@ -184,6 +186,7 @@ class ServiceRuntime:
         self.batcher.start()
         if self.state == "loading":
             self.state = "ready"
+            logger.info("ready: computing requests", extra={"models": list(self.predictors)})
         else:  # SIGTERM came while loading
             self.batcher.begin_drain()
         self._load_finished.set()

@@ -16,6 +16,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 from model.config import MODEL_NAMES, ModelName
 from model.inference import BackendChoice, PrecisionChoice
+from model.options import Iterations, parse_iterations
 from service import DEFAULT_MAX_IMAGE_PIXELS
 
 ENV_PREFIX = "CRESTEREO_"
@@ -42,9 +43,8 @@ class Settings(BaseModel):
     backend: BackendChoice = Field(
         "auto",
         description="`openvino`: the networks compiled for the CPU (2-3x faster than torch); `torch`: eager "
-        "(CUDA graphs on a GPU); `auto`: OpenVINO on a CPU, torch on a GPU. OpenVINO compiles each iteration "
-        "setting once per weights, in the background on its first request (about a minute; torch answers "
-        "meanwhile), and keeps it in `CRESTEREO_CACHE_DIR`.",
+        "(CUDA graphs on a GPU); `auto`: OpenVINO on a CPU, torch on a GPU. OpenVINO runs the iteration "
+        "settings whose graphs are in `CRESTEREO_CACHE_DIR` (see `export_iters`); torch answers the others.",
     )
     precision: PrecisionChoice = Field(
         "auto",
@@ -55,6 +55,15 @@ class Settings(BaseModel):
         None,
         description="Where OpenVINO keeps its compiled graphs, so that a restart does not compile again; "
         "(none): `$XDG_CACHE_HOME/crestereo-pp`, else `~/.cache/crestereo-pp`.",
+    )
+    export_iters: tuple[str, ...] | None = Field(
+        None,
+        max_length=4,
+        description="Iteration settings whose OpenVINO graphs (cold and warm starts) the service exports at "
+        "startup, in the background, one at a time: up to four, space-separated, each `N` or `N16,N8,N4`, "
+        "or `default` for each model's own; torch computes them until each is ready (logged with its time). "
+        "Requests with other iterations run on torch and export nothing. Graphs in `CRESTEREO_CACHE_DIR` are "
+        "used either way.",
     )
     threads: int = Field(
         0,
@@ -178,6 +187,25 @@ class Settings(BaseModel):
         if isinstance(value, str):
             return dict(_name_value_pairs(value))
         return value
+
+    @field_validator("export_iters", mode="before")
+    @classmethod
+    def _split_iterations(cls, value: object) -> object:
+        if isinstance(value, str):
+            return tuple(value.split()) or None
+        return value
+
+    @field_validator("export_iters")
+    @classmethod
+    def _check_iterations(cls, value: tuple[str, ...] | None) -> tuple[str, ...] | None:
+        for iters in value or ():
+            if iters != "default":
+                parse_iterations(iters)  # ValueError where invalid
+        return value
+
+    def export_iterations(self) -> tuple[Iterations, ...]:
+        """`export_iters` as `Iterations` (None: the model's)."""
+        return tuple(None if iters == "default" else parse_iterations(iters) for iters in self.export_iters or ())
 
     @field_validator("api_key", mode="before")
     @classmethod
