@@ -490,18 +490,25 @@ class StereoPredictor:
                 [torch.as_tensor(d, dtype=torch.float32, device=self.device)[None, None] for d in init_disparities]
             )[:, 0]
 
-        disparity, uncertainty = to_host(
-            *self.predict_tensors(
-                stack([as_image_batch(image, self.device) for image in lefts]),
-                stack([as_image_batch(image, self.device) for image in rights]),
-                iters=iters,
-                init_disparity=init,
-                two_pass=two_pass,
-                scale=scale,
-                raw_uncertainty=raw_uncertainty,
-                graphed=True,
-            )
+        padded = len(set(sizes)) > 1
+        left_batch = stack([as_image_batch(image, self.device) for image in lefts])
+        disparity_batch, uncertainty_batch = self.predict_tensors(
+            left_batch,
+            stack([as_image_batch(image, self.device) for image in rights]),
+            iters=iters,
+            init_disparity=init,
+            two_pass=two_pass,
+            scale=scale,
+            raw_uncertainty=raw_uncertainty or padded,
+            graphed=True,
         )
+        if padded and not raw_uncertainty:  # served from each pair's own maps, borders as ``predict`` sees them
+            uncertainty_batch = uncertainty_batch.clone()
+            for i, padding in enumerate(paddings):
+                own = (padding.crop(x[i])[None] for x in (uncertainty_batch[:, None], disparity_batch[:, None]))
+                served = self.served_uncertainty(*own, padding.crop(left_batch[i])[None])
+                uncertainty_batch[i, : padding.height, : padding.width] = served[0, 0]
+        disparity, uncertainty = to_host(disparity_batch, uncertainty_batch)
         return [
             Prediction(
                 np.ascontiguousarray(padding.crop(disparity[i])), np.ascontiguousarray(padding.crop(uncertainty[i]))

@@ -6,8 +6,11 @@ import numpy as np
 import pytest
 import torch
 
+from evaluation.metrics import sparsification
 from model import load_model
 from model.calibration import FEATURES, UncertaintyCalibration, confidence_features
+from shared_data import SMALL_STEREO_DEV_PAIR, STEREO_DEV
+from stereo_data.readers import open_dataset
 
 CALIBRATION = UncertaintyCalibration(
     threshold_px=2.0, knots=(0.1, 0.3, 0.5), probabilities=(0.2, 0.4, 0.9), fitted_on="test"
@@ -67,3 +70,19 @@ def test_a_calibrated_predictor_returns_probabilities_and_the_raw_u_on_request()
     np.testing.assert_array_equal(
         predictor.predict(left, right, iters=(1, 1, 1), raw_uncertainty=True).uncertainty, raw
     )
+
+
+@pytest.mark.skipif(not STEREO_DEV.is_dir(), reason=f"no real stereo pairs at {STEREO_DEV}")
+def test_the_shipped_uncertainty_flags_the_wrong_pixels_of_a_real_pair_far_better_than_u_alone():
+    dataset = open_dataset(STEREO_DEV)
+    sample = next(dataset[i] for i in range(len(dataset)) if dataset[i].name == SMALL_STEREO_DEV_PAIR)
+    predictor = load_model("lite", backend="torch", precision="fp32")
+    served = predictor.predict(sample.left, sample.right)
+    raw = predictor.predict(sample.left, sample.right, raw_uncertainty=True).uncertainty
+    errors = np.abs(served.disparity - sample.disparity)[sample.valid]
+    ranked_by_features, ranked_by_u = (sparsification(errors, m[sample.valid]) for m in (served.uncertainty, raw))
+    # removing the pixels the map flags first lowers the error rate far faster than chance (1.0) or U does
+    assert ranked_by_features.auc / ranked_by_features.auc_random < 0.5
+    assert ranked_by_features.auc < 0.5 * ranked_by_u.auc
+    observed = (errors > 2.0).mean()
+    assert abs(served.uncertainty[sample.valid].mean() - observed) < 0.05  # calibrated on this pair too
