@@ -168,9 +168,10 @@ def evaluate(
     """Predict every pair of `dataset` with `predictor` (and SGBM when `baseline_sgbm`), score it.
 
     options: how each pair is computed (`StereoPredictor.predict`'s options; None: the defaults).
-    Times are wall-clock seconds of one prediction, the model's after untimed warm-up
-    predictions at each image size (where OpenVINO compiles the size; with two_pass "auto", one
-    per path a pair of that size may take). With `sheets_dir`, writes
+    Times are wall-clock seconds of one prediction; on OpenVINO after untimed warm-up predictions
+    at each image size (where it compiles the size; with two_pass "auto", one per path a pair of
+    that size may take). The progress bar shows the model's seconds of the last pair beside its
+    own rate, which also counts reading, scoring, SGBM and those warm-ups. With `sheets_dir`, writes
     `sheets_dir/NAME.png` per pair: left image, ground truth, uncertainty, then each method's
     disparity and error map, on fixed colour scales (disparity 0..max ground truth of the pair;
     error 0..ERROR_SCALE_PX).
@@ -202,13 +203,17 @@ def evaluate(
 
     def warm_ups(height: int, width: int) -> list[InferenceOptions]:
         """The untimed runs at a new size: OpenVINO compiles every shape its pairs may run at (with
-        "auto", both paths, since one pair of a size may take two passes and the next one)."""
+        "auto", both paths, since one pair of a size may take two passes and the next one); torch
+        compiles nothing."""
+        if predictor.backend != "openvino":
+            return []
         if options.two_pass == "auto" and two_pass_possible(*scaled_size(height, width, options.scale)):
             return [options, replace(options, two_pass=True), replace(options, two_pass=False)]
         return [options]
 
     sizes_seen: set[tuple[int, ...]] = set()
-    for index in tqdm(range(len(dataset)), desc=f"eval {predictor.name}", unit="pair", disable=not progress):
+    bar = tqdm(range(len(dataset)), desc=f"eval {predictor.name}", unit="pair", disable=not progress)
+    for index in bar:
         sample = dataset[index]
         known = sample.valid & np.isfinite(sample.disparity)
         if not known.any():
@@ -220,6 +225,7 @@ def evaluate(
         start = time.perf_counter()
         prediction = predict(sample)
         seconds = time.perf_counter() - start
+        bar.set_postfix_str(f"{predictor.name} {seconds:.2f} s")
         outputs = {predictor.name: (prediction.disparity, prediction.uncertainty, seconds)}
         calibration = predictor.calibration
         if baseline_sgbm:

@@ -505,8 +505,9 @@ class StereoPredictor:
         if padded and not raw_uncertainty:  # served from each pair's own maps, borders as ``predict`` sees them
             uncertainty_batch = uncertainty_batch.clone()
             for i, padding in enumerate(paddings):
-                own = (padding.crop(x[i])[None] for x in (uncertainty_batch[:, None], disparity_batch[:, None]))
-                served = self.served_uncertainty(*own, padding.crop(left_batch[i])[None])
+                maps = (uncertainty_batch[:, None], disparity_batch[:, None], left_batch)
+                pair_raw, pair_disparity, pair_left = (padding.crop(x[i : i + 1]) for x in maps)
+                served = self.served_uncertainty(pair_raw, pair_disparity, pair_left)
                 uncertainty_batch[i, : padding.height, : padding.width] = served[0, 0]
         disparity, uncertainty = to_host(disparity_batch, uncertainty_batch)
         return [
