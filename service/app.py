@@ -56,8 +56,8 @@ def create_app(
         "computed by CREStereo++ (`full`) or Lite-CREStereo++ (`lite`). Errors are JSON "
         '`{"error": {"code", "message"}}`; every response echoes `X-Request-Id`.',
         lifespan=lifespan,
-        docs_url=None,  # served by service.routes.docs, pinned and under a Content-Security-Policy
-        redoc_url=None,
+        docs_url=None,  # served by service.routes.docs from the package, under a Content-Security-Policy
+        redoc_url=None,  # no ReDoc: /docs is the one documentation page
     )
     app.state.runtime = runtime
     install_error_handlers(app, runtime.metrics)

@@ -1,5 +1,8 @@
-"""`GET /docs`: Swagger UI for the API, its script and style pinned to one release on the CDN with
-subresource integrity, and the page under a Content-Security-Policy that allows nothing else."""
+"""`GET /docs`: Swagger UI for the API, served from this package so that it works with no internet:
+its script, style and icon are the npm package swagger-ui-dist, pinned in
+`service/static/docs/swagger-ui-dist.json` and served under `/static/docs/` with the page's files.
+The page runs under a Content-Security-Policy that allows this server only, and its one inline
+script by its hash."""
 
 from __future__ import annotations
 
@@ -14,47 +17,26 @@ from fastapi.responses import HTMLResponse
 
 router = APIRouter(include_in_schema=False)
 
-CDN = "https://cdn.jsdelivr.net"
-SWAGGER_UI = f"{CDN}/npm/swagger-ui-dist@5.35.0"
-# sha384 of the files of the npm package swagger-ui-dist 5.35.0, which the CDN serves verbatim.
-SCRIPT_URL, SCRIPT_INTEGRITY = (
-    f"{SWAGGER_UI}/swagger-ui-bundle.js",
-    "sha384-gjRm0bEPMeTmMh5jT2cHccIwCUZSTd8YC+j0d0sXw0MdGEfScduGpSyF3ZSSLkX9",
-)
-STYLE_URL, STYLE_INTEGRITY = (
-    f"{SWAGGER_UI}/swagger-ui.css",
-    "sha384-WlYgdmXYOOBWL5apwjDEZwN+U3HmXSSu5R6V5aGxEcf7z+KuRNwBhoxKVN1i3D5I",
-)
+SWAGGER_UI = "static/docs"
+"""The Swagger UI files, relative to `/docs` (so that the page also works behind a path prefix)."""
 
 
 @functools.cache
 def docs_page(openapi_url: str, title: str) -> tuple[str, str]:
-    """The page's HTML and its Content-Security-Policy: the pinned script and style with their
-    integrity, the page's one inline script allowed by its hash, data only from this server.
-    Built once per process: it never changes."""
+    """The page's HTML and its Content-Security-Policy: scripts, style and data from this server
+    only, the page's one inline script allowed by its hash. Built once per process: it never changes."""
     page = get_swagger_ui_html(
         openapi_url=openapi_url,
         title=title,
-        swagger_js_url=SCRIPT_URL,
-        swagger_css_url=STYLE_URL,
-        swagger_favicon_url="data:,",
+        swagger_js_url=f"{SWAGGER_UI}/swagger-ui-bundle.js",
+        swagger_css_url=f"{SWAGGER_UI}/swagger-ui.css",
+        swagger_favicon_url=f"{SWAGGER_UI}/favicon-32x32.png",
     )
-    html = (
-        bytes(page.body)
-        .decode()
-        .replace(
-            f'<script src="{SCRIPT_URL}">',
-            f'<script src="{SCRIPT_URL}" integrity="{SCRIPT_INTEGRITY}" crossorigin="anonymous">',
-        )
-        .replace(
-            f'href="{STYLE_URL}">',
-            f'href="{STYLE_URL}" integrity="{STYLE_INTEGRITY}" crossorigin="anonymous">',
-        )
-    )
+    html = bytes(page.body).decode()
     inline = re.findall(r"<script>(.*?)</script>", html, flags=re.S)
     hashes = " ".join(f"'sha256-{base64.b64encode(hashlib.sha256(s.encode()).digest()).decode()}'" for s in inline)
     policy = (
-        f"default-src 'none'; script-src {SCRIPT_URL} {hashes}; style-src {STYLE_URL} 'unsafe-inline'; "
+        f"default-src 'none'; script-src 'self' {hashes}; style-src 'self' 'unsafe-inline'; "
         "img-src 'self' data:; connect-src 'self'; base-uri 'none'; form-action 'none'; frame-ancestors 'none'"
     )
     return html, policy
@@ -63,5 +45,5 @@ def docs_page(openapi_url: str, title: str) -> tuple[str, str]:
 @router.get("/docs")
 async def docs() -> HTMLResponse:
     """Swagger UI for `openapi.json`."""
-    html, policy = docs_page("/openapi.json", "CREStereo++ disparity service")
+    html, policy = docs_page("openapi.json", "CREStereo++ disparity service")
     return HTMLResponse(html, headers={"Content-Security-Policy": policy})
