@@ -12,6 +12,7 @@ from service.admission import ByteBudget, StreamSlots
 from service.errors import install_error_handlers
 from service.logs import configure_logging
 from service.middleware import (
+    ApiKeyMiddleware,
     ConcurrencyLimitMiddleware,
     RequestContextMiddleware,
     RequestSizeLimitMiddleware,
@@ -66,6 +67,7 @@ def create_app(
     app.add_middleware(UploadBudgetMiddleware, budget=app.state.uploads, metrics=runtime.metrics)
     app.add_middleware(RequestSizeLimitMiddleware, max_bytes=settings.max_body_bytes, metrics=runtime.metrics)
     app.add_middleware(ConcurrencyLimitMiddleware, max_requests=settings.max_requests, metrics=runtime.metrics)
+    app.add_middleware(ApiKeyMiddleware, settings=settings)  # before any limit: a refused request holds nothing
     app.add_middleware(RequestContextMiddleware, metrics=runtime.metrics)
     app.include_router(disparity.router)
     app.include_router(stream.router)

@@ -1,5 +1,5 @@
-"""ASGI middleware: request ids, access log and request metrics; the request size limits; the
-count of requests and the bytes of their bodies held at once."""
+"""ASGI middleware: request ids, access log and request metrics; the API key; the request size
+limits; the count of requests and the bytes of their bodies held at once."""
 
 from __future__ import annotations
 
@@ -8,12 +8,15 @@ import re
 import time
 import uuid
 
+from fastapi.security.utils import get_authorization_scheme_param
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service.admission import ByteBudget
+from service.dependencies import bearer_accepted
 from service.errors import ApiError, error_response
 from service.logs import request_id_var
 from service.metrics import Metrics
+from service.settings import Settings
 
 REQUEST_ID_HEADER = "X-Request-Id"
 _VALID_REQUEST_ID = re.compile(r"[A-Za-z0-9._:-]{1,128}")
@@ -83,6 +86,47 @@ def _client_request_id(scope: Scope) -> str | None:
             candidate = value.decode("latin-1")
             return candidate if _VALID_REQUEST_ID.fullmatch(candidate) else None
     return None
+
+
+OPEN_PATHS = frozenset({"/health", "/health/live", "/health/ready", "/metrics", "/", "/docs", "/openapi.json"})
+"""Paths answered without the API key: what orchestrators and scrapers poll (the probes, the
+metrics), and what is the same on every install of a release (the web page, the docs page, the
+OpenAPI contract, and under OPEN_PREFIX their files): a key holder's browser loads them before it
+can send the key."""
+OPEN_PREFIX = "/static/"
+
+POLICY_VIOLATION = 1008
+"""WebSocket close code of a refused handshake (uvicorn answers it with HTTP 403)."""
+
+
+class ApiKeyMiddleware:
+    """With `CRESTEREO_API_KEY` set, refuses every request to a path that is not open (OPEN_PATHS,
+    OPEN_PREFIX) unless it bears the key (`Authorization: Bearer <key>`): 401 `unauthorized` with
+    `WWW-Authenticate: Bearer`, before it takes a place or any of the upload budget; a WebSocket
+    handshake is refused with HTTP 403. Closed by default: a route added later needs the key until
+    its path is listed here."""
+
+    def __init__(self, app: ASGIApp, settings: Settings) -> None:
+        self.app = app
+        self.settings = settings
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] not in ("http", "websocket") or self._allowed(scope):
+            await self.app(scope, receive, send)
+            return
+        message = "missing or wrong bearer token"
+        if scope["type"] == "websocket":
+            await send({"type": "websocket.close", "code": POLICY_VIOLATION, "reason": message})
+            return
+        await error_response(401, "unauthorized", message, headers={"WWW-Authenticate": "Bearer"})(scope, receive, send)
+
+    def _allowed(self, scope: Scope) -> bool:
+        path: str = scope["path"]
+        if path in OPEN_PATHS or path.startswith(OPEN_PREFIX):
+            return True
+        authorization = dict(scope["headers"]).get(b"authorization", b"").decode("latin-1")
+        scheme, token = get_authorization_scheme_param(authorization)
+        return bearer_accepted(self.settings, token if scheme.lower() == "bearer" else None)
 
 
 MAX_HEADER_BYTES = 16 * 1024

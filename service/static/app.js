@@ -60,6 +60,14 @@ async function request(url, options) {
   return response;
 }
 
+const API_KEY = "crestereo-api-key";  // sessionStorage: the key stays for this tab's session only
+
+/** The `Authorization` header of the API key entered (none when the field is empty). */
+function authorization() {
+  const key = $("api-key").value.trim();
+  return key ? { Authorization: `Bearer ${key}` } : {};
+}
+
 /** POST /disparity with the pair, its calibration files (none for a rectified pair), the options
  * `params` (URLSearchParams) and `format`. */
 function postDisparity(left, right, calibration, params, format) {
@@ -69,10 +77,7 @@ function postDisparity(left, right, calibration, params, format) {
   for (const file of calibration) form.append("calibration", file, file.name);
   const query = new URLSearchParams(params);
   query.set("format", format);
-  const headers = {};
-  const key = $("api-key").value.trim();
-  if (key) headers["Authorization"] = `Bearer ${key}`;
-  return request(`disparity?${query}`, { method: "POST", body: form, headers });
+  return request(`disparity?${query}`, { method: "POST", body: form, headers: authorization() });
 }
 
 /** The calibration files chosen: none, one OpenCV file, or the left and right ROS camera_info. */
@@ -449,13 +454,15 @@ function describeModel() {
     `uncertainty: ${model.uncertainty}`;
 }
 
-/** GET /models into the model list; retried while the service is still loading. */
+/** GET /models into the model list; retried while the service is still loading, or until the
+ * API key it asks for is entered. */
 async function loadModels() {
   let models = [];
   try {
-    models = (await (await request("models")).json()).models;
+    models = (await (await request("models", { headers: authorization() })).json()).models;
   } catch (err) {
-    $("model-info").textContent = `cannot list the models: ${err.message}; retrying…`;
+    const hint = err.status === 401 ? "enter the service's API key under Access" : err.message;
+    $("model-info").textContent = `cannot list the models: ${hint}; retrying…`;
   }
   if (models.length === 0) {
     if (!$("model-info").textContent.startsWith("cannot")) $("model-info").textContent = "models are loading; retrying…";
@@ -484,6 +491,8 @@ function main() {
   $("example").addEventListener("change", loadExample);
   $("model").addEventListener("change", describeModel);
   $("options").addEventListener("submit", run);
+  $("api-key").value = sessionStorage.getItem(API_KEY) ?? "";
+  $("api-key").addEventListener("input", () => sessionStorage.setItem(API_KEY, $("api-key").value.trim()));
   for (const id of ["left-canvas", "disparity-canvas", "uncertainty-canvas"]) {
     $(id).addEventListener("mousemove", hover);
   }
