@@ -154,9 +154,23 @@ class Settings(BaseModel):
         description="CPU seconds a decoder process may spend on one step of reading an upload (parsing the "
         "form, or decoding both images); beyond it 422 `decode_too_costly`.",
     )
+    rectifier_cache_mb: int = Field(
+        256,
+        ge=1,
+        description="Memory (MiB) for the rectification maps of raw pairs' cameras, those in use and those kept "
+        "for the next requests of the same camera (a 2048x2048 camera's take 96 MiB; the least recently used "
+        "goes first). A request whose camera's maps do not fit waits for room, under its deadline.",
+    )
+    min_timeout_ms: int = Field(
+        100,
+        ge=1,
+        description="Shortest `X-Request-Timeout-Ms` taken: a shorter deadline cannot be met by any request, and "
+        "is answered 503 `deadline_exceeded` at once, before the body is read.",
+    )
     api_key: str | None = Field(
         None,
-        description="When set, `POST /disparity` requires `Authorization: Bearer <key>`; health and metrics stay open.",
+        description="When set, every route requires `Authorization: Bearer <key>` but the health probes, metrics, "
+        "the page, its static files, `/docs` and `/openapi.json`.",
     )
     drain_timeout_s: float = Field(
         30.0,

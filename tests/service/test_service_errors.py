@@ -172,7 +172,7 @@ async def test_body_over_the_limit_is_refused_from_content_length_and_while_stre
     assert "content-length" not in streamed.request.headers
 
 
-async def test_api_key_guards_disparity_only_and_compares_the_bearer_token():
+async def test_api_key_guards_disparity_and_compares_the_bearer_token():
     async with serve_asgi(lite_settings(api_key="s3cret")) as h:
         missing = await h.client.post("/disparity", files=PAIR)
         wrong = await h.client.post("/disparity", files=PAIR, headers={"Authorization": "Bearer s3cre"})
