@@ -29,7 +29,11 @@ $(VENV)/.test-installed: $(VENV)/.serve-installed
 setup: $(VENV)/.serve-installed
 setup-test: $(VENV)/.test-installed
 
+# First lite's OpenVINO graphs (`crestereo-pp prepare`: minutes of CPU the first time, then read
+# from the cache), so that the service computes compiled from its first request; where they cannot
+# be exported it computes on torch.
 serve: setup
+	-$(VENV)/bin/crestereo-pp prepare
 	$(PY) -m service --host $(HOST) --port $(PORT)
 
 # Style and types (configured in pyproject.toml): ruff's lint and format check on the whole tree,

@@ -6,21 +6,16 @@ import argparse
 import json
 from pathlib import Path
 
-from evaluation.evaluate import evaluate
 from stereo_data.readers import LAYOUTS, open_dataset
 
 from .options import add_model_options, inference_options, load_predictor
 
 
-def add_parser(commands: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
-    parser = commands.add_parser(
-        "eval",
-        help="EPE, bad-1/2/3, D1-all and time per pair and mean, on a dataset with ground truth",
-        description=(
-            "Evaluate on every pair of DATA_DIR (Middlebury 2014, ETH3D, KITTI 2012/2015, SceneFlow "
-            "or NAME/{left.png,right.png,disp.pfm}). bad-N: percent of valid ground-truth pixels "
-            "with |error| > N px; D1-all: error > 3 px and > 5 % of the true disparity."
-        ),
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.description = (
+        "Evaluate on every pair of DATA_DIR (Middlebury 2014, ETH3D, KITTI 2012/2015, SceneFlow "
+        "or NAME/{left.png,right.png,disp.pfm}). bad-N: percent of valid ground-truth pixels "
+        "with |error| > N px; D1-all: error > 3 px and > 5 % of the true disparity."
     )
     parser.add_argument("data_dir", type=Path, metavar="DATA_DIR")
     parser.add_argument("--layout", default="auto", choices=["auto", *LAYOUTS], help="dataset layout [auto]")
@@ -33,6 +28,8 @@ def add_parser(commands: argparse._SubParsersAction[argparse.ArgumentParser]) ->
 
 
 def run(args: argparse.Namespace) -> int:
+    from evaluation.evaluate import evaluate
+
     dataset = open_dataset(args.data_dir, args.layout)
     if args.limit is not None:
         dataset = dataset[: args.limit]

@@ -5,21 +5,12 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from model import load_model, parse_iterations
-from model.onnx_export import export_onnx
-from model.weights import read_weights
-from training.export import export_weights
 
-
-def add_parser(commands: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
-    parser = commands.add_parser(
-        "export",
-        help="write a weights file (or an ONNX model) from a training checkpoint or weights file",
-        description=(
-            "Write {model, config, training metadata} from a checkpoint, without optimiser state; "
-            "with --onnx, an ONNX model of a fixed input size instead (network, padding and "
-            "uncertainty calibration in one graph)."
-        ),
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.description = (
+        "Write {model, config, training metadata} from a checkpoint, without optimiser state; "
+        "with --onnx, an ONNX model of a fixed input size instead (network, padding and "
+        "uncertainty calibration in one graph)."
     )
     parser.add_argument("checkpoint", type=Path, help="checkpoint.pt written by `crestereo-pp train`, or weights")
     parser.add_argument(
@@ -42,6 +33,8 @@ def add_parser(commands: argparse._SubParsersAction[argparse.ArgumentParser]) ->
 
 
 def run(args: argparse.Namespace) -> int:
+    from training.export import export_weights
+
     if args.onnx:
         return run_onnx(args)
     payload = export_weights(args.checkpoint, args.output, half=args.fp16)
@@ -51,6 +44,10 @@ def run(args: argparse.Namespace) -> int:
 
 
 def run_onnx(args: argparse.Namespace) -> int:
+    from model import load_model, parse_iterations
+    from model.onnx_export import export_onnx
+    from model.weights import read_weights
+
     if args.height is None or args.width is None:
         raise SystemExit("crestereo-pp export: --onnx needs --height and --width (the model's fixed input size)")
     if args.fp16:

@@ -1,26 +1,54 @@
-"""Command-line options that several commands share: the model, its weights, device and knobs."""
+"""Command-line options that several commands share: the model, its weights, device and knobs.
+
+Defining them imports nothing heavy (the `model` package imports torch): that happens in the
+functions that load a model, once the arguments are parsed.
+"""
 
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from model import TWO_PASS_CHOICES, InferenceOptions, StereoPredictor, load_model, parse_iterations, parse_two_pass
-from model.config import MODEL_NAMES
-from model.device import resolve_device
+if TYPE_CHECKING:
+    from model import InferenceOptions, StereoPredictor
+    from model.inference import BackendChoice
+    from model.options import Iterations
+
+MODEL_NAMES = ("lite", "full")
+"""`model.config.MODEL_NAMES`, spelled here so that `--help` does not import torch (a test keeps them equal)."""
+TWO_PASS_CHOICES = ("auto", "on", "off")
+"""`model.options.TWO_PASS_CHOICES`, likewise."""
+
+
+def add_network_options(parser: argparse.ArgumentParser) -> None:
+    """--model and --weights: which network, with which weights."""
+    parser.add_argument("--model", choices=MODEL_NAMES, default="lite", help="network [lite]")
+    parser.add_argument("--weights", type=Path, help="weights file or checkpoint [the bundled model/weights/MODEL.pt]")
+
+
+def add_iterations_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--iters",
+        type=int,
+        nargs="+",
+        metavar="N",
+        help="ARM iterations: N at 1/4 resolution, or N16 N8 N4 for the three stages [the model's]",
+    )
 
 
 def add_model_options(parser: argparse.ArgumentParser) -> None:
     """--model, --weights, --device and the inference knobs: shared by eval and predict."""
-    parser.add_argument("--model", choices=MODEL_NAMES, default="lite", help="network [lite]")
-    parser.add_argument("--weights", type=Path, help="weights file or checkpoint [the bundled model/weights/MODEL.pt]")
+    add_network_options(parser)
     parser.add_argument("--device", default="auto", help="auto (cuda if available), cpu, cuda, cuda:N [auto]")
     parser.add_argument(
         "--backend",
         choices=["auto", "torch", "openvino"],
         default="auto",
-        help="auto: $CRESTEREO_BACKEND if set, else OpenVINO on a CPU (compiled: 2-3x faster), torch on a GPU [auto]",
+        help="auto: $CRESTEREO_BACKEND if set, else OpenVINO on a CPU where `crestereo-pp prepare` has exported "
+        "its graphs (2-3x faster), torch elsewhere; openvino: exports any graph missing first (minutes) [auto]",
     )
     parser.add_argument(
         "--precision",
@@ -37,13 +65,7 @@ def add_model_options(parser: argparse.ArgumentParser) -> None:
         help="a half-resolution pass, then full-resolution refinement from it: on (the flag alone), off, "
         "or auto: where a quick quarter-resolution pass finds large disparities (above about 90 px) [auto]",
     )
-    parser.add_argument(
-        "--iters",
-        type=int,
-        nargs="+",
-        metavar="N",
-        help="ARM iterations: N at 1/4 resolution, or N16 N8 N4 for the three stages [the model's]",
-    )
+    add_iterations_option(parser)
     parser.add_argument(
         "--scale",
         type=float,
@@ -55,6 +77,8 @@ def add_model_options(parser: argparse.ArgumentParser) -> None:
 def inference_options(args: argparse.Namespace) -> InferenceOptions:
     """--iters, --two-pass, --scale (and --raw-uncertainty where the command has it) as one value;
     a usage error where they are invalid."""
+    from model import InferenceOptions, parse_iterations, parse_two_pass
+
     try:
         return InferenceOptions(
             parse_iterations(args.iters),
@@ -66,25 +90,60 @@ def inference_options(args: argparse.Namespace) -> InferenceOptions:
         raise SystemExit(f"crestereo-pp: {error}") from None
 
 
-def load_predictor(args: argparse.Namespace) -> StereoPredictor:
-    """The predictor that --model, --weights, --device, --backend and --precision name, with the
-    fast path for --iters and --two-pass ready: a graph that is not in the cache yet is exported
-    now, saying so (once per weights and iterations; later runs read it from the cache)."""
-    predictor = load_model(
-        args.model,
-        args.weights,
-        resolve_device(args.device, 0),
-        backend=args.backend,
-        precision=args.precision,
-    )
+def graphs_needed(args: argparse.Namespace) -> list[tuple[Iterations, bool]]:
+    """The (iterations, warm start) of the forwards the command runs: cold at --iters; warm at
+    --iters unless --two-pass off (the second of two passes starts warm); with --sequence, warm
+    at --warm-iters too (the frames after the first)."""
+    from model import parse_iterations
+
     options = inference_options(args)
-    for warm_start in (False, True) if options.two_pass is not False else (False,):
-        if not predictor.prepare(options.iters, warm_start=warm_start, wait=False):
+    graphs: list[tuple[Iterations, bool]] = [(options.iters, False)]
+    if options.two_pass is not False:
+        graphs.append((options.iters, True))
+    if getattr(args, "sequence", False):
+        warm_iters = parse_iterations(args.warm_iters)
+        graphs.append((options.iters if warm_iters is None else warm_iters, True))
+    return graphs
+
+
+def load_predictor(args: argparse.Namespace) -> StereoPredictor:
+    """The predictor that --model, --weights, --device, --backend and --precision name. Left to
+    pick (auto), it takes OpenVINO only where the graphs of the command's forwards are in the
+    cache already, else torch: a one-off command never waits for an export. Asked for OpenVINO
+    (--backend openvino, or $CRESTEREO_BACKEND), it exports the missing graphs first, saying so."""
+    from model import load_model
+    from model.device import resolve_device
+
+    graphs = graphs_needed(args)  # invalid options are an error before anything loads
+    device = resolve_device(args.device, 0)
+
+    def load(backend: BackendChoice) -> StereoPredictor:  # one call site: a warning about the weights shows once
+        return load_model(args.model, args.weights, device, backend=backend, precision=args.precision)
+
+    predictor = load(args.backend)
+    if predictor.backend == "torch" or all(predictor.ready(iters, warm_start=warm) for iters, warm in graphs):
+        return predictor
+    if not asked_for_openvino(args.backend):
+        print(
+            "crestereo-pp: computing on torch: OpenVINO's graphs for these iterations are not in the cache "
+            "(`crestereo-pp prepare` exports them, once per weights)",
+            file=sys.stderr,
+        )
+        return load("torch")
+    for iters, warm_start in graphs:
+        if not predictor.prepare(iters, warm_start=warm_start, wait=False):
             print(
-                f"crestereo-pp: compiling {args.model} for OpenVINO ({'warm' if warm_start else 'cold'} start), once: "
-                "about a minute; later runs read it from the cache",
+                f"crestereo-pp: exporting {args.model}'s OpenVINO graph ({'warm' if warm_start else 'cold'} start), "
+                "once per weights (minutes; `crestereo-pp prepare` does it ahead)",
                 file=sys.stderr,
             )
-            if not predictor.prepare(options.iters, warm_start=warm_start, wait=True):
+            if not predictor.prepare(iters, warm_start=warm_start, wait=True):
                 print("crestereo-pp: the OpenVINO export failed (see the log); running on torch", file=sys.stderr)
     return predictor
+
+
+def asked_for_openvino(backend: str) -> bool:
+    """Whether the user named OpenVINO: --backend openvino, or --backend auto with
+    $CRESTEREO_BACKEND=openvino (rather than auto choosing it)."""
+    named = backend if backend != "auto" else os.environ.get("CRESTEREO_BACKEND", "").strip().lower()
+    return named == "openvino"

@@ -19,7 +19,17 @@ from service.cpu import configure_torch_threads
 from service.ray_serve import connect, cpu_share, require_ray
 
 from .options import inference_options, load_predictor
-from .predict import Frame, Job, PairPaths, find_pairs, is_complete, is_video_pair, plan, predict_and_write, read_pair
+from .prediction import (
+    Frame,
+    Job,
+    PairPaths,
+    find_pairs,
+    is_complete,
+    is_video_pair,
+    plan,
+    predict_and_write,
+    read_pair,
+)
 
 SHOWN_FAILURES = 20
 

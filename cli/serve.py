@@ -5,19 +5,13 @@ from __future__ import annotations
 import argparse
 import os
 
-from service.__main__ import serve
 
-
-def add_parser(commands: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
-    parser = commands.add_parser(
-        "serve",
-        help="the HTTP service (configured by the CRESTEREO_* variables), here or on a Ray cluster",
-        description=(
-            "Serve the HTTP API and the web page. Plain: one process on this machine (as `python -m service`). "
-            "With --ray: the same app in replicas on a Ray cluster, behind Ray's HTTP proxy (needs the `ray` extra); "
-            "each answer names its replica in X-Replica. Without --address a local cluster is started and "
-            "stopped again on SIGTERM or SIGINT."
-        ),
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.description = (
+        "Serve the HTTP API and the web page. Plain: one process on this machine (as `python -m service`). "
+        "With --ray: the same app in replicas on a Ray cluster, behind Ray's HTTP proxy (needs the `ray` extra); "
+        "each answer names its replica in X-Replica. Without --address a local cluster is started and "
+        "stopped again on SIGTERM or SIGINT."
     )
     parser.add_argument("--host", default=os.environ.get("UVICORN_HOST", "127.0.0.1"), help="[127.0.0.1]")
     parser.add_argument("--port", type=int, default=int(os.environ.get("UVICORN_PORT", "8000")), help="[8000]")
@@ -50,6 +44,8 @@ def run(args: argparse.Namespace) -> int:
         given = [flag for flag, value in ray_only.items() if value is not None]
         if given:
             raise ValueError(f"{', '.join(given)} only apply with --ray")
+        from service.__main__ import serve
+
         serve(args.host, args.port)
         return 0
     from service.ray_serve import Scale, serve_on_ray

@@ -14,16 +14,12 @@ from training.trainer import train
 from .dataclass_args import add_dataclass_options, given_options
 
 
-def add_parser(commands: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
-    parser = commands.add_parser(
-        "train",
-        help="train a network (procedural scenes and/or datasets; torchrun for several GPUs)",
-        description=(
-            "Train CREStereo++ / Lite-CREStereo++. Start from a preset (the paper's two stages), "
-            "override any field below, or continue a checkpoint exactly with --resume (its config, "
-            "plus the options given here). Writes checkpoint.pt, log.csv and loss_curve.png to "
-            "--out-dir. Several GPUs or nodes: torchrun --nproc-per-node N -m cli.main train ..."
-        ),
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.description = (
+        "Train CREStereo++ / Lite-CREStereo++. Start from a preset (the paper's two stages), "
+        "override any field below, or continue a checkpoint exactly with --resume (its config, "
+        "plus the options given here). Writes checkpoint.pt, log.csv and loss_curve.png to "
+        "--out-dir. Several GPUs or nodes: torchrun --nproc-per-node N -m cli.main train ..."
     )
     parser.add_argument("--preset", choices=sorted(PRESETS), help="starting config [pretrain]")
     start = parser.add_mutually_exclusive_group()

@@ -27,7 +27,7 @@ from raw_camera import (
 )
 
 from cli.main import main
-from cli.predict import find_pairs
+from cli.prediction import find_pairs
 from stereo_data.formats import read_kitti_disparity, read_pfm
 from stereo_data.synthetic import SceneConfig, SceneGenerator
 from stereo_data.visualize import BAR_HEIGHT

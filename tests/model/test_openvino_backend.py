@@ -1,11 +1,19 @@
-"""Spec of the OpenVINO backend: the same maps as torch for every knob, never a stalled call, a
-disk cache that spares a restart the export, and an honest choice of backend and precision.
+"""Spec of the OpenVINO backend: the same maps as torch for every knob, never a stalled call nor
+an export that was not asked for, a disk cache that spares a restart the export, exports that end
+with their process and leave no partial file, and an honest choice of backend and precision.
 
 The graphs here run one iteration per stage: an export costs CPU time in proportion to the
 iterations it unrolls, and the equality of the maps does not depend on their number.
 """
 
 import logging
+import os
+import re
+import signal
+import subprocess
+import sys
+import threading
+import time
 from pathlib import Path
 
 import cv2
@@ -13,10 +21,13 @@ import numpy as np
 import pytest
 import torch
 
+from cli.main import main
 from model import load_model
 from model.inference import resolve_backend, resolve_precision
 from model.openvino_backend import native_bf16
 from shared_data import STEREO_DEV
+
+REPO = Path(__file__).resolve().parents[2]
 
 ITERS = (1, 1, 1)
 PAIR = STEREO_DEV / "middlebury2001_tsukuba"  # 384x288, the smallest real pair
@@ -53,22 +64,23 @@ class Messages(logging.Handler):
 
 @pytest.fixture(scope="module")
 def first_call(cache_dir, tsukuba):
-    """An OpenVINO predictor with an empty cache: its first call (before any graph exists) and what
-    it logged, then the graphs for cold and warm starts made ready."""
+    """An OpenVINO predictor with an empty cache: its first call (before any graph exists), then
+    the graphs for cold and warm starts prepared, and what that logged."""
     with pytest.MonkeyPatch.context() as patch:
         patch.setenv("CRESTEREO_CACHE_DIR", str(cache_dir))
         predictor = load_model("lite", backend="openvino", precision="fp32")
+    before = predictor.predict(*tsukuba, iters=ITERS)
+    counts = (predictor.openvino.runs, predictor.openvino.fallback_runs, predictor.openvino.exports)
+    exporting = [thread.name for thread in threading.enumerate() if thread.name == "openvino-export"]
     logger, messages = logging.getLogger("model.openvino_backend"), Messages()
     logger.addHandler(messages)
     logger.setLevel(logging.INFO)
     try:
-        before = predictor.predict(*tsukuba, iters=ITERS)
+        assert predictor.prepare(ITERS) and predictor.prepare(ITERS, warm_start=True)
     finally:
         logger.removeHandler(messages)
         logger.setLevel(logging.NOTSET)
-    counts = (predictor.openvino.runs, predictor.openvino.fallback_runs)
-    assert predictor.prepare(ITERS) and predictor.prepare(ITERS, warm_start=True)
-    return predictor, before, "\n".join(messages.messages), counts
+    return predictor, before, "\n".join(messages.messages), (*counts, exporting)
 
 
 def assert_maps_agree(actual, expected) -> None:
@@ -79,12 +91,118 @@ def assert_maps_agree(actual, expected) -> None:
         assert np.abs(a - e).max() < 0.01, (name, np.abs(a - e).max())
 
 
-def test_a_graph_not_ready_yet_runs_on_torch_while_it_is_exported_in_the_background(first_call, torch_lite, tsukuba):
-    predictor, before, log, (runs, fallback_runs) = first_call
-    assert (runs, fallback_runs) == (0, 2)  # nothing waited for the export: auto's quick pass, then the pass
+def test_a_call_whose_graph_is_not_prepared_runs_on_torch_and_starts_no_export(first_call, torch_lite, tsukuba):
+    predictor, before, log, (runs, fallback_runs, exports, exporting) = first_call
+    assert (runs, fallback_runs, exports, exporting) == (0, 2, 0, [])  # auto's quick pass, then the pass
     expected = torch_lite.predict(*tsukuba, iters=ITERS)
     np.testing.assert_array_equal(before.disparity, expected.disparity)  # torch itself computed it
-    assert "exporting the graph for iterations (1, 1, 1)" in log and "run on torch until it is ready" in log
+
+
+def test_prepare_exports_into_the_cache_saying_when_each_graph_is_ready_and_leaves_no_partial_file(first_call):
+    predictor, _, log, _ = first_call
+    for start in ("cold", "warm"):
+        assert f"exporting the graph for iterations (1, 1, 1) ({start} start)" in log
+        assert re.search(rf"iterations \(1, 1, 1\) \({start} start\) is ready, exported in \d+ s", log), log
+    files = {path.name for path in predictor.openvino.graph_dir.iterdir()}
+    assert {f"iters1-1-1-{start}.{suffix}" for start in ("cold", "warm") for suffix in ("xml", "bin")} <= files
+    assert not [name for name in files if name.startswith(".")]  # no partial file
+    assert predictor.openvino.exports == len(files) // 2  # the cache was empty: every graph there is its export
+
+
+def test_the_cli_runs_openvino_where_the_graphs_are_cached_and_else_torch_exporting_nothing(
+    first_call, cache_dir, tmp_path, monkeypatch, capsys
+):
+    monkeypatch.delenv("CRESTEREO_BACKEND")  # auto
+    monkeypatch.setenv("CRESTEREO_CACHE_DIR", str(cache_dir))
+    data = tmp_path / "pairs"
+    data.mkdir()
+    (data / PAIR.name).symlink_to(PAIR)
+    graphs = set(cache_dir.rglob("*.xml"))
+    for finest, backend in ((1, "openvino"), (2, "torch")):
+        arguments = ["eval", str(data), "--iters", "1", "1", str(finest), "--two-pass", "off", "--precision", "fp32"]
+        assert main(arguments) == 0
+        out, err = capsys.readouterr()
+        assert f"lite on {backend}, fp32" in out
+        assert ("computing on torch" in err) == (backend == "torch"), err
+    assert set(cache_dir.rglob("*.xml")) == graphs  # nothing exported
+
+
+def test_prepare_says_which_graphs_are_in_the_cache_already(first_call, cache_dir, monkeypatch, capsys):
+    monkeypatch.setenv("CRESTEREO_CACHE_DIR", str(cache_dir))
+    assert main(["prepare", "--iters", "1", "1", "1"]) == 0
+    out = capsys.readouterr().out
+    for start in ("cold", "warm"):
+        assert f"lite's graphs for iterations (1, 1, 1) ({start} start): in the cache already" in out
+
+
+def test_load_model_reads_the_graphs_it_is_asked_to_prepare_from_the_cache(first_call, cache_dir):
+    loaded = load_model("lite", backend="openvino", precision="fp32", cache_dir=cache_dir, prepare_iters=[ITERS])
+    assert loaded.ready(ITERS) and loaded.ready(ITERS, warm_start=True) and loaded.openvino.exports == 0
+
+
+def test_the_partial_files_of_an_export_whose_process_ended_are_removed(tmp_path, openvino_cache):
+    # openvino_cache only orders this test with the others that run OpenVINO here (tests/conftest.py)
+    predictor = load_model("lite", backend="openvino", cache_dir=tmp_path)
+    graph_dir = predictor.openvino.graph_dir
+    graph_dir.mkdir(parents=True)
+    ended = subprocess.Popen(["true"])
+    ended.wait()
+    abandoned = [graph_dir / f".{ended.pid}-0123abcd-iters1-1-1-cold.{suffix}" for suffix in ("xml", "bin")]
+    under_way = graph_dir / f".{os.getpid()}-4567cdef-iters1-1-1-warm.xml"
+    for path in (*abandoned, under_way):
+        path.write_text("partial")
+    load_model("lite", backend="openvino", cache_dir=tmp_path)
+    assert list(graph_dir.iterdir()) == [under_way]
+
+
+@pytest.mark.slow
+def test_an_export_ends_with_the_process_that_asked_for_it_and_leaves_no_file(tmp_path):
+    temporary = tmp_path / "tmp"
+    temporary.mkdir()
+    environment = {**os.environ, "CRESTEREO_CACHE_DIR": str(tmp_path / "cache"), "TMPDIR": str(temporary)}
+    script = "from model import load_model; load_model('lite', backend='openvino').prepare((1, 1, 1))"
+    parent = subprocess.Popen([sys.executable, "-c", script], env=environment, cwd=REPO)
+    try:
+        child = wait_for(lambda: export_child(parent.pid), timeout_s=120)
+        # exporting: the child imports openvino once it is set to end with its parent
+        wait_for(lambda: "libopenvino" in Path(f"/proc/{child}/maps").read_text(), timeout_s=120)
+        parent.send_signal(signal.SIGTERM)
+        assert parent.wait(timeout=30) == -signal.SIGTERM
+        wait_for(lambda: not running(child), timeout_s=30)
+    finally:
+        parent.kill()
+    assert [path.name for path in (tmp_path / "cache").rglob("*") if path.is_file()] == []
+    assert list(temporary.iterdir()) == []
+
+
+def export_child(parent: int) -> int | None:
+    """The pid of `parent`'s export process, once it runs."""
+    for task in Path(f"/proc/{parent}/task").iterdir():
+        for pid in (task / "children").read_text().split():
+            if b"model.openvino_backend" in Path(f"/proc/{pid}/cmdline").read_bytes():
+                return int(pid)
+    return None
+
+
+def proc_status(pid: int) -> dict[str, str]:
+    lines = Path(f"/proc/{pid}/status").read_text().splitlines()
+    return dict(line.split(":\t", 1) for line in lines if ":\t" in line)
+
+
+def running(pid: int) -> bool:
+    """Whether `pid` is a process that has not ended (a zombie has ended)."""
+    try:
+        return not proc_status(pid)["State"].startswith("Z")
+    except FileNotFoundError:
+        return False
+
+
+def wait_for(condition, timeout_s: float):
+    deadline = time.monotonic() + timeout_s
+    while not (value := condition()):
+        assert time.monotonic() < deadline, f"not within {timeout_s} s"
+        time.sleep(0.1)
+    return value
 
 
 def test_openvino_maps_equal_torch_maps_on_a_real_pair_for_every_knob(first_call, torch_lite, tsukuba):

@@ -1,0 +1,285 @@
+"""What `crestereo-pp predict` does: find the pairs, compute them, write their outputs."""
+
+from __future__ import annotations
+
+import argparse
+import glob
+import os
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+from tqdm import tqdm
+
+from model import FrameStream
+from model.options import parse_iterations
+from stereo_data.formats import encode_png, read_image, write_depth, write_disparity, write_uncertainty
+from stereo_data.pointcloud import (
+    IMAGE_FRAME,
+    METRIC_FRAME,
+    Calibration,
+    DepthRange,
+    encode_ply,
+    metric_depth,
+    point_cloud,
+)
+from stereo_data.rig import Rectifier, read_rig
+from stereo_data.visualize import disparity_picture, scale_range
+
+from .options import inference_options, load_predictor
+
+IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".ppm", ".pgm", ".tif", ".tiff", ".webp"}
+VIDEO_SUFFIXES = {".mp4", ".avi", ".mkv", ".mov", ".webm", ".m4v"}
+
+
+@dataclass(frozen=True)
+class PairPaths:
+    """Input images of one pair and the output `stem` (relative path without extension)."""
+
+    left: Path
+    right: Path
+    stem: Path
+
+
+def is_single_pair(left: str, right: str) -> bool:
+    """True when LEFT and RIGHT name two image files (then OUT names a file, not a folder)."""
+    return Path(left).is_file() and Path(right).is_file() and not is_video_pair(left, right)
+
+
+def is_video_pair(left: str, right: str) -> bool:
+    """True when LEFT and RIGHT name two video files (a stereo video, frame by frame)."""
+    return all(Path(name).is_file() and Path(name).suffix.lower() in VIDEO_SUFFIXES for name in (left, right))
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One pair to compute: where it comes from (the output stem) and its images, RGB."""
+
+    pair: PairPaths
+    left: np.ndarray
+    right: np.ndarray
+
+
+def read_frames(left: str, right: str) -> tuple[int, Iterator[Frame]]:
+    """How many pairs LEFT and RIGHT hold (a video's count is its container's estimate) and
+    the pairs themselves, read one at a time."""
+    if is_video_pair(left, right):
+        return video_frames(Path(left), Path(right))
+    pairs = find_pairs(left, right)
+    return len(pairs), (Frame(pair, *read_pair(pair)) for pair in pairs)
+
+
+def read_pair(pair: PairPaths) -> tuple[np.ndarray, np.ndarray]:
+    left, right = read_image(pair.left), read_image(pair.right)
+    if left.shape != right.shape:
+        sizes = [
+            f"{path} is {image.shape[1]}x{image.shape[0]}" for path, image in ((pair.left, left), (pair.right, right))
+        ]
+        raise ValueError(f"{sizes[0]} but {sizes[1]}: a stereo pair has two images of one size")
+    return left, right
+
+
+def video_frames(left: Path, right: Path) -> tuple[int, Iterator[Frame]]:
+    """The frames of two videos of one stereo camera, in lockstep (ValueError where they cannot
+    be read or hold different numbers of frames)."""
+    videos = [cv2.VideoCapture(str(path)) for path in (left, right)]
+    for path, video in zip((left, right), videos, strict=True):
+        if not video.isOpened():
+            raise ValueError(f"{path}: not a video that OpenCV can read")
+    counts = [int(video.get(cv2.CAP_PROP_FRAME_COUNT)) for video in videos]
+    if counts[0] != counts[1]:
+        raise ValueError(f"{left} has {counts[0]} frames but {right} has {counts[1]}: a stereo video has one count")
+
+    def frames() -> Iterator[Frame]:
+        try:
+            for index in range(counts[0]):
+                read = [video.read() for video in videos]
+                if not all(ok for ok, _ in read):
+                    return  # the containers over-counted: what was read is what there is
+                images = [cv2.cvtColor(image, cv2.COLOR_BGR2RGB) for _, image in read]
+                yield Frame(PairPaths(left, right, Path(f"frame_{index:06d}")), images[0], images[1])
+        finally:
+            for video in videos:
+                video.release()
+
+    return counts[0], frames()
+
+
+def find_pairs(left: str, right: str) -> list[PairPaths]:
+    """Pairs named by LEFT and RIGHT: two files, two folders (matched by file name), or two globs
+    (matched in sorted order). Stems are relative to the folder holding all left images."""
+    if is_single_pair(left, right):
+        return [PairPaths(Path(left), Path(right), Path(Path(left).stem))]
+    if Path(left).is_dir() and Path(right).is_dir():
+        lefts = {p.name: p for p in Path(left).iterdir() if p.suffix.lower() in IMAGE_SUFFIXES}
+        rights = {p.name: p for p in Path(right).iterdir() if p.suffix.lower() in IMAGE_SUFFIXES}
+        if set(lefts) != set(rights):
+            unmatched = sorted(set(lefts) ^ set(rights))
+            raise ValueError(f"{len(unmatched)} image(s) have no partner in the other folder: {unmatched[:5]}")
+        return [PairPaths(lefts[name], rights[name], Path(lefts[name].stem)) for name in sorted(lefts)]
+    left_paths = [Path(p) for p in sorted(glob.glob(left)) if Path(p).is_file()]
+    right_paths = [Path(p) for p in sorted(glob.glob(right)) if Path(p).is_file()]
+    if not left_paths:
+        raise ValueError(f"no left image matches {left!r}")
+    if len(left_paths) != len(right_paths):
+        raise ValueError(
+            f"{len(left_paths)} left images match {left!r} but {len(right_paths)} right images match {right!r}"
+        )
+    root = Path(os.path.commonpath([p.parent.resolve() for p in left_paths]))
+    return [
+        PairPaths(left_path, right_path, left_path.resolve().relative_to(root).with_suffix(""))
+        for left_path, right_path in zip(left_paths, right_paths, strict=True)
+    ]
+
+
+@dataclass(frozen=True)
+class Output:
+    """One output option: its flag, the path given, what is written there and the suffixes it takes
+    (the first is the one of folder mode)."""
+
+    flag: str
+    path: Path
+    what: str
+    suffixes: tuple[str, ...]
+
+    def file(self, pair: PairPaths, single: bool) -> Path:
+        return self.path if single else self.path / f"{pair.stem}{self.suffixes[0]}"
+
+
+def outputs(args: argparse.Namespace) -> list[Output]:
+    """The outputs asked for, disparity first."""
+    maps = (".pfm", ".png", ".npy")
+    disparity_suffixes = (f".{args.format}", *(s for s in maps if s != f".{args.format}"))
+    candidates = [
+        Output("--output", args.output, "disparity", disparity_suffixes),
+        Output("--uncertainty", args.uncertainty, "uncertainty", maps),
+        Output("--depth", args.depth, "depth", maps),
+        Output("--color", args.color, "colour picture", (".png",)),
+        Output("--ply", args.ply, "point cloud", (".ply",)),
+    ]
+    return [output for output in candidates if output.path is not None]
+
+
+def check_outputs(targets: list[Output], single: bool, mkdir: bool) -> None:
+    """Refuse, before anything is computed, an output that could not be written: a file name
+    without a suffix of its kind, a folder that is a file, or a missing folder (unless `mkdir`)."""
+    for output in targets:
+        if single and output.path.suffix.lower() not in output.suffixes:
+            raise ValueError(f"{output.flag} {output.path}: the file name must end in {', '.join(output.suffixes)}")
+        if not single and output.path.exists() and not output.path.is_dir():
+            raise ValueError(f"{output.flag} {output.path}: is a file; with several pairs it names a folder")
+        folder = output.path.parent if single else output.path
+        if not folder.is_dir() and not mkdir:
+            raise ValueError(
+                f"{output.flag} {output.path}: the folder {folder} does not exist (create it, or add --mkdir)"
+            )
+
+
+@dataclass(frozen=True)
+class Job:
+    """What the command computes for each pair and where it writes it (from its arguments)."""
+
+    args: argparse.Namespace
+    targets: list[Output]
+    single: bool
+    rectifier: Rectifier | None
+    calibration: Calibration | None
+    limits: DepthRange
+
+
+def plan(args: argparse.Namespace) -> Job:
+    """The job the arguments describe; ValueError, before any model is loaded, where they are
+    inconsistent or an output could not be written."""
+    if (args.focal_px is None) != (args.baseline_m is None):
+        raise ValueError("give both --focal-px and --baseline-m, or neither")
+    if args.calibration is not None and args.focal_px is not None:
+        raise ValueError("--calibration gives the focal length and baseline: leave out --focal-px and --baseline-m")
+    if args.frame == "original" and args.calibration is None:
+        raise ValueError("--frame original needs --calibration (a rectified pair has no other frame)")
+    if args.depth is not None and args.focal_px is None and args.calibration is None:
+        raise ValueError("--depth needs --calibration, or --focal-px and --baseline-m")
+    if args.warm_iters is not None and not args.sequence:
+        raise ValueError("--warm-iters needs --sequence (only a sequence's frames start warm)")
+    rectifier = None if args.calibration is None else Rectifier(read_rig(args.calibration))
+    single = is_single_pair(args.left, args.right)
+    targets = outputs(args)
+    check_outputs(targets, single, args.mkdir)
+    calibration = (
+        rectifier.depth_calibration
+        if rectifier is not None
+        else None
+        if args.focal_px is None
+        else Calibration(args.focal_px, args.baseline_m, args.cx, args.cy)
+    )
+    return Job(args, targets, single, rectifier, calibration, DepthRange(args.min_disparity, args.max_depth_m))
+
+
+def is_complete(job: Job, pair: PairPaths) -> bool:
+    """Whether every output of `pair` exists (each is written whole or not at all)."""
+    return all(output.file(pair, job.single).is_file() for output in job.targets)
+
+
+def predict_and_write(job: Job, stream: FrameStream, frame: Frame) -> None:
+    """Compute one pair (rectified first where the job has a calibration; warm-started from the
+    stream's previous pair only with --sequence) and write its outputs, each to a temporary name
+    first and then renamed: an interrupted run leaves no partial file."""
+    args, pair, left, right = job.args, frame.pair, frame.left, frame.right
+    if not args.sequence:
+        stream.restart()  # every pair on its own
+    if job.rectifier is not None:
+        left, right = job.rectifier.rectify(left, right)
+    prediction = stream.predict(left, right)
+    disparity, uncertainty = prediction.disparity, prediction.uncertainty
+    depth = None if job.calibration is None else metric_depth(disparity, job.calibration, job.limits)
+    if job.rectifier is not None and args.frame == "original":
+        disparity = job.rectifier.to_original(disparity, np.inf)
+        uncertainty = job.rectifier.to_original(uncertainty, 1.0)
+        depth = None if depth is None else job.rectifier.to_original_depth(depth)
+    for output in job.targets:
+        path = output.file(pair, job.single)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        partial = path.with_name(f".{path.stem}.partial{path.suffix}")
+        if output.flag == "--output":
+            write_disparity(partial, disparity)
+        elif output.flag == "--uncertainty":
+            write_uncertainty(partial, uncertainty)
+        elif output.flag == "--depth":
+            assert depth is not None  # checked in plan()
+            write_depth(partial, depth)
+        elif output.flag == "--color":
+            shown = np.where(np.isfinite(disparity), disparity, 0.0)
+            scale = scale_range(shown, args.color_min, args.color_max)
+            partial.write_bytes(encode_png(disparity_picture(shown, scale)))
+        else:  # points in the (rectified) left camera's frame, coloured by the image the network saw
+            points, colors = point_cloud(
+                prediction.disparity, left, prediction.uncertainty, job.calibration, args.max_uncertainty, job.limits
+            )
+            frame_name = IMAGE_FRAME if job.calibration is None else METRIC_FRAME
+            partial.write_bytes(encode_ply(points, colors, frame_name))
+        os.replace(partial, path)
+        if job.single:
+            print(f"wrote {output.what} {path}")
+
+
+def run(args: argparse.Namespace) -> int:
+    job = plan(args)
+    if args.ray:
+        from .ray_predict import run_on_ray
+
+        return run_on_ray(job)
+    if args.address is not None or args.workers is not None:
+        raise ValueError("--address and --workers only apply with --ray")
+    warm_iters = parse_iterations(args.warm_iters)
+    count, frames = read_frames(args.left, args.right)
+    predictor = load_predictor(args)
+    stream = predictor.stream(inference_options(args), warm_iters)
+    written = 0
+    for frame in tqdm(frames, total=count, desc=f"predict {args.model}", unit="pair", disable=job.single):
+        predict_and_write(job, stream, frame)
+        written += 1
+    if not job.single:  # every output was written once per pair (any failure stops the command)
+        for output in job.targets:
+            print(f"wrote {written} {output.what} files to {output.path}")
+    return 0

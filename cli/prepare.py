@@ -1,0 +1,44 @@
+"""`crestereo-pp prepare`: export a model's OpenVINO graphs into the cache, once per weights."""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+from .options import add_iterations_option, add_network_options
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.description = (
+        "Export the OpenVINO graphs of MODEL at --iters, for cold and warm starts (two passes and the frames "
+        "of a sequence start warm), into the cache ($CRESTEREO_CACHE_DIR, else $XDG_CACHE_HOME/crestereo-pp, "
+        "else ~/.cache/crestereo-pp), where predict, eval, the service and the Python API read them: until "
+        "then they compute on torch, 2-3x slower on a CPU. Each graph takes minutes of CPU, once per weights "
+        "and iterations; a graph already in the cache is not exported again."
+    )
+    add_network_options(parser)
+    add_iterations_option(parser)
+    parser.set_defaults(run=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Exit status 1 where an export failed (those calls run on torch)."""
+    from model import load_model, parse_iterations
+
+    iters = parse_iterations(args.iters)
+    predictor = load_model(args.model, args.weights, "cpu", backend="openvino")
+    assert predictor.openvino is not None  # asked for by name: ValueError where it cannot run
+    failed = False
+    for warm_start in (False, True):
+        kind = "warm" if warm_start else "cold"
+        what = f"{args.model}'s graphs for iterations {predictor.iterations(iters)} ({kind} start)"
+        if predictor.ready(iters, warm_start=warm_start):
+            print(f"{what}: in the cache already")
+            continue
+        print(f"{what}: exporting...", flush=True)
+        start = time.monotonic()
+        ready = predictor.prepare(iters, warm_start=warm_start)
+        print(f"{what}: {'ready' if ready else 'failed'} after {time.monotonic() - start:.0f} s")
+        failed = failed or not ready
+    print(f"cache: {predictor.openvino.graph_dir or 'none (weights without a hash: in memory only)'}")
+    return 1 if failed else 0
