@@ -12,9 +12,10 @@ CPU computes bf16 natively (AVX512-BF16, AMX).
 A graph is exported only when asked for (``prepare``; ``crestereo-pp prepare`` from the shell),
 never by a call: a call whose graph is neither in memory nor in the disk cache runs on torch in
 fp32. An export takes minutes of CPU (README, "Benchmarks"); it runs in a child process (one at a
-time per process, watched by a background thread) that ends with the process that started it,
-and its files reach the cache complete, under their final names, or not at all. A graph whose
-export fails runs on torch from then on (logged once).
+time per process, watched by a background thread) that ends with the process that started it.
+Its files reach the cache complete, under their final names; partial ones are removed, by the
+process that started it or, where that was killed, by the next one to use the cache. A graph
+whose export fails runs on torch from then on (logged once).
 """
 
 from __future__ import annotations
@@ -36,7 +37,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from importlib.util import find_spec
 from pathlib import Path
-from types import FrameType
 from typing import Any
 
 import numpy as np
@@ -126,13 +126,14 @@ class _Graph(nn.Module):
         return out.disparity.float(), out.uncertainty.float()
 
 
-def export_graph(network: nn.Module, kind: GraphKind) -> Any:
+def export_graph(network: nn.Module, kind: GraphKind, onnx_file: Path) -> Any:
     """The network as an ``openvino.Model`` with symbolic batch, height and width (multiples of
     INPUT_MULTIPLE): inputs left, right (B, 3, H, W) float32 in [0, 255] and, warm, init
     (B, 1, H, W) px; outputs disparity and uncertainty (B, 1, H, W) float32.
 
-    Through ONNX (torch's dynamo exporter, which also simplifies the graph): the graph OpenVINO
-    builds from it ran 15-20 % faster than one converted from ``torch.export`` directly."""
+    Through ONNX (torch's dynamo exporter, which also simplifies the graph), written to
+    `onnx_file` meanwhile: the graph OpenVINO builds from it ran 15-20 % faster than one converted
+    from ``torch.export`` directly."""
     import openvino as ov
 
     batch = torch.export.Dim("batch", min=1, max=MAX_BATCH)
@@ -165,10 +166,11 @@ def export_graph(network: nn.Module, kind: GraphKind) -> Any:
     finally:
         quiet.setLevel(level)
     assert program is not None  # dynamo=True always returns the program
-    with tempfile.TemporaryDirectory() as folder:
-        path = Path(folder) / "graph.onnx"
-        program.save(str(path))
-        return ov.convert_model(path)
+    try:
+        program.save(str(onnx_file))
+        return ov.convert_model(onnx_file)
+    finally:
+        onnx_file.unlink(missing_ok=True)
 
 
 class OpenVINOForward:
@@ -371,47 +373,43 @@ def _export_in_child(network: nn.Module, kind: GraphKind, graph_file: Path) -> N
 
 
 def _export_main(arguments: Sequence[str]) -> None:
-    """The export process: PARENT_PID N16 N8 N4 cold|warm GRAPH_XML, the network on stdin."""
-    import openvino as ov
-
+    """The export process: PARENT_PID N16 N8 N4 cold|warm GRAPH_XML, the network on stdin. Its
+    files (the .xml and .bin, the .onnx meanwhile) are named after GRAPH_XML."""
     parent, n16, n8, n4, start, graph_file = arguments
     _end_with_parent(int(parent))
-    network = torch.load(io.BytesIO(sys.stdin.buffer.read()), weights_only=False)  # from the parent, just now
-    graph = export_graph(network, GraphKind((int(n16), int(n8), int(n4)), start == "warm"))
-    try:
-        ov.save_model(graph, graph_file, compress_to_fp16=False)
-    except BaseException:  # stopped while writing (see _end_with_parent): no partial graph is left
-        _remove_graph(Path(graph_file))
-        raise
+    # Read before openvino is imported: its telemetry forks a process from another thread, and a
+    # process forked while this thread holds stdin's lock hangs as it closes stdin.
+    network_bytes = sys.stdin.buffer.read()
+    import openvino as ov
+
+    network = torch.load(io.BytesIO(network_bytes), weights_only=False)  # from the parent, just now
+    xml = Path(graph_file)
+    graph = export_graph(network, GraphKind((int(n16), int(n8), int(n4)), start == "warm"), xml.with_suffix(".onnx"))
+    ov.save_model(graph, xml, compress_to_fp16=False)
 
 
 def _end_with_parent(parent: int) -> None:
-    """Have the kernel send this process SIGTERM when the thread that started it ends (Linux's
+    """Have the kernel kill this process when the thread that started it ends (Linux's
     PR_SET_PDEATHSIG; that thread waits for this process, so it ends first only when its whole
-    process ends, by exit or by signal), and make SIGTERM a SystemExit, which removes the
-    temporary files on its way out. Ends now if the parent has already ended."""
-    signal.signal(signal.SIGTERM, _stop)
+    process ends, by exit or by signal); end now if the parent has already ended. Files this
+    process leaves are its parent's partial files (see _remove_abandoned_exports)."""
     if sys.platform == "linux":
         libc = ctypes.CDLL(None, use_errno=True)
-        if libc.prctl(PR_SET_PDEATHSIG, signal.SIGTERM) != 0:
+        if libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL) != 0:
             raise OSError(ctypes.get_errno(), "prctl(PR_SET_PDEATHSIG) failed")
     if os.getppid() != parent:
         raise SystemExit("the process that asked for this export has ended")
 
 
-def _stop(signum: int, frame: FrameType | None) -> None:
-    raise SystemExit(f"stopped by signal {signum}")
-
-
 def _remove_graph(xml: Path) -> None:
-    """Remove the .xml and .bin of a graph, where they exist."""
-    for path in (xml, xml.with_suffix(".bin")):
-        path.unlink(missing_ok=True)
+    """Remove the files of a graph, where they exist: .xml, .bin and the .onnx of its export."""
+    for suffix in (".xml", ".bin", ".onnx"):
+        xml.with_suffix(suffix).unlink(missing_ok=True)
 
 
 def _remove_abandoned_exports(folder: Path) -> None:
-    """Remove the partial files (``.PID-...``) of exports whose process has ended between its
-    child writing them and itself renaming them."""
+    """Remove the partial files (``.PID-...``) of exports whose process has ended before renaming
+    or removing them (killed: its export process was killed with it)."""
     for path in folder.glob(".*-iters*"):
         pid = path.name[1:].split("-", 1)[0]
         if pid.isdigit() and not _running(int(pid)):
