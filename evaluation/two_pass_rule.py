@@ -104,6 +104,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     dataset = open_dataset(args.dataset)
     predictor = load_model(args.model, args.weights, backend=args.backend, precision=args.precision)
+    if not (predictor.ready() and predictor.ready(warm_start=True)):  # one pass, and two (the second starts warm)
+        print("exporting OpenVINO's graphs, once per weights (minutes; `crestereo-pp prepare` does it ahead)")
+        for warm_start in (False, True):
+            predictor.prepare(warm_start=warm_start)
     print(f"{predictor.name} on {predictor.backend}, {predictor.precision}; auto threshold {LARGE_DISPARITY_PX:g} px")
     print(report(measure([dataset[i] for i in range(len(dataset))], predictor)))
     return 0
