@@ -152,17 +152,22 @@ def requests_queued(h: Harness) -> int:
     return sum(h.app.state.runtime.batcher.queue_depths().values())
 
 
-async def test_a_full_queue_answers_503_with_retry_after():
+async def test_a_full_queue_answers_503_with_retry_after_and_the_requests_it_holds_get_their_maps():
     async with serve_asgi(lite_settings(max_queue=1, max_batch_size=1)) as h:
         async with worker_held(h) as requests:
             requests.post("queued", *stereo_pair())
             await wait_queued(h, 1)
             refused = await h.client.post("/disparity", files=pair_files(*stereo_pair()))
         metrics = (await h.client.get("/metrics")).text
+        left, right = (torch.from_numpy(image[None]).permute(0, 3, 1, 2).float() for image in stereo_pair())
+        alone = h.predictors["lite"].predict(left, right).disparity[0].numpy()
     assert refused.status_code == 503
     assert refused.json()["error"]["code"] == "queue_full"
     assert int(refused.headers["retry-after"]) >= 1
-    assert [requests.responses[name].status_code for name in ("busy", "queued")] == [200, 200]
+    for name in ("busy", "queued"):  # the one computing and the one waiting both get the pair's own maps
+        response = requests.responses[name]
+        assert response.status_code == 200 and response.json()["batch_size"] == 1
+        assert_same_maps(disparity_of(response), alone)
     assert metric_total(metrics, "crestereo_rejected_total", reason="queue_full") == 1
 
 
