@@ -18,7 +18,7 @@ from torch.nn import functional as F
 from .calibration import UncertaintyCalibration
 from .config import ModelConfig
 from .cuda_graphs import Forward, GraphedForward
-from .network import CREStereoPP, padded_size
+from .network import CREStereoPP, finest_stage_only, padded_size
 from .openvino_backend import OpenVINOForward, native_bf16, openvino_available
 from .options import InferenceOptions, Iterations, StageCounts, TwoPass, WarmStart, parse_iterations
 from .upsample import resize_disparity
@@ -336,16 +336,27 @@ class StereoPredictor:
 
     def prepare(self, iters: Iterations = None, *, warm_start: bool = False, wait: bool = True) -> bool:
         """Make the fast path of this backend ready for these iterations (and a cold or warm
-        start): on OpenVINO, load or export its graph, in the background unless ``wait``.
-        Returns whether calls of that kind now run on this backend (always True on torch)."""
+        start): on OpenVINO, read its graphs (``graph_kinds``) from the cache or export them
+        (minutes each; in the background unless ``wait``). Returns whether calls of that kind now
+        run on this backend (always True on torch)."""
         if self.openvino is None:
             return True
-        return self.openvino.prepare(self.iterations(iters), warm_start, wait=wait)
+        kinds = self.graph_kinds(iters, warm_start)  # a list below: every export starts, even after one not ready
+        return all([self.openvino.prepare(counts, init, wait=wait) for counts, init in kinds])
 
     def ready(self, iters: Iterations = None, *, warm_start: bool = False) -> bool:
         """Whether calls with these iterations (and a cold or warm start) run on this predictor's
         backend now; False while OpenVINO is still exporting their graph (torch computes them)."""
-        return self.openvino is None or self.openvino.ready(self.iterations(iters), warm_start)
+        kinds = self.graph_kinds(iters, warm_start)
+        return self.openvino is None or all(self.openvino.ready(counts, init) for counts, init in kinds)
+
+    def graph_kinds(self, iters: Iterations, warm_start: bool) -> list[tuple[StageCounts, bool]]:
+        """The forwards (stage counts, whether they take a start disparity) of a cold or a warm
+        start with ``iters``: cold, one from zero; warm, the two that start from a given
+        disparity, every stage (a video's next frame, ``FrameStream``) and 1/4 only (the second
+        of two passes)."""
+        counts = self.iterations(iters)
+        return [(counts, True), (finest_stage_only(counts), True)] if warm_start else [(counts, False)]
 
     def iterations(self, iters: Iterations) -> StageCounts:
         """The counts per stage (1/16, 1/8, 1/4) that ``iters`` (see ``parse_iterations``) means here."""
@@ -397,7 +408,8 @@ class StereoPredictor:
         """Disparity and uncertainty of a rectified pair of any size (see ``as_image_batch``).
 
         init_disparity: warm start (e.g. the previous video frame's result), HxW array or
-            (B, H, W) tensor, positive pixels; refinement then runs at 1/4 only.
+            (B, H, W) tensor, positive pixels: every stage runs (``iters``), the coarsest
+            starting from it instead of from zero (see ``FrameStream``).
         two_pass: first a pass at half resolution, then refinement at full resolution from it
             (better for large disparities, coarser on fine detail): True, False, or "auto" (two
             passes where a quick quarter-resolution pass finds disparities above
@@ -529,7 +541,7 @@ class StereoPredictor:
     ) -> Iterator[Prediction]:
         """The maps of consecutive pairs of one camera (a video), lazily, in order: the first cold
         with ``options``, each next one warm-started from its predecessor's disparity with
-        ``warm_iters`` (default: ``options.iters``) at 1/4 resolution (see ``FrameStream``);
+        ``warm_iters`` (default: ``options.iters``; see ``FrameStream``);
         ``options`` default to the model's."""
         frames = self.stream(options, warm_iters)
         for left, right in pairs:
@@ -577,7 +589,7 @@ class StereoPredictor:
         self, left: Tensor, right: Tensor, counts: StageCounts, two_pass: TwoPass, forward: Forward
     ) -> tuple[Tensor, Tensor]:
         """The maps of (B, 3, H, W) pairs without a warm start, each (B, 1, H, W): one pass, two
-        passes (the second refining at 1/4 from a half-resolution one), or, with "auto", two
+        passes (the second refining at 1/4 only from a half-resolution one), or, with "auto", two
         passes for the pairs whose ``large_disparity_percentile`` is above LARGE_DISPARITY_PX and one
         for the others (one for all where ``two_pass_possible`` says the pairs are too small)."""
         if two_pass == "auto" and not two_pass_possible(*left.shape[-2:]):
@@ -592,14 +604,14 @@ class StereoPredictor:
                     left[group], right[group], counts, two, forward
                 )
             return disparity, uncertainty
-        init: Tensor | None = None
-        if two_pass:
-            init = half_resolution_start(
-                left,
-                right,
-                lambda small_left, small_right: self.forward_padded(small_left, small_right, counts, None, forward)[0],
-            )
-        return self.forward_padded(left, right, counts, init, forward)
+        if not two_pass:
+            return self.forward_padded(left, right, counts, None, forward)
+        init = half_resolution_start(
+            left,
+            right,
+            lambda small_left, small_right: self.forward_padded(small_left, small_right, counts, None, forward)[0],
+        )
+        return self.forward_padded(left, right, finest_stage_only(counts), init, forward)
 
     @torch.inference_mode()
     def large_disparity_percentile(
@@ -659,7 +671,7 @@ class StereoPredictor:
 
 class FrameStream:
     """Consecutive pairs of one camera computed one at a time, each warm-started from its
-    predecessor (the rules are ``WarmStart``'s)."""
+    predecessor (the rules, and why every stage runs, are ``WarmStart``'s)."""
 
     def __init__(self, predictor: StereoPredictor, options: InferenceOptions, warm_iters: Iterations = None) -> None:
         self.predictor = predictor

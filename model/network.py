@@ -26,6 +26,12 @@ def padded_size(size: int) -> int:
     return -(-size // INPUT_MULTIPLE) * INPUT_MULTIPLE
 
 
+def finest_stage_only(iters: tuple[int, int, int]) -> tuple[int, int, int]:
+    """``iters`` (at 1/16, 1/8, 1/4) with the coarse stages skipped: what refining a given
+    disparity at 1/4 only runs (the second of two passes)."""
+    return (0, 0, iters[-1])
+
+
 @dataclass
 class NetworkOutput:
     """What one forward pass returns. Disparities are positive, in pixels of the input.
@@ -70,9 +76,12 @@ class CREStereoPP(nn.Module):
         """
         Args:
             left, right: (B, 3, H, W) RGB in [0, 255]; H and W multiples of 32.
-            iters: iterations at 1/16, 1/8, 1/4 (default ``config.iters``).
-            init_disparity: optional (B, 1, H, W) warm start in pixels of the input; when given,
-                the coarse stages are skipped and refinement starts at 1/4 from it.
+            iters: iterations at 1/16, 1/8, 1/4 (default ``config.iters``); a stage with 0 is
+                skipped (``finest_stage_only``), the 1/4 one must run.
+            init_disparity: optional (B, 1, H, W) start, positive, in pixels of the input: the
+                first stage that runs starts from it (averaged down to that stage's resolution)
+                instead of from zero. A video's warm start runs every stage from it, the second
+                of two passes 1/4 only (``model.options.WarmStart`` says why).
         """
         height, width = left.shape[-2:]
         if height % INPUT_MULTIPLE or width % INPUT_MULTIPLE:
@@ -84,14 +93,15 @@ class CREStereoPP(nn.Module):
         left_features, right_features = features[:batch], features[batch:]
         pyramid = list(zip(feature_pyramid(left_features), feature_pyramid(right_features), strict=True))
 
+        if iters[-1] < 1:
+            raise ValueError(f"the 1/4 stage must run at least one iteration, got {iters}")
+        first_stage = next(stage for stage, count in enumerate(iters) if count > 0)
         if init_disparity is None:
-            first_stage = 0
-            f_left = pyramid[0][0]
+            f_left = pyramid[first_stage][0]
             # float32 even under bf16 autocast: the disparity accumulates over every iteration
             disparity = f_left.new_zeros(f_left.shape[0], 1, *f_left.shape[-2:], dtype=torch.float32)
         else:
-            first_stage = len(SCALES) - 1
-            disparity = F.avg_pool2d(init_disparity, SCALES[-1]) / SCALES[-1]
+            disparity = F.avg_pool2d(init_disparity, SCALES[first_stage]) / SCALES[first_stage]
 
         predictions: list[list[Tensor]] = []
         for stage in range(first_stage, len(SCALES)):
@@ -114,7 +124,7 @@ class CREStereoPP(nn.Module):
                     stage_predictions.append(self.full_resolution(disparity, hidden, height, width))
             predictions.append(stage_predictions)
 
-        assert uncertainty is not None  # every stage runs at least one iteration
+        assert uncertainty is not None  # the 1/4 stage runs at least one iteration
         final = predictions[-1][-1] if self.training else self.full_resolution(disparity, hidden, height, width)
         full_uncertainty = F.interpolate(uncertainty, size=(height, width), mode="bilinear", align_corners=False)
         if not self.training:

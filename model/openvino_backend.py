@@ -49,7 +49,7 @@ from .options import StageCounts
 
 logger = logging.getLogger(__name__)
 
-EXPORT_VERSION = 4
+EXPORT_VERSION = 5
 """Bumped whenever the exported graph changes for the same weights (part of the cache key)."""
 
 MAX_BATCH = 64

@@ -25,6 +25,7 @@ from model import (
 )
 from model.device import resolve_device
 from model.inference import autocast_bf16, half_resolution_start
+from model.network import finest_stage_only
 from model.weights import WeightsFile, load_state, model_config_of, read_weights, write_weights
 from stereo_data.readers import open_dataset
 
@@ -259,7 +260,11 @@ class Trainer:
                         batch.right,
                         lambda left, right: self.model(left, right, iters=config.train_iters).disparity.float(),
                     )
-            output = self.model(batch.left, batch.right, iters=config.train_iters, init_disparity=init)
+            # the second of two passes refines at 1/4 only
+            iters = (
+                config.train_iters if init is None else finest_stage_only(config.train_iters or self.model_config.iters)
+            )
+            output = self.model(batch.left, batch.right, iters=iters, init_disparity=init)
         predictions = [[p.float() for p in stage] for stage in output.predictions]
         loss = sequence_loss(predictions, batch.disparity, batch.valid, config.gamma, config.loss_max_disparity)
         if config.matching_weight > 0:

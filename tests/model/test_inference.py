@@ -8,6 +8,7 @@ import torch
 
 from model import InferenceOptions, ModelConfig, load_model
 from model import inference as inference_module
+from model.network import finest_stage_only
 from model.weights import file_sha256
 from stereo_data.readers import open_dataset
 from stereo_data.synthetic import SceneConfig, SceneGenerator
@@ -116,16 +117,31 @@ def test_warm_start_and_two_pass_give_maps_of_the_input_size(lite):
     assert not np.array_equal(warm.disparity, lite.predict(left, right).disparity)
 
 
-def test_warm_start_runs_only_the_finest_stage(lite):
+def test_a_start_disparity_starts_the_first_stage_that_runs(lite):
     net = lite.network
     calls = []
     hook = net.update.register_forward_hook(lambda module, args, out: calls.append(args[0].shape[-1]))
+    images, start = torch.zeros(1, 3, 64, 64), torch.ones(1, 1, 64, 64)
     try:
         with torch.inference_mode():
-            net(torch.zeros(1, 3, 64, 64), torch.zeros(1, 3, 64, 64), init_disparity=torch.ones(1, 1, 64, 64))
+            net(images, images, init_disparity=start)  # a warm start: every stage, from 1/16
+            net(images, images, iters=finest_stage_only(net.config.iters), init_disparity=start)  # a second pass
     finally:
         hook.remove()
-    assert calls == [16] * 6  # six iterations at 1/4 of 64
+    assert calls == [4] * 2 + [8] * 4 + [16] * 6 + [16] * 6  # the iterations (2, 4, 6) at 1/16, 1/8, 1/4 of 64
+
+
+def test_the_second_of_two_passes_refines_the_half_resolution_map_at_quarter_resolution_only(lite, monkeypatch):
+    runs = []
+    forward = lite.forward
+
+    def recording(left, right, init, iters, bf16):
+        runs.append((tuple(left.shape[-2:]), init is not None, iters))
+        return forward(left, right, init, iters, bf16)
+
+    monkeypatch.setattr(lite, "forward", recording)
+    lite.predict(*random_pair(64, 96), two_pass=True)
+    assert runs == [((32, 64), False, (2, 4, 6)), ((64, 96), True, (0, 0, 6))]  # padded to multiples of 32
 
 
 def test_mismatched_or_malformed_inputs_are_refused_with_a_clear_error(lite):
