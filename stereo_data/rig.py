@@ -165,6 +165,9 @@ class Rectifier:
             criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-6),
         )
         self._back = landed.reshape(height, width, 2).astype(np.float32)
+        # Which of them land on the rectified image (within half a pixel of its outer pixels' centres).
+        back_x, back_y = self._back[..., 0], self._back[..., 1]
+        self._inside = (back_x >= -0.5) & (back_x <= width - 0.5) & (back_y >= -0.5) & (back_y <= height - 0.5)
 
     @property
     def depth_calibration(self) -> Calibration:
@@ -192,17 +195,15 @@ class Rectifier:
     def to_original(self, rectified: np.ndarray, missing: float = float("nan")) -> np.ndarray:
         """A map of the rectified left frame (float HxW) resampled into the original left image's
         pixel grid, bilinearly, as float32; ``missing`` where an original pixel has no rectified
-        counterpart (or its neighbours there are not finite: +inf disparity stays unknown)."""
+        counterpart (or its neighbours there are not finite: +inf disparity stays unknown). One that
+        lands within half a pixel of the rectified image's edge takes the edge's values (under an
+        identity calibration, the last row and column land on themselves)."""
         back_x, back_y = self._back[..., 0], self._back[..., 1]
         resampled = cv2.remap(
-            rectified.astype(np.float32),
-            back_x,
-            back_y,
-            cv2.INTER_LINEAR,
-            borderMode=cv2.BORDER_CONSTANT,
-            borderValue=float("nan"),
+            rectified.astype(np.float32), back_x, back_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
         )
-        return np.where(np.isfinite(resampled), resampled, np.float32(missing)).astype(np.float32)
+        known = self._inside & np.isfinite(resampled)
+        return np.where(known, resampled, np.float32(missing)).astype(np.float32)
 
     def to_original_depth(self, depth: np.ndarray) -> np.ndarray:
         """Metric depth of the rectified left frame (float HxW: Z along the rectified camera's

@@ -73,6 +73,17 @@ def test_maps_come_back_to_the_original_left_pixels_and_nan_where_there_is_no_co
     assert np.isnan(back).any() and np.isfinite(back).mean() > 0.8
 
 
+def test_under_an_identity_calibration_the_original_frame_is_the_rectified_one_to_the_last_row_and_column(tmp_path):
+    k = np.array([[400.0, 0, 158], [0, 400.0, 121], [0, 0, 1]])
+    straight = {"K1": k, "K2": k, "D1": np.zeros(5), "D2": np.zeros(5), "R": np.eye(3), "T": np.array([-0.12, 0, 0])}
+    rectifier = Rectifier(read_rig(opencv_file(tmp_path / "stereo.yaml", **straight)))
+    np.testing.assert_allclose(rectifier.rig.p1[:, :3], k, rtol=1e-6)
+    maps = np.random.default_rng(0).uniform(0.5, 60.0, (HEIGHT, WIDTH)).astype(np.float32)
+    # equal to the interpolation's rounding (stereoRectify moves the focal length by 3e-8), the last row and column too
+    np.testing.assert_allclose(rectifier.to_original(maps), maps, atol=1e-3)
+    np.testing.assert_allclose(rectifier.to_original_depth(maps), maps, atol=1e-3)
+
+
 def test_the_rectified_camera_gives_the_metric_depth_calibration(tmp_path):
     rectifier = Rectifier(read_rig(opencv_file(tmp_path / "stereo.yaml")))
     calibration = rectifier.depth_calibration
