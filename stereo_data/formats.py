@@ -8,12 +8,16 @@ Every failure to read or write a file raises :class:`FormatError` (a ``ValueErro
 is ``round(map x scale)`` (half to even) clipped to [1, 65535], and 0 where the map is not finite
 or not positive. With ``KITTI_SCALE`` (256) that is KITTI's disparity and depth format; with
 ``UNCERTAINTY_SCALE`` (65535) an uncertainty in [0, 1] (0 stays 0, a positive one stays >= 1).
+Depth also has the convention of RealSense, Kinect and Open3D (``depth_scale=1000``): a 16-bit PNG
+in millimetres (:func:`encode_depth_mm_png`), 0 where there is no depth or it is beyond 65.535 m.
 """
 
 from __future__ import annotations
 
 import os
 import re
+import struct
+import zlib
 from pathlib import Path
 
 import cv2
@@ -27,11 +31,15 @@ __all__ = [
     "write_kitti_disparity",
     "KITTI_SCALE",
     "UNCERTAINTY_SCALE",
+    "DEPTH_MM_SCALE",
+    "DEPTH_MM_TEXT",
     "encode_png",
     "encode_png16",
+    "encode_depth_mm_png",
     "write_disparity",
     "write_uncertainty",
     "write_depth",
+    "write_depth_mm",
     "read_image",
     "decode_image",
 ]
@@ -43,6 +51,9 @@ PathLike = str | os.PathLike[str]
 _PFM_HEADER = re.compile(rb"\A(PF|Pf)\s+(\d+)\s+(\d+)\s+([-+0-9.eE]+)\s")
 KITTI_SCALE = 256.0  # KITTI 16-bit PNG disparity and depth: value = round(map x 256)
 UNCERTAINTY_SCALE = 65535.0  # 16-bit PNG uncertainty in [0, 1]: value = round(map x 65535)
+DEPTH_MM_SCALE = 1000.0  # 16-bit PNG depth in millimetres: value = round(metres x 1000), at most 65.535 m
+DEPTH_MM_TEXT = "depth_scale=1000; unit=mm; 0=invalid (no depth, or beyond 65.535 m)"
+"""What a millimetre depth PNG says of itself, in its tEXt chunk (keyword ``Description``)."""
 
 
 class FormatError(ValueError):
@@ -140,6 +151,25 @@ def encode_png16(values: np.ndarray, scale: float) -> bytes:
     return encode_png(encoded)
 
 
+def encode_depth_mm_png(depth: np.ndarray) -> bytes:
+    """A float HxW depth map (metres, ``+inf`` where there is none) as a 16-bit PNG in millimetres
+    (`encode_png16` at DEPTH_MM_SCALE), which reads back as uint16 mm (``cv2.IMREAD_UNCHANGED``;
+    Open3D's default ``depth_scale=1000``). A depth beyond 65.535 m is 0, invalid, rather than a
+    saturated 65535; DEPTH_MM_TEXT says so in a tEXt chunk."""
+    metres = np.asarray(depth, dtype=np.float64)
+    within = np.rint(metres * DEPTH_MM_SCALE) <= 65535
+    png = encode_png16(np.where(within, metres, np.inf), DEPTH_MM_SCALE)
+    return _with_text(png, "Description", DEPTH_MM_TEXT)
+
+
+def _with_text(png: bytes, keyword: str, text: str) -> bytes:
+    """`png` with a tEXt chunk (Latin-1 `keyword` and `text`) after its header chunk (IHDR)."""
+    body = b"tEXt" + keyword.encode("latin-1") + b"\0" + text.encode("latin-1")
+    chunk = struct.pack(">I", len(body) - 4) + body + struct.pack(">I", zlib.crc32(body))
+    header_end = 8 + 8 + 13 + 4  # the signature, then IHDR: length and type, 13 bytes of data, CRC
+    return png[:header_end] + chunk + png[header_end:]
+
+
 def encode_png(image: np.ndarray) -> bytes:
     """The PNG file bytes of a uint8 or uint16 image: HxW, or HxWx3 RGB."""
     if image.ndim == 3:
@@ -167,6 +197,12 @@ def write_depth(path: PathLike, depth: np.ndarray) -> None:
     """Write a float HxW depth map (metres, ``+inf`` where there is none) by the path's extension:
     ``.pfm`` or ``.npy`` (float32), or ``.png`` (KITTI depth: 16-bit, x256, 0 = none)."""
     _write_map(path, depth, KITTI_SCALE)
+
+
+def write_depth_mm(path: PathLike, depth: np.ndarray) -> None:
+    """Write a float HxW depth map (metres, ``+inf`` where there is none) as a 16-bit PNG in
+    millimetres, 0 = none (see :func:`encode_depth_mm_png`)."""
+    _write_bytes(path, encode_depth_mm_png(depth))
 
 
 def write_uncertainty(path: PathLike, uncertainty: np.ndarray) -> None:
