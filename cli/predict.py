@@ -63,13 +63,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "none, .png KITTI 16-bit x256 with 0 (folder mode: a folder of .pfm)",
     )
     parser.add_argument(
+        "--depth-mm",
+        type=Path,
+        metavar="PNG",
+        help="metric depth as a 16-bit PNG in millimetres, as RealSense, Kinect and Open3D (depth_scale=1000) "
+        "read it: 0 where there is none or beyond 65.535 m (needs what --depth needs; folder mode: a folder)",
+    )
+    parser.add_argument(
         "--calibration",
         type=Path,
         nargs="+",
         metavar="FILE",
         help="the pair is raw, from this calibrated camera: one OpenCV file (K1, D1, K2, D2, R, T, image size; "
         "YAML or JSON) or two ROS camera_info files (left, right). The pair is rectified first; depth and "
-        "metric points then need no --focal-px/--baseline-m",
+        "metric points then need no --focal-px/--baseline-m (the rectified camera's are printed)",
     )
     parser.add_argument(
         "--frame",

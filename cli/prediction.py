@@ -15,16 +15,16 @@ from tqdm import tqdm
 
 from model import FrameStream
 from model.options import parse_iterations
-from stereo_data.formats import encode_png, read_image, write_depth, write_disparity, write_uncertainty
-from stereo_data.pointcloud import (
-    IMAGE_FRAME,
-    METRIC_FRAME,
-    Calibration,
-    DepthRange,
-    encode_ply,
-    metric_depth,
-    point_cloud,
+from stereo_data.formats import (
+    encode_png,
+    read_image,
+    write_depth,
+    write_depth_mm,
+    write_disparity,
+    write_uncertainty,
 )
+from stereo_data.output_maps import output_maps
+from stereo_data.pointcloud import IMAGE_FRAME, METRIC_FRAME, Calibration, DepthRange, encode_ply, point_cloud
 from stereo_data.rig import Rectifier, read_rig
 from stereo_data.visualize import disparity_picture, scale_range
 
@@ -156,6 +156,7 @@ def outputs(args: argparse.Namespace) -> list[Output]:
         Output("--output", args.output, "disparity", disparity_suffixes),
         Output("--uncertainty", args.uncertainty, "uncertainty", maps),
         Output("--depth", args.depth, "depth", maps),
+        Output("--depth-mm", args.depth_mm, "depth in mm", (".png",)),
         Output("--color", args.color, "colour picture", (".png",)),
         Output("--ply", args.ply, "point cloud", (".ply",)),
     ]
@@ -198,8 +199,9 @@ def plan(args: argparse.Namespace) -> Job:
         raise ValueError("--calibration gives the focal length and baseline: leave out --focal-px and --baseline-m")
     if args.frame == "original" and args.calibration is None:
         raise ValueError("--frame original needs --calibration (a rectified pair has no other frame)")
-    if args.depth is not None and args.focal_px is None and args.calibration is None:
-        raise ValueError("--depth needs --calibration, or --focal-px and --baseline-m")
+    for flag, path in (("--depth", args.depth), ("--depth-mm", args.depth_mm)):
+        if path is not None and args.focal_px is None and args.calibration is None:
+            raise ValueError(f"{flag} needs --calibration, or --focal-px and --baseline-m")
     if args.warm_iters is not None and not args.sequence:
         raise ValueError("--warm-iters needs --sequence (only a sequence's frames start warm)")
     rectifier = None if args.calibration is None else Rectifier(read_rig(args.calibration))
@@ -231,12 +233,14 @@ def predict_and_write(job: Job, stream: FrameStream, frame: Frame) -> None:
     if job.rectifier is not None:
         left, right = job.rectifier.rectify(left, right)
     prediction = stream.predict(left, right)
-    disparity, uncertainty = prediction.disparity, prediction.uncertainty
-    depth = None if job.calibration is None else metric_depth(disparity, job.calibration, job.limits)
-    if job.rectifier is not None and args.frame == "original":
-        disparity = job.rectifier.to_original(disparity, np.inf)
-        uncertainty = job.rectifier.to_original(uncertainty, 1.0)
-        depth = None if depth is None else job.rectifier.to_original_depth(depth)
+    disparity, uncertainty, depth = output_maps(
+        prediction.disparity,
+        prediction.uncertainty,
+        job.calibration,
+        job.limits,
+        job.rectifier,
+        args.frame == "original",
+    )
     for output in job.targets:
         path = output.file(pair, job.single)
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -245,9 +249,9 @@ def predict_and_write(job: Job, stream: FrameStream, frame: Frame) -> None:
             write_disparity(partial, disparity)
         elif output.flag == "--uncertainty":
             write_uncertainty(partial, uncertainty)
-        elif output.flag == "--depth":
+        elif output.flag in ("--depth", "--depth-mm"):
             assert depth is not None  # checked in plan()
-            write_depth(partial, depth)
+            (write_depth if output.flag == "--depth" else write_depth_mm)(partial, depth)
         elif output.flag == "--color":
             shown = np.where(np.isfinite(disparity), disparity, 0.0)
             scale = scale_range(shown, args.color_min, args.color_max)
@@ -263,8 +267,19 @@ def predict_and_write(job: Job, stream: FrameStream, frame: Frame) -> None:
             print(f"wrote {output.what} {path}")
 
 
+def describe_camera(calibration: Calibration) -> str:
+    """The line that says which rectified camera a calibration gave (depth = focal x baseline / disparity)."""
+    assert calibration.cx is not None and calibration.cy is not None  # a rig always has its principal point
+    return (
+        f"rectified camera: focal length {calibration.focal_px:.2f} px, baseline {calibration.baseline_m:.4f} m, "
+        f"principal point ({calibration.cx:.2f}, {calibration.cy:.2f}) px"
+    )
+
+
 def run(args: argparse.Namespace) -> int:
     job = plan(args)
+    if job.rectifier is not None:
+        print(describe_camera(job.rectifier.depth_calibration))
     if args.ray:
         from .ray_predict import run_on_ray
 

@@ -21,7 +21,8 @@ from service.schemas import (
 )
 from service.stereo_batches import Maps
 from stereo_data.formats import KITTI_SCALE, UNCERTAINTY_SCALE, encode_png, encode_png16
-from stereo_data.pointcloud import IMAGE_FRAME, METRIC_FRAME, DepthRange, encode_ply, metric_depth, point_cloud
+from stereo_data.output_maps import output_maps
+from stereo_data.pointcloud import IMAGE_FRAME, METRIC_FRAME, DepthRange, encode_ply, point_cloud
 from stereo_data.rig import Rectifier
 from stereo_data.visualize import preview, scale_range
 
@@ -44,11 +45,14 @@ def render(
     """
     calibration = options.calibration if rectifier is None else rectifier.depth_calibration
     limits = DepthRange(options.min_disparity, options.max_depth_m)
-    disparity, uncertainty = result.output.disparity, result.output.uncertainty
-    depth = None if calibration is None else metric_depth(disparity, calibration, limits)
-    if rectifier is not None and options.frame is Frame.original:
-        disparity, uncertainty = rectifier.to_original(disparity, np.inf), rectifier.to_original(uncertainty, 1.0)
-        depth = None if depth is None else rectifier.to_original_depth(depth)
+    disparity, uncertainty, depth = output_maps(
+        result.output.disparity,
+        result.output.uncertainty,
+        calibration,
+        limits,
+        rectifier,
+        options.frame is Frame.original,
+    )
     match options.format:
         case OutputFormat.json:
             body = DisparityResponse(
