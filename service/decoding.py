@@ -9,8 +9,14 @@ of a few worker processes, each with an address-space cap above what it needs to
 wall-clock limit backs it up). A
 process that breaches a limit dies or is killed and is replaced, and its request is answered 413
 `decode_too_large` or 422 `decode_too_costly`; the server's own memory and event loop never see
-the work. A job whose request is abandoned (client gone, deadline passed, drain over) is stopped
-the same way.
+the work. A job whose request is abandoned (client gone, deadline passed, drain over) is answered
+at once and left to finish within those limits, its answer discarded: a decoder is never killed
+for it.
+
+A process can also be lost from outside: killed (the OOM killer, an operator) or stopped. That is
+no upload's fault. Each job goes to a process that has just answered a ping (one lost while idle
+is replaced, and the next tried); a process lost during a job is replaced and the job run once
+more on another, and only a second such loss is put down to the upload.
 
 The parent and the processes talk over pipes in frames of a JSON header and raw buffers (never
 pickle: what comes back from a decoder is as untrusted as its input).
@@ -65,6 +71,23 @@ class DecoderLimits:
         return self.cpu_seconds * _WALL_FACTOR + _WALL_MARGIN_S
 
 
+Reply = tuple[dict[str, Any], list[bytes]]
+"""A decoder process's answer to a job: its JSON header and its buffers."""
+
+_PING: dict[str, Any] = {"job": "ping"}
+_PING_TIMEOUT_S = 1.0  # an idle process answers a ping within milliseconds; one that does not is lost
+_START_TIMEOUT_S = 60.0  # a new process says it is ready (its imports done) within this
+_RESTART_DELAY_S = 1.0  # before another try where a process did not start
+
+
+@dataclass(frozen=True)
+class _Lost:
+    """A job whose process ended or stalled before answering, not by breaching its limits (it may
+    have been killed or stopped from outside); `error`: the answer should that happen twice."""
+
+    error: UploadError
+
+
 class DecoderPool:
     """`workers` decoder processes; a job waits for a free one. `start()` and `close()` run on the
     event loop that uses the pool."""
@@ -74,8 +97,9 @@ class DecoderPool:
         self._idle: asyncio.Queue[asyncio.subprocess.Process] = asyncio.Queue()
         self._processes: set[asyncio.subprocess.Process] = set()
         self._spawning: set[asyncio.Task[None]] = set()
+        self._jobs: set[asyncio.Task[Reply | _Lost | None]] = set()  # running, awaited or abandoned
         self._closed = False
-        self.restarts = 0  # processes replaced after a breach or an abandoned job
+        self.restarts = 0  # processes replaced: after a breach, or lost from outside
 
     async def start(self) -> None:
         for _ in range(self.limits.workers):
@@ -88,6 +112,7 @@ class DecoderPool:
         await asyncio.gather(*self._spawning, return_exceptions=True)
         for process in list(self._processes):
             await self._kill(process)
+        await asyncio.gather(*self._jobs, return_exceptions=True)  # their processes are gone: they end
 
     async def read_pair(self, body: bytes, content_type: str, limits: ImageLimits, stop: Stop) -> Upload:
         """`service.uploads.read_pair` in a decoder process."""
@@ -116,45 +141,78 @@ class DecoderPool:
         left_image, right_image = (np.frombuffer(b, dtype=np.uint8).reshape(shape) for b in buffers)
         return left_image, right_image
 
-    async def _call(self, meta: dict[str, Any], buffers: list[bytes], stop: Stop) -> tuple[dict[str, Any], list[bytes]]:
+    async def _call(self, meta: dict[str, Any], buffers: list[bytes], stop: Stop) -> Reply:
+        """The job's answer; a job whose process was lost runs once more on another."""
         if self._closed:
             raise RuntimeError("the decoder pool is closed")
         stopped = asyncio.ensure_future(stop())
         try:
-            process = await _unless(stopped, self._idle.get())
-            try:
-                reply = await _unless(
-                    stopped, asyncio.wait_for(self._exchange(process, meta, buffers), self.limits.wall_seconds)
-                )
-            except BaseException as exc:
-                ended = isinstance(exc, asyncio.IncompleteReadError | ConnectionError)  # the process ended itself
-                await self._replace(process, ended)
-                if ended:
-                    raise self._breach(process.returncode) from None
-                if isinstance(exc, TimeoutError):
-                    raise self._too_costly() from None
-                raise
-            self._idle.put_nowait(process)
+            outcome = await self._attempt(meta, buffers, stopped)
+            if isinstance(outcome, _Lost):
+                logger.warning("decoder process lost during a job; running it on another", extra={"job": meta["job"]})
+                outcome = await self._attempt(meta, buffers, stopped)
         finally:
             stopped.cancel()
-        reply_meta, reply_buffers = reply
+        if isinstance(outcome, _Lost):
+            raise outcome.error
+        reply_meta, reply_buffers = outcome
         if not reply_meta.get("ok"):
             raise UploadError(int(reply_meta["status"]), str(reply_meta["code"]), str(reply_meta["message"]))
         return reply_meta, reply_buffers
 
-    async def _exchange(
+    async def _attempt(
+        self, meta: dict[str, Any], buffers: list[bytes], stopped: asyncio.Future[Exception]
+    ) -> Reply | _Lost:
+        """One run of the job, on the next idle process that answers a ping; `stopped`'s exception
+        once the request is abandoned (the job runs on, and its answer is discarded)."""
+        while True:
+            process = await unless(stopped, self._idle.get())
+            job = asyncio.ensure_future(self._run(process, meta, buffers))
+            self._jobs.add(job)
+            job.add_done_callback(self._job_done)
+            outcome: Reply | _Lost | None = await unless(stopped, asyncio.shield(job))
+            if outcome is not None:
+                return outcome
+
+    def _job_done(self, job: asyncio.Task[Reply | _Lost | None]) -> None:
+        self._jobs.discard(job)
+        if not job.cancelled():
+            job.exception()  # seen, also when its request was abandoned and nobody awaits it
+
+    async def _run(
         self, process: asyncio.subprocess.Process, meta: dict[str, Any], buffers: list[bytes]
-    ) -> tuple[dict[str, Any], list[bytes]]:
-        assert process.stdin is not None and process.stdout is not None
+    ) -> Reply | _Lost | None:
+        """The job on `process` once it has answered a ping; the process then goes back to idle, or
+        is replaced where it failed. None: it did not answer the ping (lost while idle); `_Lost`:
+        it ended or stalled during the job, not by its limits; UploadError (raised): it breached them."""
+        try:
+            await asyncio.wait_for(self._exchange(process, _PING, []), _PING_TIMEOUT_S)
+        except Exception:
+            await self._replace(process, ended=False)
+            return None
+        try:
+            reply = await asyncio.wait_for(self._exchange(process, meta, buffers), self.limits.wall_seconds)
+        except (asyncio.IncompleteReadError, ConnectionError):  # the process ended
+            await self._replace(process, ended=True)
+            error = self._breach(process.returncode)
+            if _maybe_from_outside(process.returncode):
+                return _Lost(error)
+            raise error from None
+        except TimeoutError:  # stopped, or starved of CPU: its CPU timer ends a job that uses too much
+            await self._replace(process, ended=False)
+            return _Lost(self._too_costly())
+        except BaseException:  # a malformed answer, or the pool is closing
+            await self._replace(process, ended=False)
+            raise
+        self._idle.put_nowait(process)
+        return reply
+
+    async def _exchange(self, process: asyncio.subprocess.Process, meta: dict[str, Any], buffers: list[bytes]) -> Reply:
+        assert process.stdin is not None
         for part in _frame(meta, buffers):
             process.stdin.write(part)
         await process.stdin.drain()
-        (meta_size,) = _LENGTH.unpack(await process.stdout.readexactly(_LENGTH.size))
-        if meta_size > _MAX_META_BYTES:
-            raise RuntimeError("decoder process sent an oversized frame header")
-        reply = json.loads(await process.stdout.readexactly(meta_size))
-        sizes = reply.get("sizes", [])
-        return reply, [await process.stdout.readexactly(int(size)) for size in sizes]
+        return await _read_reply(process)
 
     def _too_costly(self) -> UploadError:
         return UploadError(
@@ -184,10 +242,11 @@ class DecoderPool:
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(process.wait(), _EXIT_WAIT_S)
         await self._kill(process)
+        if self._closed:
+            return
         self.restarts += 1
         logger.warning("decoder process replaced", extra={"returncode": process.returncode})
-        if not self._closed:
-            self._spawn()
+        self._spawn()
 
     async def _kill(self, process: asyncio.subprocess.Process) -> None:
         self._processes.discard(process)
@@ -202,13 +261,25 @@ class DecoderPool:
         task.add_done_callback(self._spawning.discard)
 
     async def _start_process(self) -> None:
+        """A new process, idle once it says it is ready; where it does not start (killed while it
+        starts, say), another a second later."""
         try:
             process = await self._launch()
         except OSError:
             logger.exception("could not start a decoder process")
-            return
-        self._processes.add(process)
-        self._idle.put_nowait(process)
+        else:
+            self._processes.add(process)
+            try:
+                await asyncio.wait_for(_read_reply(process), _START_TIMEOUT_S)
+            except Exception:
+                logger.exception("a decoder process did not start", extra={"returncode": process.returncode})
+                await self._kill(process)
+            else:
+                self._idle.put_nowait(process)
+                return
+        await asyncio.sleep(_RESTART_DELAY_S)
+        if not self._closed:
+            self._spawn()
 
     async def _launch(self) -> asyncio.subprocess.Process:
         return await asyncio.create_subprocess_exec(
@@ -223,6 +294,24 @@ class DecoderPool:
         )
 
 
+def _maybe_from_outside(returncode: int | None) -> bool:
+    """Whether a process that ended with `returncode` may have been ended from outside (SIGKILL
+    from the OOM killer, say) rather than by its upload: a signal other than its own CPU timer.
+    An exit status is the process's own (out of memory, an error)."""
+    return returncode is None or (returncode < 0 and returncode != -signal.SIGPROF)
+
+
+async def _read_reply(process: asyncio.subprocess.Process) -> Reply:
+    """The next frame `process` sends."""
+    assert process.stdout is not None
+    (meta_size,) = _LENGTH.unpack(await process.stdout.readexactly(_LENGTH.size))
+    if meta_size > _MAX_META_BYTES:
+        raise RuntimeError("decoder process sent an oversized frame header")
+    reply = json.loads(await process.stdout.readexactly(meta_size))
+    sizes = reply.get("sizes", [])
+    return reply, [await process.stdout.readexactly(int(size)) for size in sizes]
+
+
 def _header(meta: dict[str, Any]) -> ImageHeader:
     """The image header a decoder process answered with."""
     header = meta.get("header")
@@ -231,7 +320,7 @@ def _header(meta: dict[str, Any]) -> ImageHeader:
     return ImageHeader(str(header["format"]), int(header["width"]), int(header["height"]))
 
 
-async def _unless(stopped: asyncio.Future[Exception], work: Awaitable[Any]) -> Any:
+async def unless(stopped: asyncio.Future[Exception], work: Awaitable[Any]) -> Any:
     """The result of `work`, unless `stopped` resolves first: then `work` is cancelled and the
     exception `stopped` resolved with is raised."""
     task = asyncio.ensure_future(work)
@@ -249,6 +338,12 @@ def _frame(meta: dict[str, Any], buffers: list[bytes]) -> list[bytes]:
     return [_LENGTH.pack(len(header)), header, *buffers]
 
 
+def _write_frame(stream: BinaryIO, meta: dict[str, Any], buffers: list[bytes]) -> None:
+    for part in _frame(meta, buffers):
+        stream.write(part)
+    stream.flush()
+
+
 def _read_frame(stream: BinaryIO) -> tuple[dict[str, Any], list[bytes]] | None:
     """The next frame on a blocking stream (None at its end)."""
     prefix = stream.read(_LENGTH.size)
@@ -259,7 +354,9 @@ def _read_frame(stream: BinaryIO) -> tuple[dict[str, Any], list[bytes]] | None:
     return meta, [stream.read(int(size)) for size in meta["sizes"]]
 
 
-def _run_job(meta: dict[str, Any], buffers: list[bytes]) -> tuple[dict[str, Any], list[bytes]]:
+def _run_job(meta: dict[str, Any], buffers: list[bytes]) -> Reply:
+    if meta["job"] == "ping":
+        return {"ok": True}, []
     if meta["job"] == "read_pair":
         upload = read_pair(buffers[0], meta["content_type"], ImageLimits(**meta["limits"]))
         return {"ok": True, "header": asdict(upload.header), "rig": upload.rig}, [upload.left, upload.right]
@@ -284,6 +381,7 @@ def _serve(memory_bytes: int, cpu_seconds: float) -> None:
     _, hard = resource.getrlimit(resource.RLIMIT_AS)
     resource.setrlimit(resource.RLIMIT_AS, (_address_space() + memory_bytes, hard))
     stdin, stdout = sys.stdin.buffer, sys.stdout.buffer
+    _write_frame(stdout, {"ok": True}, [])  # ready
     try:
         while (frame := _read_frame(stdin)) is not None:
             signal.setitimer(signal.ITIMER_PROF, cpu_seconds)  # SIGPROF (fatal) after that much CPU time
@@ -293,9 +391,7 @@ def _serve(memory_bytes: int, cpu_seconds: float) -> None:
                 meta, buffers = {"ok": False, "status": exc.status, "code": exc.code, "message": exc.message}, []
             finally:
                 signal.setitimer(signal.ITIMER_PROF, 0)
-            for part in _frame(meta, buffers):
-                stdout.write(part)
-            stdout.flush()
+            _write_frame(stdout, meta, buffers)
     except MemoryError:
         os._exit(_OUT_OF_MEMORY)  # the parent answers 413 decode_too_large and starts another process
 

@@ -66,7 +66,8 @@ async def estimate_disparity(
             ge=1,
             le=MAX_TIMEOUT_MS,
             description="Deadline in milliseconds from arrival: a request that cannot be computed "
-            "in time is dropped before computing and answered 503 `deadline_exceeded`.",
+            "in time is dropped before computing and answered 503 `deadline_exceeded`; so is one under the "
+            "server's minimum (`CRESTEREO_MIN_TIMEOUT_MS`, 100 by default), at once.",
         ),
         BeforeValidator(_plain_digits),
     ] = None,
@@ -85,6 +86,12 @@ async def estimate_disparity(
     _refuse_repeated_headers(request)
     batcher = runtime.batcher_for(options.model)
     settings = runtime.settings
+    if timeout_ms is not None and timeout_ms < settings.min_timeout_ms:
+        raise DeadlineExceeded(
+            f"deadline cannot be met: X-Request-Timeout-Ms is {timeout_ms} ms, and no request is answered in "
+            f"less than {settings.min_timeout_ms} ms here; send a longer deadline",
+            batcher.retry_after(options.model),
+        )
     content_type = request.headers.get("content-type", "")
     boundary_of(content_type)  # 415 before the body is read
     body = await _read_body(request, settings.body_timeout_s)

@@ -5,8 +5,14 @@ only that process, which is replaced, and the server's event loop keeps running 
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import os
+import signal
 import time
+from collections.abc import Iterator
+from pathlib import Path
 
+import anyio
 import cv2
 import httpx
 import numpy as np
@@ -16,7 +22,7 @@ from service.batching import ClientDisconnected
 from service.decoding import DecoderLimits, DecoderPool
 from service.images import read_header
 from service.uploads import ImageLimits, UploadError
-from service_helpers import encode, lite_settings, serve_asgi, stereo_pair
+from service_helpers import Server, encode, lite_settings, pair_files, run_uvicorn, serve_asgi, stereo_pair
 
 pytestmark = pytest.mark.anyio
 
@@ -125,7 +131,7 @@ async def test_a_decode_beyond_its_cpu_time_answers_422_while_the_event_loop_kee
         await pool.close()
 
 
-async def test_an_abandoned_job_stops_at_once_and_costs_only_its_process():
+async def test_an_abandoned_job_is_answered_at_once_and_its_decoder_finishes_it_unharmed():
     costly = large_progressive_jpeg()
     pool = await started(GENEROUS)
 
@@ -138,9 +144,76 @@ async def test_an_abandoned_job_stops_at_once_and_costs_only_its_process():
         with pytest.raises(ClientDisconnected):
             await pool.decode_pair(costly, costly, read_header(costly), client_leaves)
         assert time.monotonic() - started_at < 0.5  # decoding both takes over a second here
-        assert pool.restarts == 1
-        images = await pool.decode_pair(costly, costly, read_header(costly), never)
+        images = await pool.decode_pair(costly, costly, read_header(costly), never)  # after the dropped one
         assert images[0].shape == (2000, 2000, 3)
+        assert pool.restarts == 0
+    finally:
+        await pool.close()
+
+
+class KilledDuringJobs(DecoderPool):
+    """A pool whose next `kills` jobs lose their process to SIGKILL from outside as they are
+    handed over (after the ping that found it healthy)."""
+
+    def __init__(self, limits: DecoderLimits, kills: int) -> None:
+        super().__init__(limits)
+        self.kills = kills
+
+    async def _exchange(self, process, meta, buffers):
+        if meta["job"] != "ping" and self.kills:
+            self.kills -= 1
+            process.kill()
+        return await super()._exchange(process, meta, buffers)
+
+
+@pytest.mark.parametrize("kills", [1, 2])
+async def test_a_job_whose_decoder_is_killed_from_outside_runs_again_and_a_second_loss_is_the_uploads(kills):
+    left, right = stereo_pair()
+    pool = KilledDuringJobs(GENEROUS, kills)
+    await pool.start()
+    try:
+        if kills == 1:
+            images = await pool.decode_pair(encode(left), encode(right), read_header(encode(left)), never)
+            assert np.array_equal(images[0], left)
+        else:
+            with pytest.raises(UploadError) as refused:
+                await pool.decode_pair(encode(left), encode(right), read_header(encode(left)), never)
+            assert (refused.value.status, refused.value.code) == (422, "undecodable_image")
+            assert "status -9" in refused.value.message
+        assert pool.restarts == kills
+    finally:
+        await pool.close()
+
+
+def waiting_decoders(parent: int) -> list[int]:
+    """The decoder processes that `parent` started and that wait for a job (read their pipe)."""
+    pids = []
+    for task in Path(f"/proc/{parent}/task").iterdir():
+        for pid in (task / "children").read_text().split():
+            with contextlib.suppress(FileNotFoundError):
+                waiting = "pipe_read" in Path(f"/proc/{pid}/wchan").read_text()
+                if waiting and b"service.decoding" in Path(f"/proc/{pid}/cmdline").read_bytes():
+                    pids.append(int(pid))
+    return sorted(pids)
+
+
+async def test_idle_decoders_killed_or_stopped_from_outside_cost_the_next_jobs_nothing():
+    left, right = stereo_pair()
+    files = encode(left), encode(right)
+    pool = await started(DecoderLimits(workers=2, memory_bytes=768 << 20, cpu_seconds=5.0))
+    try:
+        with anyio.fail_after(60):
+            while len(waiting_decoders(os.getpid())) < 2:
+                await asyncio.sleep(0.05)
+        killed, stopped = waiting_decoders(os.getpid())
+        os.kill(killed, signal.SIGKILL)
+        os.kill(stopped, signal.SIGSTOP)
+        started_at = time.monotonic()
+        for _ in range(2):
+            images = await pool.decode_pair(*files, read_header(files[0]), never)
+            assert np.array_equal(images[1], right)
+        assert time.monotonic() - started_at < 10  # a ping of 1 s, not the wall limit of 22 s
+        assert pool.restarts == 2
     finally:
         await pool.close()
 
@@ -158,3 +231,65 @@ async def test_a_request_still_reading_its_images_when_the_drain_ends_gets_503_d
         answer = await posting
     assert answer.status_code == 503 and answer.json()["error"]["code"] == "draining"
     assert time.monotonic() - started_at < 1.0  # the decode was stopped, not waited for
+
+
+# --- on a real server ------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def own_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
+    """A server of these tests' own, whose decoders they kill and stop."""
+    with run_uvicorn(tmp_path_factory.mktemp("decoders")) as server:
+        yield server
+
+
+def ready_decoders(server: Server) -> list[int]:
+    """The server's two decoder processes, once both wait for a job."""
+    deadline = time.monotonic() + 60
+    while len(waiting := waiting_decoders(server.process.pid)) < 2:
+        assert time.monotonic() < deadline, "the server's decoders are not ready"
+        time.sleep(0.05)
+    return waiting
+
+
+def test_requests_whose_decoders_were_stopped_or_killed_from_outside_are_answered(own_server):
+    """Both idle decoders stopped (SIGSTOP), then both killed (SIGKILL, as by the OOM killer): the
+    next two plain requests each time are computed (they got 422 `decode_too_costly` after 22 s,
+    and 422 `undecodable_image (-9)`)."""
+    files = pair_files(*stereo_pair())
+    answers, seconds = [], []
+    with httpx.Client(base_url=own_server.base_url, timeout=60) as http:
+        for sent in (signal.SIGSTOP, signal.SIGKILL):
+            for decoder in ready_decoders(own_server):
+                os.kill(decoder, sent)
+            started_at = time.monotonic()
+            answers += [http.post("/disparity", files=files) for _ in range(2)]
+            seconds.append(time.monotonic() - started_at)
+    assert [answer.status_code for answer in answers] == [200] * 4, [answer.text[:200] for answer in answers]
+    assert max(seconds) < 15, seconds  # a ping of 1 s per stopped decoder and a new one's start
+
+
+def test_deadlines_too_short_to_meet_cost_no_decoder_and_an_abandoned_decode_kills_none(own_server):
+    """A flood of `X-Request-Timeout-Ms: 1` is refused before the body is read, and a request whose
+    deadline passes while its images decode is answered at once while its decoder finishes: the
+    server's decoders are the same processes afterwards (the flood respawned hundreds)."""
+    costly = large_progressive_jpeg()
+    with httpx.Client(base_url=own_server.base_url, timeout=60) as http:
+        before = ready_decoders(own_server)
+        short = [
+            http.post("/disparity", files=pair_files(*stereo_pair()), headers={"X-Request-Timeout-Ms": "1"})
+            for _ in range(20)
+        ]
+        late = http.post(
+            "/disparity",
+            files={"left": ("l.jpg", costly, "image/jpeg"), "right": ("r.jpg", costly, "image/jpeg")},
+            headers={"X-Request-Timeout-Ms": "300"},
+        )
+        after = ready_decoders(own_server)
+    for answer in short:
+        assert (answer.status_code, answer.json()["error"]["code"]) == (503, "deadline_exceeded")
+        assert "X-Request-Timeout-Ms is 1 ms" in answer.json()["error"]["message"]
+        assert "less than 100 ms" in answer.json()["error"]["message"]
+    assert (late.status_code, late.json()["error"]["code"]) == (503, "deadline_exceeded")
+    assert late.elapsed.total_seconds() < 1.0  # decoding both images takes over a second
+    assert after == before
