@@ -52,7 +52,7 @@ class ServiceRuntime:
         self.decoders = DecoderPool(
             DecoderLimits(settings.decode_workers, settings.decode_memory_mb << 20, settings.decode_cpu_s)
         )
-        self.rectifiers = RectifierCache()  # raw pairs: one rectifier per recent calibration
+        self.rectifiers = RectifierCache(settings.rectifier_cache_mb << 20)  # raw pairs: one per calibration
         self.drain_over = asyncio.Event()  # set when the drain timeout has passed
         self._load_finished = asyncio.Event()  # set when the models loaded, or failed to
         self._loader = loader

@@ -104,13 +104,15 @@ async def estimate_disparity(
     problem = options.calibration_problem(upload.rig is not None)
     if problem is not None:
         raise bad_input(422, "invalid_request", problem)
-    rectifier = None if upload.rig is None else await runtime.rectifiers.get(upload.rig)
-    inference = options.inference
     problem = options.scale_problem(header.height, header.width)
     if problem is not None:
         raise bad_input(422, "scale_too_small", problem)
-    key = stereo_key(options.model, inference, header.height, header.width)
-    async with batcher.admit(options.model, key, deadline=deadline) as admission:
+    key = stereo_key(options.model, options.inference, header.height, header.width)
+    # Admitted before a raw pair's rectifier is built: building one is work, bounded like decoding.
+    async with (
+        batcher.admit(options.model, key, deadline=deadline) as admission,
+        runtime.rectifiers.use(upload.rig, stop) as rectifier,
+    ):
         left, right = await runtime.decoders.decode_pair(upload.left, upload.right, header, stop)
         if rectifier is not None:  # a raw pair: the network sees it rectified
             left, right = await run_in_threadpool(rectifier.rectify, left, right)
@@ -121,10 +123,10 @@ async def estimate_disparity(
             is_disconnected=request.is_disconnected,
             request_id=request_id_var.get(),
         )
-    request.state.batch_size = result.batch_size
-    predictor = runtime.predictors[options.model]
-    weights = weights_identity(predictor)
-    content, media_type = await run_in_threadpool(render, options, result, left, weights, header, rectifier)
+        request.state.batch_size = result.batch_size
+        predictor = runtime.predictors[options.model]
+        weights = weights_identity(predictor)
+        content, media_type = await run_in_threadpool(render, options, result, left, weights, header, rectifier)
     return Response(content, media_type=media_type, headers=_result_headers(predictor, weights, header, result))
 
 
@@ -152,16 +154,18 @@ async def _read_body(request: Request, timeout_s: float) -> bytes:
 async def _abandoned(
     request: Request, deadline: float | None, runtime: ServiceRuntime, retry_after: Callable[[], int]
 ) -> Exception:
-    """Resolves, with the error to answer, once the request's images need no longer be read: its
-    client has gone, its deadline has passed (a retry likely succeeds after `retry_after()` s) or
-    the drain is over."""
+    """Resolves, with the error to answer, once the request's images need no longer be read or
+    rectified: its client has gone, its deadline has passed (a retry likely succeeds after
+    `retry_after()` s) or the drain is over."""
     while True:
         if runtime.drain_over.is_set():
-            return Draining("drain timeout reached while this request's images were read")
+            return Draining("drain timeout reached while this request's images were read or rectified")
         if deadline is not None and time.monotonic() >= deadline:
-            return DeadlineExceeded("the deadline passed while this request's images were read", retry_after())
+            return DeadlineExceeded(
+                "the deadline passed while this request's images were read or rectified", retry_after()
+            )
         if await request.is_disconnected():
-            return ClientDisconnected("client disconnected while its images were read")
+            return ClientDisconnected("client disconnected while its images were read or rectified")
         await asyncio.sleep(_ABANDON_POLL_S)
 
 

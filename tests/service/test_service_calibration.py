@@ -7,7 +7,9 @@ from __future__ import annotations
 import asyncio
 import io
 import time
+from collections.abc import Awaitable, Callable
 
+import anyio
 import cv2
 import httpx
 import numpy as np
@@ -35,10 +37,15 @@ from raw_camera import (
     unrectify,
 )
 
+import service.rigs
 from client import ServiceError, StereoClient
+from service.batching import DeadlineExceeded
 from service.decoding import DecoderLimits, DecoderPool
+from service.errors import ApiError
+from service.rigs import BYTES_PER_PIXEL, RectifierCache
 from service.uploads import ImageLimits, UploadError
-from service_helpers import decode_array, pair_files, serve_asgi, stereo_pair
+from service_helpers import decode_array, lite_settings, pair_files, serve_asgi, stereo_pair
+from stereo_data.rig import Rectifier, parse_rig
 
 MIDDLE = (slice(60, -60), slice(100, -60))  # the plane, away from the borders rectification leaves black
 
@@ -256,3 +263,133 @@ async def test_a_real_pair_made_raw_gives_its_true_depth_about_as_well_as_the_re
     share = share_within(np.load(io.BytesIO(from_raw.content))["depth"], raw.depth)
     assert baseline > 0.4  # the comparison means something
     assert share >= baseline - 0.05
+
+
+# --- rectifiers: built after admission, one at a time, under the deadline, in bounded bytes ------
+
+RIG_BYTES = WIDTH * HEIGHT * BYTES_PER_PIXEL
+
+
+def rig_json(folder, camera: int) -> str:
+    """The rig of camera number `camera`: the raw camera with its baseline a millimetre longer per number."""
+    path = opencv_file(folder / f"camera-{camera}.yaml", T=T + np.array([-0.001 * camera, 0.0, 0.0]))
+    return parse_rig(path.read_text()).to_json()
+
+
+@pytest.fixture
+def builds(monkeypatch) -> list[str]:
+    """The rigs whose rectifiers are built from now on (each build takes at least 0.3 s)."""
+    built: list[str] = []
+    build = service.rigs._build
+
+    def counted(rig: str) -> Rectifier:
+        built.append(rig)
+        time.sleep(0.3)
+        return build(rig)
+
+    monkeypatch.setattr(service.rigs, "_build", counted)
+    return built
+
+
+async def never() -> Exception:
+    await asyncio.sleep(3600)
+    raise AssertionError("unreachable")
+
+
+def stop_after(seconds: float):
+    async def stop() -> Exception:
+        await asyncio.sleep(seconds)
+        return DeadlineExceeded("the deadline passed", 1)
+
+    return stop
+
+
+def test_a_rectifier_holds_the_bytes_the_cache_counts_for_it(tmp_path):
+    rectifier = Rectifier(parse_rig(opencv_file(tmp_path / "c.yaml").read_text()))
+    arrays = [rectifier._back, *(array for maps in rectifier._maps for array in maps)]
+    assert sum(array.nbytes for array in arrays) == RIG_BYTES
+
+
+async def test_rectifiers_are_kept_within_their_bytes_the_least_recently_used_given_up_first(tmp_path, builds):
+    rigs = [rig_json(tmp_path, camera) for camera in range(3)]
+    cache = RectifierCache(max_bytes=2 * RIG_BYTES)
+    for camera in (0, 1, 0, 2, 0, 1):  # camera 1 is the least recently used when camera 2 comes
+        async with cache.use(rigs[camera], never) as rectifier:
+            assert rectifier is not None and cache.held_bytes <= cache.max_bytes
+    assert builds == [rigs[0], rigs[1], rigs[2], rigs[1]]
+    assert cache.held_bytes == 2 * RIG_BYTES
+
+
+async def test_a_rectifier_in_use_is_kept_and_a_request_waiting_for_room_gives_up_at_its_deadline(tmp_path, builds):
+    first, second = rig_json(tmp_path, 0), rig_json(tmp_path, 1)
+    cache = RectifierCache(max_bytes=RIG_BYTES)
+    async with cache.use(first, never):
+        started = time.monotonic()
+        with pytest.raises(DeadlineExceeded):
+            async with cache.use(second, stop_after(0.2)):
+                raise AssertionError("no room for a second rectifier")
+        assert time.monotonic() - started < 1.0
+    async with cache.use(second, never) as rectifier:  # room once the first is let go
+        assert rectifier is not None
+    assert builds == [first, second]
+    assert cache.held_bytes == RIG_BYTES
+
+
+async def test_requests_that_give_up_waiting_for_their_rectifiers_cost_no_builds(tmp_path, builds):
+    """Twelve cameras at once, each request with a deadline shorter than a build: one build runs
+    (and is kept for a retry), the others are never started."""
+    rigs = [rig_json(tmp_path, camera) for camera in range(12)]
+    cache = RectifierCache(max_bytes=256 << 20)
+
+    async def use(rig: str) -> None:
+        async with cache.use(rig, stop_after(0.1)):
+            raise AssertionError("a build takes longer than the deadline")
+
+    started = time.monotonic()
+    answers = await asyncio.gather(*(use(rig) for rig in rigs), return_exceptions=True)
+    assert time.monotonic() - started < 0.3  # answered at their deadline, not after the builds
+    assert all(isinstance(answer, DeadlineExceeded) for answer in answers), answers
+    await asyncio.sleep(0.6)  # the build under way ends
+    assert len(builds) == 1 and cache.held_bytes == RIG_BYTES
+    async with cache.use(builds[0], never) as rectifier:
+        assert rectifier is not None
+    assert len(builds) == 1
+
+
+async def test_a_rig_opencv_cannot_rectify_is_422_and_not_kept(tmp_path):
+    cache = RectifierCache(max_bytes=256 << 20)
+    with pytest.raises(ApiError) as refused:
+        async with cache.use('{"image_size": [320, 240]}', never):
+            raise AssertionError("not a rig")
+    assert (refused.value.status, refused.value.code) == (422, "invalid_calibration")
+    assert cache.held_bytes == 0
+
+
+async def test_a_raw_request_refused_at_admission_builds_no_rectifier(raw_pair, tmp_path, builds):
+    calibration = opencv_file(tmp_path / "stereo.yaml").read_bytes()
+    async with serve_asgi(lite_settings(max_queue=1)) as h:
+        gated = h.predictors["lite"]
+        gated.gate.clear()  # the worker holds the first request; the second waits in the queue
+
+        async def post_and_wait(until: Callable[[], Awaitable[bool]]) -> asyncio.Future[httpx.Response]:
+            posting = asyncio.ensure_future(h.client.post("/disparity", files=pair_files(*stereo_pair())))
+            with anyio.fail_after(30):
+                while not await until():
+                    await asyncio.sleep(0.01)
+            return posting
+
+        async def computing() -> bool:
+            return gated.calls == [1]
+
+        async def queued() -> bool:
+            return (await h.client.get("/health")).json()["queue_depth"]["lite"] == 1
+
+        held = [await post_and_wait(computing), await post_and_wait(queued)]
+        refused = await h.client.post(
+            "/disparity", files=[*raw_pair.items(), ("calibration", ("stereo.yaml", calibration))]
+        )
+        gated.gate.set()
+        answers = await asyncio.gather(*held)
+    assert (refused.status_code, refused.json()["error"]["code"]) == (503, "queue_full")
+    assert [answer.status_code for answer in answers] == [200, 200]
+    assert builds == []
