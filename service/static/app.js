@@ -444,7 +444,7 @@ function describeModel() {
   if (!model) return;
   $("iters").placeholder = model.iterations.join(",");
   const training = model.training && model.training.dev_metrics && model.training.dev_metrics.epe !== undefined
-    ? ` · dev EPE ${g3(model.training.dev_metrics.epe)} px` : "";
+    ? ` · dev EPE ${g3(model.training.dev_metrics.epe)} px (one pass, at its last training validation)` : "";
   const warning = $("model-warning");
   warning.hidden = model.status !== "untrained";
   warning.textContent = warning.hidden ? "" : `${model.name} is untrained: its weights have not learned to ` +
