@@ -81,7 +81,7 @@ def test_the_cpu_smoke_run_passes_every_stage_and_keeps_to_the_output_limits(tmp
         summary
     )
 
-    adopted = re.search(r'"adopted": "(\w+)"', summary)
+    adopted = re.search(r'"adopted": "([\w-]+)"', summary)
     assert adopted is not None and f"| lite | {adopted.group(1)} |" in summary  # the training took a probe row
 
     checkpoint = read_weights(out / "checkpoint.pt")
