@@ -34,13 +34,14 @@ setup-test: $(VENV)/.test-installed
 # be exported it computes on torch.
 serve: setup
 	-$(VENV)/bin/crestereo-pp prepare
-	$(PY) -m service --host $(HOST) --port $(PORT)
+	$(PY) -m crestereo_pp.service --host $(HOST) --port $(PORT)
 
 # Style and types (configured in pyproject.toml): ruff's lint and format check on the whole tree,
 # mypy on the packages. `make test` runs it first, so a lint or type error fails the tests (and CI).
 lint: setup-test
 	$(PY) -m ruff check .
 	$(PY) -m ruff format --check .
+	$(PY) tools/package_tree.py build/typecheck
 	$(PY) -m mypy
 
 test: lint
@@ -52,9 +53,10 @@ test-fast: setup-test
 	$(PY) -m pytest -q -m "not slow"
 
 # The prepared GPU check (bench/gpu_check.py; README, "Development"): for a GPU machine with torch
-# preinstalled and no package index, so it runs that machine's python3 from the tree, not the venv.
+# preinstalled and no package index, so it runs that machine's python3 from the tree, not the venv
+# (its stages import the project through a link tree, tools/package_tree.py).
 GPU_PYTHON ?= python3
 GPU_OUT ?= $(or $(OUT),gpu-check)
 .PHONY: gpu
 gpu:
-	PYTHONPATH=. $(GPU_PYTHON) bench/gpu_check.py --out $(GPU_OUT)
+	$(GPU_PYTHON) bench/gpu_check.py --out $(GPU_OUT)

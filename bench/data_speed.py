@@ -16,7 +16,7 @@ import time
 
 import torch
 
-from stereo_data.synthetic import SceneConfig, SceneGenerator
+from crestereo_pp.stereo_data.synthetic import SceneConfig, SceneGenerator
 
 SIZES = ((128, 320), (256, 512), (384, 512))  # the CPU campaign's crops first
 

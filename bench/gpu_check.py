@@ -7,7 +7,7 @@ and the next stage runs), within one time budget:
     bench        inference table: lite and full at 384x1248, batch 1 and 8, fp32 and
                  bf16, eager and CUDA-graph replay (StereoPredictor.predict_batch, as the service
                  runs it); then bf16 against fp32 and graph against eager on the dev pairs
-    service      `python -m service` on loopback with CRESTEREO_DEVICE=cuda: a real pair over HTTP,
+    service      `python -m crestereo_pp.service` on loopback with CRESTEREO_DEVICE=cuda: a real pair over HTTP,
                  concurrent requests (batches), both models; skipped when fastapi is missing
     probe        training throughput, lite and full: pairs/s and peak memory of the training step at
                  batch 1x-8x the recipe's, plain AdamW, channels-last, torch.compile and CUDA graphs
@@ -17,10 +17,10 @@ and the next stage runs), within one time budget:
                  (and its weight average's horizon) within the time left; a checkpoint with an
                  optimiser state is resumed, a weights-only file starts a fresh optimiser
 
-    PYTHONPATH=. python3 bench/gpu_check.py --out DIR [--minutes 9] [--stages S,...] [--data DIR] [--wheels DIR]
-                                            [--model lite|full] [--weights FILE] [--train-set KEY=VALUE ...]
-                                            [--train-compile]
-    PYTHONPATH=. python3 bench/gpu_check.py --cpu-smoke --out DIR    # the same stages on the CPU, tiny
+    python3 bench/gpu_check.py --out DIR [--minutes 9] [--stages S,...] [--data DIR] [--wheels DIR]
+                               [--model lite|full] [--weights FILE] [--train-set KEY=VALUE ...]
+                               [--train-compile]
+    python3 bench/gpu_check.py --cpu-smoke --out DIR    # the same stages on the CPU, tiny
 
 DIR (or $GPU_CHECK_OUT, else $OUT) receives at most 8 files, each under 16 MiB: gpu_check.log
 (every stage's output), summary.md (stage results and tables), bench.json (the benchmark's
@@ -58,7 +58,7 @@ from typing import TYPE_CHECKING, Any
 from train_speed import GPU_RECIPE  # bench/'s sibling script (standard library only at import)
 
 if TYPE_CHECKING:
-    from model.config import ModelName
+    from crestereo_pp.model.config import ModelName
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -221,8 +221,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     out = output_folder(args.out)
     data = args.data if args.cpu_smoke else dev_pairs(args.data)  # the smoke run's pairs are tiny scenes
     with tempfile.TemporaryDirectory(prefix="gpu-check-") as scratch, (out / "gpu_check.log").open("w") as log:
-        environment = {**os.environ, "PYTHONPATH": str(REPO), "PYTHONUNBUFFERED": "1"}
-        service_path = [str(REPO)]  # the wheels reach the service stage only
+        package = package_tree(Path(scratch) / "package")  # the project importable as crestereo_pp
+        environment = {**os.environ, "PYTHONPATH": package, "PYTHONUNBUFFERED": "1"}
+        service_path = [package]  # the wheels reach the service stage only
         wheels = args.wheels or (REPO / ".whl" if (REPO / ".whl").is_dir() else None)
         if wheels is not None:
             service_path.insert(0, install_wheels(wheels, Path(scratch) / "site", log))
@@ -231,6 +232,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         results = run_stages(plan, args, out, data, Path(scratch), environments, log)
     print((out / "summary.md").read_text(), flush=True)
     return 0 if all(r.status in ("passed", "skipped") for r in results.values()) else 1
+
+
+def package_tree(dest: Path) -> str:
+    """`dest`, holding `crestereo_pp/` as links into this checkout (tools/package_tree.py): the stages
+    import the project as installed without installing it (this machine's Python has no index)."""
+    subprocess.run(
+        [sys.executable, str(REPO / "tools" / "package_tree.py"), str(dest)], check=True, capture_output=True
+    )
+    return str(dest)
 
 
 def run_stages(
@@ -585,8 +595,8 @@ def samples_for(data_dir: Path | None, count: int, height: int, width: int, devi
     import numpy as np
     import torch
 
-    from stereo_data.readers import StereoSample, open_dataset
-    from stereo_data.synthetic import SceneConfig, SceneGenerator
+    from crestereo_pp.stereo_data.readers import StereoSample, open_dataset
+    from crestereo_pp.stereo_data.synthetic import SceneConfig, SceneGenerator
 
     if data_dir is not None:
         dataset = open_dataset(data_dir)
@@ -608,7 +618,7 @@ def samples_for(data_dir: Path | None, count: int, height: int, width: int, devi
 def bench_stage(plan: Plan, deadline: float, args: argparse.Namespace, save: Callable[..., None]) -> StageResult:
     import torch
 
-    from model import load_model
+    from crestereo_pp.model import load_model
 
     device = torch.device(plan.device)
     on_cuda = device.type == "cuda"
@@ -732,8 +742,8 @@ def service_stage(plan: Plan, deadline: float, args: argparse.Namespace, save: C
     missing = [package for module, package in SERVICE_PACKAGES.items() if importlib.util.find_spec(module) is None]
     if missing:
         return StageResult("skipped", f"skipped: {', '.join(missing)} not installed (carry wheels: --wheels)")
-    from client import StereoClient
-    from service.local import start_service
+    from crestereo_pp.client import StereoClient
+    from crestereo_pp.service.local import start_service
 
     origins = {module: getattr(importlib.util.find_spec(module), "origin", None) for module in SERVICE_PACKAGES}
     print(f"service packages from: {origins}", flush=True)
@@ -769,7 +779,7 @@ def exchange(client: Any, plan: Plan, sample: Any) -> dict[str, Any]:
 
     import numpy as np
 
-    from client import ServiceError
+    from crestereo_pp.client import ServiceError
 
     known = sample.valid & np.isfinite(sample.disparity)
     iters = tuple(plan.iters) if plan.iters else None
@@ -846,7 +856,7 @@ def median_rate(rows: list[dict[str, str]]) -> float:
 def weights_for(model: str, args: argparse.Namespace) -> Path:
     """The weights file a stage trains `model` from: --weights for the --model, else the stable
     branch of its last GPU run (training/resume/MODEL.pt, where one was kept), else the shipped file."""
-    from model.weights import WEIGHTS_DIR
+    from crestereo_pp.model.weights import WEIGHTS_DIR
 
     if args.weights is not None and model == args.model:
         return Path(args.weights)
@@ -858,8 +868,8 @@ def recipe_of(model: ModelName, plan: Plan, args: argparse.Namespace) -> Any:
     """The TrainConfig of a stage's training step for `model`: the data recipe of the shipped lite
     weights (scenes, disparities, photometry: what the campaign settled on) with the model's own
     iterations, then the plan's step (plan.train), --train-compile and --train-set."""
-    from model.weights import WEIGHTS_DIR, read_weights
-    from training.config import TrainConfig
+    from crestereo_pp.model.weights import WEIGHTS_DIR, read_weights
+    from crestereo_pp.training.config import TrainConfig
 
     return replace(
         TrainConfig.from_dict(read_weights(WEIGHTS_DIR / "lite.pt")["train_config"]),
@@ -957,10 +967,10 @@ def adopted_row(rows: list[dict[str, Any]], model: str, seconds: float) -> dict[
 def train_stage(plan: Plan, deadline: float, args: argparse.Namespace, save: Callable[..., None]) -> StageResult:
     import torch
 
-    from model.weights import network_from_weights, read_weights, weights_of, write_weights
-    from training.config import TrainConfig
-    from training.records import read_csv
-    from training.trainer import STABLE_NAME, train, validate
+    from crestereo_pp.model.weights import network_from_weights, read_weights, weights_of, write_weights
+    from crestereo_pp.training.config import TrainConfig
+    from crestereo_pp.training.records import read_csv
+    from crestereo_pp.training.trainer import STABLE_NAME, train, validate
 
     shipped = weights_for(args.model, args)
     saved = read_weights(shipped)

@@ -31,19 +31,17 @@ import subprocess
 import sys
 import time
 import warnings
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 from torch.utils.flop_counter import FlopCounterMode
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a checkout without installing
-from evaluation.sgbm import sgbm_disparity  # noqa: E402
-from model import load_model  # noqa: E402
-from model.config import MODEL_NAMES  # noqa: E402
-from model.inference import Backend, Precision  # noqa: E402
-from model.openvino_backend import native_bf16  # noqa: E402
+from crestereo_pp.evaluation.sgbm import sgbm_disparity
+from crestereo_pp.model import load_model
+from crestereo_pp.model.config import MODEL_NAMES
+from crestereo_pp.model.inference import Backend, Precision
+from crestereo_pp.model.openvino_backend import native_bf16
 
 
 def matmul_gflops(n: int = 2048, runs: int = 10) -> float:

@@ -3,7 +3,7 @@
     python bench/ray_load.py [--replicas 1 2] [--backend openvino] [--size 256x512]
                              [--concurrency 16] [--requests 64]
 
-Starts the plain service (`python -m service`, all CPUs) and then `crestereo-pp serve --ray
+Starts the plain service (`python -m crestereo_pp.service`, all CPUs) and then `crestereo-pp serve --ray
 --replicas N` for each N (a local Ray cluster; each replica gets the CPUs over N as its threads),
 lite only, on a free loopback port. Each is warmed up until every replica has answered with its
 graph compiled, then C client threads send the requests back to back (`bench/service_load.py`'s
@@ -28,7 +28,7 @@ import httpx
 import numpy as np
 from service_load import parse_size, run_cell, server_settings, stereo_pair_files
 
-from service.local import local_service
+from crestereo_pp.service.local import local_service
 
 
 def warm_up(base_url: str, files: dict[str, Any], replicas: int, timeout_s: float = 900) -> None:
@@ -83,8 +83,8 @@ def main() -> None:
     print("|---|---|---|---|---|---|")
     rows = []
     with tempfile.TemporaryDirectory() as log_dir:
-        servers = [("plain service", ("-m", "service"), 1)] + [
-            (f"Ray Serve, {n} replica(s)", ("-m", "cli.main", "serve", "--ray", "--replicas", str(n)), n)
+        servers = [("plain service", ("-m", "crestereo_pp.service"), 1)] + [
+            (f"Ray Serve, {n} replica(s)", ("-m", "crestereo_pp.cli.main", "serve", "--ray", "--replicas", str(n)), n)
             for n in args.replicas
         ]
         for label, command, replicas in servers:

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import statistics
-import sys
 import time
 import warnings
 from dataclasses import dataclass
@@ -27,13 +26,11 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from gpu_check import dev_pairs  # bench/'s sibling script
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a checkout without installing
-from gpu_check import dev_pairs  # noqa: E402  (bench/'s sibling script)
-
-from model import InferenceOptions, StereoPredictor, load_model  # noqa: E402
-from model.inference import shrink  # noqa: E402
-from stereo_data.formats import read_image  # noqa: E402
+from crestereo_pp.model import InferenceOptions, StereoPredictor, load_model
+from crestereo_pp.model.inference import shrink
+from crestereo_pp.stereo_data.formats import read_image
 
 Pair = tuple[np.ndarray, np.ndarray]
 """Left and right views, uint8 HxWx3."""

@@ -34,7 +34,7 @@ import cv2
 import httpx
 import numpy as np
 
-from service.local import local_service
+from crestereo_pp.service.local import local_service
 
 
 @dataclass(frozen=True)

@@ -27,7 +27,6 @@ from pathlib import Path
 from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))  # run from a checkout without installing
 
 
 @dataclass(frozen=True)
@@ -127,12 +126,12 @@ def measure_row(row: Row, steps: int, profile: bool) -> dict[str, Any]:
     """In this (child) process: a CPU row from the shipped lite weights (BASE plus its overrides)."""
     import torch
 
-    from training.config import preset
+    from crestereo_pp.training.config import preset
 
     if not row.wide_transposed:
-        import model.convolution
+        import crestereo_pp.model.convolution
 
-        model.convolution.WIDE_KERNEL = sys.maxsize  # every 1xk conv a plain nn.Conv2d, as before
+        crestereo_pp.model.convolution.WIDE_KERNEL = sys.maxsize  # every 1xk conv a plain nn.Conv2d, as before
     config = preset("pretrain", schedule="constant", **{**BASE, **row.overrides, "out_dir": "runs/bench-train-speed"})
     result = measure(config, ROOT / "model/weights/lite.pt", torch.device("cpu"), steps, profile=profile)
     return {**result, "threads": torch.get_num_threads()}
@@ -156,9 +155,9 @@ def measure(
     and autotuning show there), the steps timed, and the peak memory (GiB, CUDA only)."""
     import torch
 
-    from training.data import TrainingData
-    from training.distributed import DistributedContext
-    from training.trainer import Trainer
+    from crestereo_pp.training.data import TrainingData
+    from crestereo_pp.training.distributed import DistributedContext
+    from crestereo_pp.training.trainer import Trainer
 
     on_cuda = device.type == "cuda"
 

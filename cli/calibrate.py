@@ -26,7 +26,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     try:
-        from training.calibrate import calibrate_weights_file
+        from crestereo_pp.training.calibrate import calibrate_weights_file
     except ModuleNotFoundError as error:
         raise SystemExit(
             f"crestereo-pp calibrate: needs {error.name}, from the train extra: pip install 'crestereo-pp[train]'"

@@ -12,7 +12,7 @@ import typing
 from dataclasses import fields
 from typing import Any, Literal
 
-from training.config import DataSource
+from crestereo_pp.training.config import DataSource
 
 _SINGULAR = {"sources": "source"}
 """Tuple-valued fields spelled singular on the command line (`--source A --source B`)."""

@@ -6,7 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
-from stereo_data.readers import LAYOUTS, open_dataset
+from crestereo_pp.stereo_data.readers import LAYOUTS, open_dataset
 
 from .options import add_model_options, inference_options, load_predictor
 
@@ -28,7 +28,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from evaluation.evaluate import evaluate
+    from crestereo_pp.evaluation.evaluate import evaluate
 
     dataset = open_dataset(args.data_dir, args.layout)
     if args.limit is not None:

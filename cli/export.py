@@ -33,7 +33,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from training.export import export_weights
+    from crestereo_pp.training.export import export_weights
 
     if args.onnx:
         return run_onnx(args)
@@ -44,9 +44,9 @@ def run(args: argparse.Namespace) -> int:
 
 
 def run_onnx(args: argparse.Namespace) -> int:
-    from model import load_model, parse_iterations
-    from model.onnx_export import export_onnx
-    from model.weights import read_weights
+    from crestereo_pp.model import load_model, parse_iterations
+    from crestereo_pp.model.onnx_export import export_onnx
+    from crestereo_pp.model.weights import read_weights
 
     if args.height is None or args.width is None:
         raise SystemExit("crestereo-pp export: --onnx needs --height and --width (the model's fixed input size)")

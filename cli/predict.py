@@ -8,7 +8,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from stereo_data.pointcloud import MIN_DISPARITY
+from crestereo_pp.stereo_data.pointcloud import MIN_DISPARITY
 
 from .options import add_model_options
 

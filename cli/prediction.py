@@ -13,9 +13,9 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from model import FrameStream
-from model.options import parse_iterations
-from stereo_data.formats import (
+from crestereo_pp.model import FrameStream
+from crestereo_pp.model.options import parse_iterations
+from crestereo_pp.stereo_data.formats import (
     encode_png,
     read_image,
     write_depth,
@@ -23,10 +23,17 @@ from stereo_data.formats import (
     write_disparity,
     write_uncertainty,
 )
-from stereo_data.output_maps import output_maps
-from stereo_data.pointcloud import IMAGE_FRAME, METRIC_FRAME, Calibration, DepthRange, encode_ply, point_cloud
-from stereo_data.rig import Rectifier, read_rig
-from stereo_data.visualize import disparity_picture, scale_range
+from crestereo_pp.stereo_data.output_maps import output_maps
+from crestereo_pp.stereo_data.pointcloud import (
+    IMAGE_FRAME,
+    METRIC_FRAME,
+    Calibration,
+    DepthRange,
+    encode_ply,
+    point_cloud,
+)
+from crestereo_pp.stereo_data.rig import Rectifier, read_rig
+from crestereo_pp.stereo_data.visualize import disparity_picture, scale_range
 
 from .options import inference_options, load_predictor
 

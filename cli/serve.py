@@ -8,7 +8,8 @@ import os
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.description = (
-        "Serve the HTTP API and the web page. Plain: one process on this machine (as `python -m service`). "
+        "Serve the HTTP API and the web page. Plain: one process on this machine "
+        "(as `python -m crestereo_pp.service`). "
         "With --ray: the same app in replicas on a Ray cluster, behind Ray's HTTP proxy (needs the `ray` extra); "
         "each answer names its replica in X-Replica. Without --address a local cluster is started and "
         "stopped again on SIGTERM or SIGINT."
@@ -44,11 +45,11 @@ def run(args: argparse.Namespace) -> int:
         given = [flag for flag, value in ray_only.items() if value is not None]
         if given:
             raise ValueError(f"{', '.join(given)} only apply with --ray")
-        from service.__main__ import serve
+        from crestereo_pp.service.__main__ import serve
 
         serve(args.host, args.port)
         return 0
-    from service.ray_serve import Scale, serve_on_ray
+    from crestereo_pp.service.ray_serve import Scale, serve_on_ray
 
     scale = Scale(args.replicas, args.min_replicas, args.max_replicas, args.replica_cpus)
     serve_on_ray(args.host, args.port, scale, args.address)

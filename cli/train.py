@@ -6,10 +6,10 @@ import argparse
 from dataclasses import replace
 from pathlib import Path
 
-from model.weights import read_weights
-from training.config import PRESETS, TrainConfig, preset
-from training.distributed import DistributedContext
-from training.trainer import train
+from crestereo_pp.model.weights import read_weights
+from crestereo_pp.training.config import PRESETS, TrainConfig, preset
+from crestereo_pp.training.distributed import DistributedContext
+from crestereo_pp.training.trainer import train
 
 from .dataclass_args import add_dataclass_options, given_options
 

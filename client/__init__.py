@@ -1,6 +1,6 @@
 """Python client of the disparity service: numpy arrays in and out, typed errors, polite retries.
 
-    from client import StereoClient
+    from crestereo_pp.client import StereoClient
     with StereoClient("http://127.0.0.1:8000") as service:
         result = service.disparity(left_rgb, right_rgb, model="lite")
     result.disparity, result.uncertainty            # float32 HxW

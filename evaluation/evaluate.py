@@ -11,10 +11,10 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from model import InferenceOptions, Prediction, StereoPredictor
-from model.inference import scaled_size, two_pass_possible
-from stereo_data.formats import encode_png
-from stereo_data.readers import StereoSample
+from crestereo_pp.model import InferenceOptions, Prediction, StereoPredictor
+from crestereo_pp.model.inference import scaled_size, two_pass_possible
+from crestereo_pp.stereo_data.formats import encode_png
+from crestereo_pp.stereo_data.readers import StereoSample
 
 from .metrics import (
     DisparityMetrics,

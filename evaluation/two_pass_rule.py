@@ -3,7 +3,7 @@
 of two passes, what auto picks, and the mean bad-2 that each threshold between the pairs'
 evidence would give. How ``model.inference.LARGE_DISPARITY_PX`` is measured for new weights:
 
-    python -m evaluation.two_pass_rule ../shared/data/stereo-dev [--model lite] [--weights W]
+    python -m crestereo_pp.evaluation.two_pass_rule ../shared/data/stereo-dev [--model lite] [--weights W]
                                        [--backend auto] [--precision auto]
 """
 
@@ -17,10 +17,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from evaluation.metrics import DisparityMetrics, compute_metrics
-from model import StereoPredictor, load_model
-from model.inference import LARGE_DISPARITY_PX, as_image_batch
-from stereo_data.readers import StereoSample, open_dataset
+from crestereo_pp.evaluation.metrics import DisparityMetrics, compute_metrics
+from crestereo_pp.model import StereoPredictor, load_model
+from crestereo_pp.model.inference import LARGE_DISPARITY_PX, as_image_batch
+from crestereo_pp.stereo_data.readers import StereoSample, open_dataset
 
 
 @dataclass(frozen=True)
@@ -95,7 +95,9 @@ def report(rules: Sequence[PairRule], threshold_px: float = LARGE_DISPARITY_PX) 
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], prog="python -m evaluation.two_pass_rule")
+    parser = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], prog="python -m crestereo_pp.evaluation.two_pass_rule"
+    )
     parser.add_argument("dataset", help="a folder of stereo pairs with ground truth")
     parser.add_argument("--model", default="lite", help="network [lite]")
     parser.add_argument("--weights", help="weights file [the bundled ones]")

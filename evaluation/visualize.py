@@ -10,8 +10,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from stereo_data.readers import StereoSample
-from stereo_data.visualize import UNCERTAINTY_COLORMAP, colorize
+from crestereo_pp.stereo_data.readers import StereoSample
+from crestereo_pp.stereo_data.visualize import UNCERTAINTY_COLORMAP, colorize
 
 from .metrics import Sparsification
 

@@ -2,7 +2,7 @@
 
 Disparity is positive everywhere, in pixels of the left image (the right match is at x - d).
 
-    from model import load_model
+    from crestereo_pp.model import load_model
     predictor = load_model("lite")                  # bundled weights if present
     disparity, uncertainty = predictor.predict(left_rgb, right_rgb)
 """

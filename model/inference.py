@@ -68,7 +68,7 @@ quarter-resolution pass's disparity (``StereoPredictor.large_disparity_percentil
 (px of the image the network sees). The single pass of lite's weights misses disparities beyond
 about 90-100 px on real pairs (on procedural ones beyond about 130), where starting from a
 half-resolution pass finds them; below, the single pass keeps finer detail. Measured on the dev
-pairs with ``python -m evaluation.two_pass_rule``."""
+pairs with ``python -m crestereo_pp.evaluation.two_pass_rule``."""
 
 QUICK_PASS_MIN_SIDE = 48
 """``two_pass="auto"``'s quick pass at quarter resolution needs at least this many pixels per side

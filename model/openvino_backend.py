@@ -355,7 +355,7 @@ def _described(kind: GraphKind) -> str:
 
 
 def _export_in_child(network: nn.Module, kind: GraphKind, graph_file: Path) -> None:
-    """`export_graph` in a child process (``python -m model.openvino_backend``), saved as
+    """`export_graph` in a child process (``python -m crestereo_pp.model.openvino_backend``), saved as
     OpenVINO IR at `graph_file` (.xml, with its .bin beside it). The network reaches it through
     its standard input: no file of it is left behind, however this process ends.
 
@@ -364,7 +364,15 @@ def _export_in_child(network: nn.Module, kind: GraphKind, graph_file: Path) -> N
     network_bytes = io.BytesIO()
     torch.save(network, network_bytes)
     n16, n8, n4 = kind.iters
-    command = [sys.executable, "-m", "model.openvino_backend", str(os.getpid()), str(n16), str(n8), str(n4)]
+    command = [
+        sys.executable,
+        "-m",
+        "crestereo_pp.model.openvino_backend",
+        str(os.getpid()),
+        str(n16),
+        str(n8),
+        str(n4),
+    ]
     command += ["warm" if kind.warm_start else "cold", str(graph_file)]
     done = subprocess.run(command, input=network_bytes.getvalue(), capture_output=True, check=False)
     if done.returncode != 0:

@@ -1,6 +1,6 @@
-"""`python -m service`: the service under uvicorn, with the server limits it is sized for.
+"""`python -m crestereo_pp.service`: the service under uvicorn, with the server limits it is sized for.
 
-    python -m service [--host 127.0.0.1] [--port 8000]
+    python -m crestereo_pp.service [--host 127.0.0.1] [--port 8000]
 
 The address defaults come from UVICORN_HOST / UVICORN_PORT (the container sets 0.0.0.0:8000),
 else loopback:8000. The limits below are uvicorn's own; service/README.md ("Server limits")
@@ -17,9 +17,9 @@ from typing import TypedDict
 
 import uvicorn
 
-from service.admission import largest_image_file
-from service.settings import Settings
-from service.worker import any_busy
+from crestereo_pp.service.admission import largest_image_file
+from crestereo_pp.service.settings import Settings
+from crestereo_pp.service.worker import any_busy
 
 
 class ServerLimits(TypedDict):
@@ -56,7 +56,7 @@ uvicorn cancels whatever still runs this long after it (a client that never read
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(
-        prog="python -m service", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+        prog="python -m crestereo_pp.service", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("--host", default=os.environ.get("UVICORN_HOST", "127.0.0.1"))
     parser.add_argument("--port", type=int, default=int(os.environ.get("UVICORN_PORT", "8000")))
@@ -69,7 +69,7 @@ def serve(host: str, port: int) -> None:
     settings = Settings.from_env()
     shutdown_s = math.ceil(settings.drain_timeout_s) + SHUTDOWN_MARGIN_S
     uvicorn.run(
-        "service.app:create_app",
+        "crestereo_pp.service.app:create_app",
         factory=True,
         host=host,
         port=port,

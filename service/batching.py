@@ -26,9 +26,9 @@ from contextlib import asynccontextmanager
 from dataclasses import dataclass, field
 from typing import Generic, Protocol, TypeVar
 
-from service.metrics import Metrics
-from service.scheduling import BatchKey, BatchLimits, ComputeTime, ComputeTimes, choose_batch
-from service.settings import Settings
+from crestereo_pp.service.metrics import Metrics
+from crestereo_pp.service.scheduling import BatchKey, BatchLimits, ComputeTime, ComputeTimes, choose_batch
+from crestereo_pp.service.settings import Settings
 
 logger = logging.getLogger(__name__)
 

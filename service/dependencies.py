@@ -8,9 +8,9 @@ from typing import Annotated
 from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
-from service.errors import ApiError
-from service.runtime import ServiceRuntime
-from service.settings import Settings
+from crestereo_pp.service.errors import ApiError
+from crestereo_pp.service.runtime import ServiceRuntime
+from crestereo_pp.service.settings import Settings
 
 
 def get_runtime(request: Request) -> ServiceRuntime:

@@ -7,9 +7,9 @@ import io
 
 import numpy as np
 
-from service.batching import JobResult
-from service.images import ImageHeader
-from service.schemas import (
+from crestereo_pp.service.batching import JobResult
+from crestereo_pp.service.images import ImageHeader
+from crestereo_pp.service.schemas import (
     DisparityOptions,
     DisparityResponse,
     EncodedArray,
@@ -19,12 +19,12 @@ from service.schemas import (
     RectifiedCamera,
     Timings,
 )
-from service.stereo_batches import Maps
-from stereo_data.formats import KITTI_SCALE, UNCERTAINTY_SCALE, encode_png, encode_png16
-from stereo_data.output_maps import output_maps
-from stereo_data.pointcloud import IMAGE_FRAME, METRIC_FRAME, DepthRange, encode_ply, point_cloud
-from stereo_data.rig import Rectifier
-from stereo_data.visualize import preview, scale_range
+from crestereo_pp.service.stereo_batches import Maps
+from crestereo_pp.stereo_data.formats import KITTI_SCALE, UNCERTAINTY_SCALE, encode_png, encode_png16
+from crestereo_pp.stereo_data.output_maps import output_maps
+from crestereo_pp.stereo_data.pointcloud import IMAGE_FRAME, METRIC_FRAME, DepthRange, encode_ply, point_cloud
+from crestereo_pp.stereo_data.rig import Rectifier
+from crestereo_pp.stereo_data.visualize import preview, scale_range
 
 
 def render(

@@ -11,7 +11,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from service.batching import (
+from crestereo_pp.service.batching import (
     BatchingError,
     ClientDisconnected,
     DeadlineExceeded,
@@ -19,9 +19,9 @@ from service.batching import (
     InferenceFailed,
     QueueFull,
 )
-from service.metrics import Metrics, RejectReason
-from service.schemas import ErrorDetail, ErrorResponse
-from service.uploads import UploadError
+from crestereo_pp.service.metrics import Metrics, RejectReason
+from crestereo_pp.service.schemas import ErrorDetail, ErrorResponse
+from crestereo_pp.service.uploads import UploadError
 
 logger = logging.getLogger(__name__)
 

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from stereo_data.formats import FormatError, decode_image
+from crestereo_pp.stereo_data.formats import FormatError, decode_image
 
 
 class ImageError(ValueError):

@@ -1,4 +1,4 @@
-"""The service as a child process on loopback: `python -m service` on a free port, waited for until
+"""The service as a child process on loopback: `python -m crestereo_pp.service` on a free port, waited for until
 ready, and stopped again. For the tools that need a real server beside them: benchmarks, the GPU
 check, tests. Only the standard library and httpx, so that it imports where fastapi is missing.
 """
@@ -30,7 +30,7 @@ def free_port() -> int:
 
 @dataclass
 class LocalService:
-    """A running `python -m service`."""
+    """A running `python -m crestereo_pp.service`."""
 
     base_url: str
     process: subprocess.Popen[bytes]
@@ -50,9 +50,9 @@ def start_service(
     settings: Mapping[str, str],
     log: IO[bytes] | None = None,
     ready_timeout_s: float = 90,
-    command: Sequence[str] = ("-m", "service"),
+    command: Sequence[str] = ("-m", "crestereo_pp.service"),
 ) -> LocalService:
-    """`python -m service` (or `python COMMAND`, a command that takes --host and --port, such as
+    """`python -m crestereo_pp.service` (or `python COMMAND`, a command that takes --host and --port, such as
     `-m cli.main serve --ray`) from this tree on a free loopback port, with the environment plus
     `settings` (`CRESTEREO_*` variables), its output to `log`; returns once `/health/ready` answers
     200. Raises RuntimeError (the process stopped) when it exits or is not ready in time."""
@@ -85,7 +85,7 @@ def local_service(
     settings: Mapping[str, str],
     log: IO[bytes] | None = None,
     ready_timeout_s: float = 90,
-    command: Sequence[str] = ("-m", "service"),
+    command: Sequence[str] = ("-m", "crestereo_pp.service"),
 ) -> Iterator[LocalService]:
     """`start_service` for the duration of a `with` block, stopped at its end."""
     service = start_service(settings, log, ready_timeout_s, command)

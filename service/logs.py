@@ -52,12 +52,12 @@ def log_warning(
 
 
 def configure_logging(level: str) -> None:
-    """JSON logs for the `service` and `model` loggers (the OpenVINO exports: when each fast path is
+    """JSON logs for the `crestereo_pp` loggers (service, model) (the OpenVINO exports: when each fast path is
     ready), Python warnings and uvicorn's server log; uvicorn's own access log is turned off
     because the service writes a JSON access line per request."""
     handler = logging.StreamHandler(sys.stderr)
     handler.setFormatter(JsonFormatter())
-    for name in ("service", "model", "py.warnings"):  # py.warnings: Python warnings, e.g. untrained weights
+    for name in ("crestereo_pp", "py.warnings"):  # py.warnings: Python warnings, e.g. untrained weights
         logger = logging.getLogger(name)
         logger.handlers = [handler]
         logger.setLevel(level.upper())

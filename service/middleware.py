@@ -11,18 +11,18 @@ import uuid
 from fastapi.security.utils import get_authorization_scheme_param
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from service.admission import ByteBudget
-from service.dependencies import bearer_accepted
-from service.errors import ApiError, error_response
-from service.logs import request_id_var
-from service.metrics import Metrics
-from service.settings import Settings
+from crestereo_pp.service.admission import ByteBudget
+from crestereo_pp.service.dependencies import bearer_accepted
+from crestereo_pp.service.errors import ApiError, error_response
+from crestereo_pp.service.logs import request_id_var
+from crestereo_pp.service.metrics import Metrics
+from crestereo_pp.service.settings import Settings
 
 REQUEST_ID_HEADER = "X-Request-Id"
 _VALID_REQUEST_ID = re.compile(r"[A-Za-z0-9._:-]{1,128}")
 _QUIET_PATHS = ("/health", "/metrics")  # probes and scrapes are logged at debug level
 
-logger = logging.getLogger("service.access")
+logger = logging.getLogger("crestereo_pp.service.access")
 
 
 class RequestContextMiddleware:

@@ -1,4 +1,4 @@
-"""Write the app's OpenAPI schema as YAML: `python -m service.openapi > openapi.yaml`.
+"""Write the app's OpenAPI schema as YAML: `python -m crestereo_pp.service.openapi > openapi.yaml`.
 
 `openapi.yaml` at the repository root is the contract; a test checks it equals this output.
 Needs PyYAML (in the `test` extra).
@@ -11,8 +11,8 @@ from typing import Any
 
 import yaml
 
-from service.app import create_app
-from service.settings import Settings
+from crestereo_pp.service.app import create_app
+from crestereo_pp.service.settings import Settings
 
 
 def openapi_schema() -> dict[str, Any]:

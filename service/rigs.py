@@ -18,9 +18,9 @@ from dataclasses import dataclass
 
 import cv2
 
-from service.decoding import Stop, unless
-from service.errors import bad_input
-from stereo_data.rig import Rectifier, RigError, StereoRig
+from crestereo_pp.service.decoding import Stop, unless
+from crestereo_pp.service.errors import bad_input
+from crestereo_pp.stereo_data.rig import Rectifier, RigError, StereoRig
 
 BYTES_PER_PIXEL = 24
 """What a rectifier holds per pixel: two float32 maps per camera, and float32 x, y back to the

@@ -12,16 +12,16 @@ from pathlib import Path
 from types import FrameType
 from typing import Any
 
-from service.batching import Batcher, Draining
-from service.cpu import configure_torch_threads, usable_cpus
-from service.decoding import DecoderLimits, DecoderPool
-from service.errors import ApiError, bad_input, draining
-from service.metrics import Metrics
-from service.rigs import RectifierCache
-from service.schemas import BatchingConfig, HealthResponse, ModelStatus, ServiceState
-from service.settings import Settings
-from service.stereo_batches import Maps, Predictor, StereoBatches, StereoKey, StereoPair
-from service.worker import DaemonWorker
+from crestereo_pp.service.batching import Batcher, Draining
+from crestereo_pp.service.cpu import configure_torch_threads, usable_cpus
+from crestereo_pp.service.decoding import DecoderLimits, DecoderPool
+from crestereo_pp.service.errors import ApiError, bad_input, draining
+from crestereo_pp.service.metrics import Metrics
+from crestereo_pp.service.rigs import RectifierCache
+from crestereo_pp.service.schemas import BatchingConfig, HealthResponse, ModelStatus, ServiceState
+from crestereo_pp.service.settings import Settings
+from crestereo_pp.service.stereo_batches import Maps, Predictor, StereoBatches, StereoKey, StereoPair
+from crestereo_pp.service.worker import DaemonWorker
 
 logger = logging.getLogger(__name__)
 

@@ -8,11 +8,11 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, field_validator, model_validator
 
-from model.config import ModelName
-from model.inference import scaled_size
-from model.options import InferenceOptions, TwoPass, parse_iterations
-from stereo_data.pointcloud import MIN_DISPARITY, Calibration
-from stereo_data.rig import MAX_FOCAL_BASELINE
+from crestereo_pp.model.config import ModelName
+from crestereo_pp.model.inference import scaled_size
+from crestereo_pp.model.options import InferenceOptions, TwoPass, parse_iterations
+from crestereo_pp.stereo_data.pointcloud import MIN_DISPARITY, Calibration
+from crestereo_pp.stereo_data.rig import MAX_FOCAL_BASELINE
 
 
 class OutputFormat(StrEnum):

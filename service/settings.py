@@ -14,10 +14,10 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from model.config import MODEL_NAMES, ModelName
-from model.inference import BackendChoice, PrecisionChoice
-from model.options import Iterations, parse_iterations
-from service import DEFAULT_MAX_IMAGE_PIXELS
+from crestereo_pp.model.config import MODEL_NAMES, ModelName
+from crestereo_pp.model.inference import BackendChoice, PrecisionChoice
+from crestereo_pp.model.options import Iterations, parse_iterations
+from crestereo_pp.service import DEFAULT_MAX_IMAGE_PIXELS
 
 ENV_PREFIX = "CRESTEREO_"
 

@@ -10,9 +10,9 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from model import InferenceOptions, Iterations, ModelConfig, Prediction, StageCounts, TwoPass, padded_size
-from model.calibration import UncertaintyCalibration
-from model.inference import Backend, Precision
+from crestereo_pp.model import InferenceOptions, Iterations, ModelConfig, Prediction, StageCounts, TwoPass, padded_size
+from crestereo_pp.model.calibration import UncertaintyCalibration
+from crestereo_pp.model.inference import Backend, Precision
 
 
 class Predictor(Protocol):

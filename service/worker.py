@@ -5,7 +5,7 @@ at exit: a batch still computing when the drain timeout ends (minutes, for a lar
 `full`) would keep the process alive past it. A daemon thread does not, so the drain timeout
 bounds shutdown; the abandoned batch's requests have been answered 503 `draining` by then.
 A process must not finish normally while such a thread computes (torch's static destructors
-then abort it): `python -m service` ends with `os._exit` when `any_busy()`.
+then abort it): `python -m crestereo_pp.service` ends with `os._exit` when `any_busy()`.
 """
 
 from __future__ import annotations

@@ -23,7 +23,7 @@ from typing import overload
 
 import numpy as np
 
-from stereo_data.formats import FormatError, read_image, read_kitti_disparity, read_pfm
+from crestereo_pp.stereo_data.formats import FormatError, read_image, read_kitti_disparity, read_pfm
 
 __all__ = ["StereoSample", "StereoDataset", "open_dataset", "LAYOUTS"]
 

@@ -10,8 +10,8 @@ import cv2
 import numpy as np
 import pytest
 
+from crestereo_pp.stereo_data.readers import StereoSample, open_dataset
 from shared_data import SMALL_STEREO_DEV_PAIR, STEREO_DEV
-from stereo_data.readers import StereoSample, open_dataset
 
 WIDTH, HEIGHT = 320, 240
 K1 = np.array([[400.0, 0, 158], [0, 402.0, 121], [0, 0, 1]])

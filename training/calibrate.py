@@ -14,10 +14,10 @@ import torch
 import torch.nn.functional as F
 from scipy.optimize import isotonic_regression
 
-from model import StereoPredictor, load_model
-from model.calibration import FEATURES, UncertaintyCalibration, confidence_features, score_design
-from model.weights import read_weights, write_weights
-from stereo_data.synthetic import SceneConfig, SceneGenerator
+from crestereo_pp.model import StereoPredictor, load_model
+from crestereo_pp.model.calibration import FEATURES, UncertaintyCalibration, confidence_features, score_design
+from crestereo_pp.model.weights import read_weights, write_weights
+from crestereo_pp.stereo_data.synthetic import SceneConfig, SceneGenerator
 
 CALIBRATION_SEED = 2**40
 """First seed of the calibration scenes (far from any training seed)."""

@@ -5,8 +5,8 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field, fields, replace
 from typing import Any, Literal
 
-from model.config import ModelName
-from stereo_data.synthetic import PhotometricConfig, SceneConfig
+from crestereo_pp.model.config import ModelName
+from crestereo_pp.stereo_data.synthetic import PhotometricConfig, SceneConfig
 
 SYNTHETIC = "synthetic"
 """The `path` of a DataSource that stands for the procedural scene generator."""

@@ -17,8 +17,8 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader, Dataset
 
-from stereo_data.readers import StereoSample, open_dataset
-from stereo_data.synthetic import SceneGenerator
+from crestereo_pp.stereo_data.readers import StereoSample, open_dataset
+from crestereo_pp.stereo_data.synthetic import SceneGenerator
 
 from .config import SYNTHETIC, TrainConfig
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from model.weights import WeightsFile, read_weights, weights_of, write_weights
+from crestereo_pp.model.weights import WeightsFile, read_weights, weights_of, write_weights
 
 
 def export_weights(checkpoint: Path, output: Path, half: bool = False) -> WeightsFile:

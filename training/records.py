@@ -6,8 +6,8 @@ import csv
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
-from evaluation.visualize import line_plot
-from stereo_data.formats import encode_png
+from crestereo_pp.evaluation.visualize import line_plot
+from crestereo_pp.stereo_data.formats import encode_png
 
 
 class CsvLog:

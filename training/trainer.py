@@ -13,8 +13,8 @@ import torch
 from torch.nn.parallel import DistributedDataParallel
 from tqdm import tqdm
 
-from evaluation.evaluate import evaluate
-from model import (
+from crestereo_pp.evaluation.evaluate import evaluate
+from crestereo_pp.model import (
     CREStereoPP,
     InferenceOptions,
     ModelConfig,
@@ -23,11 +23,11 @@ from model import (
     matching_loss,
     sequence_loss,
 )
-from model.device import resolve_device
-from model.inference import autocast_bf16, half_resolution_start
-from model.network import finest_stage_only
-from model.weights import WeightsFile, load_state, model_config_of, read_weights, write_weights
-from stereo_data.readers import open_dataset
+from crestereo_pp.model.device import resolve_device
+from crestereo_pp.model.inference import autocast_bf16, half_resolution_start
+from crestereo_pp.model.network import finest_stage_only
+from crestereo_pp.model.weights import WeightsFile, load_state, model_config_of, read_weights, write_weights
+from crestereo_pp.stereo_data.readers import open_dataset
 
 from .checkpoint import restore_rng_state, rng_state
 from .config import Switch, TrainConfig

@@ -7,7 +7,7 @@ import copy
 
 import torch
 
-from model import CREStereoPP
+from crestereo_pp.model import CREStereoPP
 
 
 class WeightAverage:

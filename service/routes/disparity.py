@@ -20,17 +20,17 @@ from pydantic import BeforeValidator
 from starlette.concurrency import run_in_threadpool
 from starlette.requests import ClientDisconnect
 
-from service.batching import ClientDisconnected, DeadlineExceeded, Draining, JobResult
-from service.dependencies import RuntimeDep, require_api_key
-from service.disparity_docs import RESPONSES, UPLOAD_BODY
-from service.encoding import render
-from service.errors import ApiError, bad_input, client_gone
-from service.images import ImageHeader
-from service.logs import request_id_var
-from service.runtime import ServiceRuntime, weights_identity
-from service.schemas import DisparityOptions, DisparityResponse
-from service.stereo_batches import Maps, Predictor, StereoPair, stereo_key
-from service.uploads import ImageLimits, boundary_of
+from crestereo_pp.service.batching import ClientDisconnected, DeadlineExceeded, Draining, JobResult
+from crestereo_pp.service.dependencies import RuntimeDep, require_api_key
+from crestereo_pp.service.disparity_docs import RESPONSES, UPLOAD_BODY
+from crestereo_pp.service.encoding import render
+from crestereo_pp.service.errors import ApiError, bad_input, client_gone
+from crestereo_pp.service.images import ImageHeader
+from crestereo_pp.service.logs import request_id_var
+from crestereo_pp.service.runtime import ServiceRuntime, weights_identity
+from crestereo_pp.service.schemas import DisparityOptions, DisparityResponse
+from crestereo_pp.service.stereo_batches import Maps, Predictor, StereoPair, stereo_key
+from crestereo_pp.service.uploads import ImageLimits, boundary_of
 
 router = APIRouter(tags=["disparity"])
 

@@ -7,11 +7,11 @@ from typing import Any
 
 from fastapi import APIRouter
 
-from service.dependencies import RuntimeDep
-from service.errors import ApiError
-from service.runtime import ServiceRuntime, weights_identity
-from service.schemas import ErrorResponse, ModelInfo, ModelList, TensorMetadata, TrainingSummary
-from service.stereo_batches import Predictor
+from crestereo_pp.service.dependencies import RuntimeDep
+from crestereo_pp.service.errors import ApiError
+from crestereo_pp.service.runtime import ServiceRuntime, weights_identity
+from crestereo_pp.service.schemas import ErrorResponse, ModelInfo, ModelList, TensorMetadata, TrainingSummary
+from crestereo_pp.service.stereo_batches import Predictor
 
 router = APIRouter(tags=["models"])
 

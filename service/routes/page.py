@@ -14,7 +14,7 @@ from pathlib import Path
 from fastapi import APIRouter
 from fastapi.responses import FileResponse
 
-from service.errors import ApiError
+from crestereo_pp.service.errors import ApiError
 
 STATIC_DIR = Path(__file__).resolve().parents[1] / "static"
 

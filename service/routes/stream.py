@@ -27,18 +27,18 @@ from pydantic import ValidationError
 from starlette.concurrency import run_in_threadpool
 from starlette.websockets import WebSocketState
 
-from model import WarmStart, parse_iterations
-from service.admission import ByteBudget, StreamSlots, largest_image_file
-from service.batching import BatchingError
-from service.dependencies import bearer_accepted
-from service.encoding import render
-from service.errors import ApiError, bad_input, batching_answer
-from service.images import ImageHeader
-from service.routes.disparity import repeated_option
-from service.runtime import ServiceRuntime, weights_identity
-from service.schemas import DisparityOptions, OutputFormat
-from service.stereo_batches import StereoPair, stereo_key
-from service.uploads import ImageLimits, UploadError
+from crestereo_pp.model import WarmStart, parse_iterations
+from crestereo_pp.service.admission import ByteBudget, StreamSlots, largest_image_file
+from crestereo_pp.service.batching import BatchingError
+from crestereo_pp.service.dependencies import bearer_accepted
+from crestereo_pp.service.encoding import render
+from crestereo_pp.service.errors import ApiError, bad_input, batching_answer
+from crestereo_pp.service.images import ImageHeader
+from crestereo_pp.service.routes.disparity import repeated_option
+from crestereo_pp.service.runtime import ServiceRuntime, weights_identity
+from crestereo_pp.service.schemas import DisparityOptions, OutputFormat
+from crestereo_pp.service.stereo_batches import StereoPair, stereo_key
+from crestereo_pp.service.uploads import ImageLimits, UploadError
 
 logger = logging.getLogger(__name__)
 router = APIRouter()

@@ -22,7 +22,7 @@ import numpy as np
 STATIC = Path(__file__).resolve().parent
 sys.path.insert(0, str(STATIC.parents[1]))  # the repository root, when run as a script
 
-from stereo_data.synthetic import SceneConfig, SceneGenerator  # noqa: E402
+from crestereo_pp.stereo_data.synthetic import SceneConfig, SceneGenerator  # noqa: E402
 
 EXAMPLES = (  # name, title, height, width, seed; disparities up to a fifth of the width
     ("shapes-192x128", "procedural shapes, 192x128", 128, 192, 11),

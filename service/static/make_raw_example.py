@@ -23,8 +23,8 @@ import numpy as np
 STATIC = Path(__file__).resolve().parent
 sys.path.insert(0, str(STATIC.parents[1]))  # the repository root, when run as a script
 
-from stereo_data.formats import encode_depth_mm_png  # noqa: E402
-from stereo_data.synthetic import SceneConfig, SceneGenerator  # noqa: E402
+from crestereo_pp.stereo_data.formats import encode_depth_mm_png  # noqa: E402
+from crestereo_pp.stereo_data.synthetic import SceneConfig, SceneGenerator  # noqa: E402
 
 FOLDER = STATIC / "examples" / "raw-320x240"
 WIDTH, HEIGHT = 320, 240

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from model.weights import read_weights
+from crestereo_pp.model.weights import read_weights
 
 REPO = Path(__file__).resolve().parents[2]
 STAGES = ("environment", "tests", "bench", "service", "probe", "train")

@@ -6,8 +6,8 @@ import cv2
 import numpy as np
 import pytest
 
+from crestereo_pp.stereo_data.formats import write_pfm
 from shared_data import SMALL_STEREO_DEV_PAIR, STEREO_DEV
-from stereo_data.formats import write_pfm
 
 
 def write_shifted_pair(folder: Path, disparity: int, height: int = 64, width: int = 96, seed: int = 0) -> None:

@@ -10,8 +10,8 @@ import cv2
 import pytest
 import torch
 
-from cli.main import main
-from model import CREStereoPP, ModelConfig
+from crestereo_pp.cli.main import main
+from crestereo_pp.model import CREStereoPP, ModelConfig
 
 REPO = Path(__file__).resolve().parents[2]
 pytestmark = pytest.mark.filterwarnings("ignore:no weights at:RuntimeWarning")
@@ -81,7 +81,11 @@ def test_eval_reports_the_sha256_of_the_weights_it_loaded(pairs_dir, tmp_path):
 @pytest.mark.slow
 def test_eval_of_a_folder_without_pairs_fails_with_a_clear_message(tmp_path):
     result = subprocess.run(
-        [sys.executable, "-m", "cli.main", "eval", str(tmp_path)], cwd=REPO, capture_output=True, text=True, timeout=120
+        [sys.executable, "-m", "crestereo_pp.cli.main", "eval", str(tmp_path)],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=120,
     )
     assert result.returncode == 2
     assert "no known stereo dataset layout" in result.stderr and "Traceback" not in result.stderr

@@ -6,17 +6,17 @@ from pathlib import Path
 
 import pytest
 
-from cli.main import COMMANDS
-from cli.options import MODEL_NAMES, TWO_PASS_CHOICES
-from model.config import MODEL_NAMES as MODEL_CONFIG_NAMES
-from model.options import TWO_PASS_CHOICES as MODEL_TWO_PASS_CHOICES
+from crestereo_pp.cli.main import COMMANDS
+from crestereo_pp.cli.options import MODEL_NAMES, TWO_PASS_CHOICES
+from crestereo_pp.model.config import MODEL_NAMES as MODEL_CONFIG_NAMES
+from crestereo_pp.model.options import TWO_PASS_CHOICES as MODEL_TWO_PASS_CHOICES
 
 REPO = Path(__file__).resolve().parents[2]
 
 # Runs the CLI, then says on its last line whether torch was imported.
 SCRIPT = """
 import sys
-from cli.main import main
+from crestereo_pp.cli.main import main
 try:
     main(sys.argv[1:])
 finally:

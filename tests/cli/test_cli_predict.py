@@ -26,11 +26,11 @@ from raw_camera import (
     unrectify,
 )
 
-from cli.main import main
-from cli.prediction import find_pairs
-from stereo_data.formats import read_kitti_disparity, read_pfm
-from stereo_data.synthetic import SceneConfig, SceneGenerator
-from stereo_data.visualize import BAR_HEIGHT
+from crestereo_pp.cli.main import main
+from crestereo_pp.cli.prediction import find_pairs
+from crestereo_pp.stereo_data.formats import read_kitti_disparity, read_pfm
+from crestereo_pp.stereo_data.synthetic import SceneConfig, SceneGenerator
+from crestereo_pp.stereo_data.visualize import BAR_HEIGHT
 
 REPO = Path(__file__).resolve().parents[2]
 pytestmark = pytest.mark.filterwarnings("ignore:no weights at:RuntimeWarning")
@@ -139,7 +139,7 @@ def test_globs_pair_in_sorted_order_and_mirror_the_folders_of_the_left_images(pa
         [
             sys.executable,
             "-m",
-            "cli.main",
+            "crestereo_pp.cli.main",
             "predict",
             f"{pairs_dir}/*/left.png",
             f"{pairs_dir}/*/right.png",

@@ -9,10 +9,10 @@ import cv2
 import numpy as np
 import pytest
 
-from cli.main import main
-from cli.prediction import describe_camera
-from stereo_data.formats import read_pfm
-from stereo_data.rig import Rectifier, read_rig
+from crestereo_pp.cli.main import main
+from crestereo_pp.cli.prediction import describe_camera
+from crestereo_pp.stereo_data.formats import read_pfm
+from crestereo_pp.stereo_data.rig import Rectifier, read_rig
 
 STATIC = Path(__file__).resolve().parents[2] / "service" / "static"
 EXAMPLE = STATIC / "examples" / "raw-320x240"

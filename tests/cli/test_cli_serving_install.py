@@ -1,4 +1,5 @@
-"""The CLI in the environment `make serve` builds: the package without extras.
+"""The CLI in the environment `make serve` builds: the package without extras; and what a plain
+`pip install` of the project puts into site-packages.
 
 The test environment has every extra, so a module that imports a package only an extra brings
 (scipy, through scikit-image) passes every other test; here the CLI runs in a fresh virtual
@@ -13,6 +14,7 @@ every requirement met. Nothing else of the test environment is visible: a depend
 requirement declares is missing there, as after `make serve`.
 """
 
+import json
 import os
 import re
 import subprocess
@@ -23,7 +25,7 @@ from pathlib import Path
 import pytest
 from packaging.requirements import Requirement
 
-from cli.main import COMMANDS
+from crestereo_pp.cli.main import COMMANDS
 
 REPO = Path(__file__).resolve().parents[2]
 PROJECT = "crestereo-pp"
@@ -56,28 +58,44 @@ def link_distributions(distributions: dict[str, Distribution], folder: Path) -> 
             link.symlink_to(Path(str(dist.locate_file(file))))
 
 
-@pytest.fixture(scope="module")
-def serving_install(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A fresh virtual environment as `make serve` leaves it; returns its bin/ folder."""
-    root = tmp_path_factory.mktemp("serving-install")
+def fresh_environment(root: Path) -> Path:
+    """A new virtual environment in root/venv that sees the runtime dependencies (through a .pth
+    file naming root/runtime, outside its site-packages); returns its site-packages."""
     subprocess.run([sys.executable, "-m", "venv", root / "venv"], check=True)
     link_distributions(runtime_distributions(), root / "runtime")
-    python = root / "venv" / "bin" / "python"
     purelib = subprocess.run(
-        [python, "-c", "import sysconfig; print(sysconfig.get_path('purelib'))"],
+        [root / "venv" / "bin" / "python", "-c", "import sysconfig; print(sysconfig.get_path('purelib'))"],
         capture_output=True,
         text=True,
         check=True,
     ).stdout.strip()
     Path(purelib, "runtime-dependencies.pth").write_text(f"{root / 'runtime'}\n")
+    return Path(purelib)
+
+
+def pip_install(bin_dir: Path, *arguments: str | Path) -> None:
     installed = subprocess.run(
-        [python, "-m", "pip", "install", "--quiet", "--disable-pip-version-check", "-e", REPO],
+        [bin_dir / "python", "-m", "pip", "install", "--quiet", "--disable-pip-version-check", *arguments],
         capture_output=True,
         text=True,
         check=False,
     )
     assert installed.returncode == 0, installed.stderr
+
+
+@pytest.fixture(scope="module")
+def serving_install(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A fresh virtual environment as `make serve` leaves it; returns its bin/ folder."""
+    root = tmp_path_factory.mktemp("serving-install")
+    fresh_environment(root)
+    pip_install(root / "venv" / "bin", "-e", REPO)
     return root / "venv" / "bin"
+
+
+def readme_python_example() -> str:
+    """The first Python block of the README's "Python" section."""
+    section = (REPO / "README.md").read_text().split("\n### Python\n", 1)[1]
+    return section.split("```python\n", 1)[1].split("```", 1)[0]
 
 
 def run_cli(bin_dir: Path, *arguments: str, **environment: str) -> subprocess.CompletedProcess[str]:
@@ -123,3 +141,44 @@ def test_predict_computes_a_real_pair_on_torch_there_without_waiting_for_an_expo
 def test_calibrate_says_it_needs_the_train_extra_there(serving_install, tmp_path):
     done = run_cli(serving_install, "calibrate", str(tmp_path / "weights.pt"))
     assert done.returncode != 0 and "pip install 'crestereo-pp[train]'" in done.stderr
+
+
+@pytest.mark.slow
+def test_a_plain_install_adds_only_crestereo_pp_and_the_readme_python_example_runs_there(
+    small_stereo_dev, tmp_path_factory
+):
+    root = tmp_path_factory.mktemp("plain-install")
+    site_packages = fresh_environment(root)
+    before = {path.name for path in site_packages.iterdir()}
+    pip_install(root / "venv" / "bin", "--no-deps", REPO)  # a wheel, as from a package index
+    added = {path.name for path in site_packages.iterdir()} - before - {"__pycache__"}
+    assert added == {"crestereo_pp", "crestereo_pp-0.1.0.dist-info"}, added
+    assert (site_packages / "crestereo_pp" / "model" / "weights" / "lite.pt").is_file()
+
+    # The example reads left.png and right.png from the folder it runs in: a real pair, copied there.
+    work = root / "work"
+    work.mkdir()
+    pair = next(small_stereo_dev.iterdir())
+    for name in ("left.png", "right.png"):
+        (work / name).write_bytes((pair / name).read_bytes())
+    script = readme_python_example() + (
+        "\nimport json, numpy as np, crestereo_pp\n"
+        "print(json.dumps({'package': crestereo_pp.__file__, 'shape': list(disparity.shape),\n"
+        "    'pair': list(left.shape[:2]), 'finite': float(np.isfinite(disparity).mean()),\n"
+        "    'uncertainty': [float(uncertainty.min()), float(uncertainty.max())]}))\n"
+    )
+    environ = {key: value for key, value in os.environ.items() if key not in ("PYTHONPATH", "CRESTEREO_BACKEND")}
+    ran = subprocess.run(
+        [root / "venv" / "bin" / "python", "-c", script],
+        cwd=work,
+        capture_output=True,
+        text=True,
+        check=False,
+        env={**environ, "CRESTEREO_CACHE_DIR": str(root / "cache")},
+        timeout=300,
+    )
+    assert ran.returncode == 0, ran.stderr
+    printed = json.loads(ran.stdout.strip().splitlines()[-1])
+    assert printed["package"] == str(site_packages / "crestereo_pp" / "__init__.py")  # not this checkout
+    assert printed["shape"] == printed["pair"] and printed["finite"] == 1.0
+    assert 0.0 <= printed["uncertainty"][0] <= printed["uncertainty"][1] <= 1.0

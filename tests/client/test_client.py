@@ -7,7 +7,7 @@ import threading
 import numpy as np
 import pytest
 
-from client import AsyncStereoClient, ServiceError, StereoClient
+from crestereo_pp.client import AsyncStereoClient, ServiceError, StereoClient
 from service_helpers import encode, quiet_load_model, run_uvicorn, stereo_pair
 
 

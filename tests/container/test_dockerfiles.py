@@ -49,7 +49,7 @@ def test_compose_file_is_valid_and_limits_resources() -> None:
 
 def test_compose_passes_every_service_setting() -> None:
     """compose.yaml passes each CRESTEREO_* setting of the service through, no more, no less."""
-    settings = pytest.importorskip("service.settings")
+    settings = pytest.importorskip("crestereo_pp.service.settings")
     expected = {settings.ENV_PREFIX + name.upper() for name in settings.Settings.model_fields}
     compose = (DOCKER / "compose.yaml").read_text()
     passed = set(re.findall(r"^\s+- (CRESTEREO_\w+)\s*$", compose, flags=re.MULTILINE))
@@ -57,7 +57,7 @@ def test_compose_passes_every_service_setting() -> None:
 
 
 def test_container_readme_lists_every_service_setting() -> None:
-    settings = pytest.importorskip("service.settings")
+    settings = pytest.importorskip("crestereo_pp.service.settings")
     readme = (DOCKER / "README.md").read_text()
     missing = [
         settings.ENV_PREFIX + name.upper()

@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from evaluation.metrics import DisparityMetrics, compute_metrics, mean_metrics, reliability, sparsification
+from crestereo_pp.evaluation.metrics import DisparityMetrics, compute_metrics, mean_metrics, reliability, sparsification
 
 INF = np.inf
 

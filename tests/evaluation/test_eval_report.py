@@ -6,11 +6,11 @@ import cv2
 import numpy as np
 import pytest
 
-from evaluation.evaluate import SGBM, evaluate
-from evaluation.visualize import PANEL_WIDTH
-from model import Prediction
-from stereo_data.readers import StereoSample
-from stereo_data.visualize import colorize
+from crestereo_pp.evaluation.evaluate import SGBM, evaluate
+from crestereo_pp.evaluation.visualize import PANEL_WIDTH
+from crestereo_pp.model import Prediction
+from crestereo_pp.stereo_data.readers import StereoSample
+from crestereo_pp.stereo_data.visualize import colorize
 
 
 class OffsetPredictor:

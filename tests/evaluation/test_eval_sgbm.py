@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from evaluation.sgbm import create_sgbm, fill_invalid_from_left, sgbm_disparity, sgbm_num_disparities
+from crestereo_pp.evaluation.sgbm import create_sgbm, fill_invalid_from_left, sgbm_disparity, sgbm_num_disparities
 
 
 @pytest.mark.parametrize(("max_disparity", "expected"), [(14.0, 16), (16.0, 16), (52.75, 64), (152.12, 160), (0.0, 16)])

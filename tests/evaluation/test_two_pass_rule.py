@@ -1,12 +1,12 @@
-"""`python -m evaluation.two_pass_rule`: the table that measures where two-pass inference pays."""
+"""`python -m crestereo_pp.evaluation.two_pass_rule`: the table that measures where two-pass inference pays."""
 
 from pathlib import Path
 
 import pytest
 
-from evaluation.metrics import DisparityMetrics
-from evaluation.two_pass_rule import PairRule, main, report, thresholds_between
-from model.inference import LARGE_DISPARITY_PX
+from crestereo_pp.evaluation.metrics import DisparityMetrics
+from crestereo_pp.evaluation.two_pass_rule import PairRule, main, report, thresholds_between
+from crestereo_pp.model.inference import LARGE_DISPARITY_PX
 from tests.shared_data import SMALL_STEREO_DEV_PAIR, STEREO_DEV
 
 

@@ -8,14 +8,14 @@ import numpy as np
 import pytest
 import torch
 
-from evaluation.evaluate import evaluate
-from model import load_model
-from model.weights import read_weights
-from stereo_data.readers import StereoSample
-from training.calibrate import calibrate
-from training.config import TrainConfig
-from training.export import export_weights
-from training.trainer import train
+from crestereo_pp.evaluation.evaluate import evaluate
+from crestereo_pp.model import load_model
+from crestereo_pp.model.weights import read_weights
+from crestereo_pp.stereo_data.readers import StereoSample
+from crestereo_pp.training.calibrate import calibrate
+from crestereo_pp.training.config import TrainConfig
+from crestereo_pp.training.export import export_weights
+from crestereo_pp.training.trainer import train
 
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 ITERS = (1, 1, 2)

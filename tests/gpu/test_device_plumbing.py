@@ -5,15 +5,15 @@ import numpy as np
 import pytest
 import torch
 
-from evaluation.evaluate import evaluate
+from crestereo_pp.evaluation.evaluate import evaluate
+from crestereo_pp.model import CREStereoPP, InferenceOptions, ModelConfig, StereoPredictor
+from crestereo_pp.model.cuda_graphs import GraphedForward
+from crestereo_pp.stereo_data.readers import StereoSample
+from crestereo_pp.training.config import TrainConfig
+from crestereo_pp.training.data import TrainingBatch
+from crestereo_pp.training.distributed import DistributedContext
+from crestereo_pp.training.trainer import Trainer
 from fake_accelerator import DEVICE, DeviceTransfers, replay_eagerly
-from model import CREStereoPP, InferenceOptions, ModelConfig, StereoPredictor
-from model.cuda_graphs import GraphedForward
-from stereo_data.readers import StereoSample
-from training.config import TrainConfig
-from training.data import TrainingBatch
-from training.distributed import DistributedContext
-from training.trainer import Trainer
 
 ITERS = (1, 1, 2)
 

@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 import torch
 
-from evaluation.metrics import sparsification
-from model import load_model
-from model.calibration import FEATURES, UncertaintyCalibration, confidence_features
+from crestereo_pp.evaluation.metrics import sparsification
+from crestereo_pp.model import load_model
+from crestereo_pp.model.calibration import FEATURES, UncertaintyCalibration, confidence_features
+from crestereo_pp.stereo_data.readers import open_dataset
 from shared_data import SMALL_STEREO_DEV_PAIR, STEREO_DEV
-from stereo_data.readers import open_dataset
 
 CALIBRATION = UncertaintyCalibration(
     threshold_px=2.0, knots=(0.1, 0.3, 0.5), probabilities=(0.2, 0.4, 0.9), fitted_on="test"

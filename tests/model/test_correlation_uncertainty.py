@@ -3,8 +3,8 @@
 import pytest
 import torch
 
-from model.correlation import group_correlation, window_for_iteration
-from model.uncertainty import estimate_uncertainty
+from crestereo_pp.model.correlation import group_correlation, window_for_iteration
+from crestereo_pp.model.uncertainty import estimate_uncertainty
 
 
 def test_correlation_window_alternates_line_and_square_starting_with_the_line():

@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 import torch
 
-from model import InferenceOptions, ModelConfig, load_model
-from model import inference as inference_module
-from model.network import finest_stage_only
-from model.weights import file_sha256
-from stereo_data.readers import open_dataset
-from stereo_data.synthetic import SceneConfig, SceneGenerator
+from crestereo_pp.model import InferenceOptions, ModelConfig, load_model
+from crestereo_pp.model import inference as inference_module
+from crestereo_pp.model.network import finest_stage_only
+from crestereo_pp.model.weights import file_sha256
+from crestereo_pp.stereo_data.readers import open_dataset
+from crestereo_pp.stereo_data.synthetic import SceneConfig, SceneGenerator
 from tests.shared_data import SMALL_STEREO_DEV_PAIR, STEREO_DEV
 
 
@@ -155,7 +155,7 @@ def test_mismatched_or_malformed_inputs_are_refused_with_a_clear_error(lite):
 
 
 def test_missing_weights_warn_and_give_the_same_random_network_in_every_process(monkeypatch, tmp_path):
-    monkeypatch.setattr("model.inference.WEIGHTS_DIR", tmp_path)  # no bundled weights here
+    monkeypatch.setattr("crestereo_pp.model.inference.WEIGHTS_DIR", tmp_path)  # no bundled weights here
     with pytest.warns(RuntimeWarning, match="randomly initialised"):
         first = load_model("lite", weights=None)
     assert first.weights_sha256 is None
@@ -250,7 +250,7 @@ def test_bf16_autocast_keeps_the_disparity_within_0_08_px_of_fp32_on_average():
 
 
 def test_a_scale_that_leaves_the_network_too_few_pixels_is_refused_not_extrapolated():
-    from model.inference import MIN_SCALED_SIDE, scaled_size
+    from crestereo_pp.model.inference import MIN_SCALED_SIDE, scaled_size
 
     assert scaled_size(375, 1242, 0.5) == (188, 621)
     assert scaled_size(20, 20, 1.0) == (20, 20)  # a small image at its own size is fine

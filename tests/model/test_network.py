@@ -5,7 +5,7 @@ import dataclasses
 import pytest
 import torch
 
-from model import CREStereoPP, ModelConfig, sequence_loss
+from crestereo_pp.model import CREStereoPP, ModelConfig, sequence_loss
 
 
 def count(module: torch.nn.Module) -> int:
@@ -137,7 +137,7 @@ def test_input_that_is_not_a_multiple_of_32_is_refused_by_the_bare_network():
 
 
 def test_wide_horizontal_convs_equal_the_plain_convolution():
-    from model.convolution import WideHorizontalConv
+    from crestereo_pp.model.convolution import WideHorizontalConv
 
     torch.manual_seed(0)
     conv = WideHorizontalConv(12, 8, (1, 15), padding=(0, 7), groups=2)
@@ -149,7 +149,7 @@ def test_wide_horizontal_convs_equal_the_plain_convolution():
 
 @pytest.mark.parametrize("kernels", ["3x3", "1x5+1x15"])
 def test_the_gru_with_the_context_convolved_once_per_stage_equals_the_gru_on_the_whole_input(kernels):
-    from model.update import ConvGRU, SeparableConvGRU
+    from crestereo_pp.model.update import ConvGRU, SeparableConvGRU
 
     torch.manual_seed(1)
     hidden = 6
@@ -172,7 +172,7 @@ def test_the_gru_with_the_context_convolved_once_per_stage_equals_the_gru_on_the
 
 
 def test_the_offset_cnn_with_the_left_features_convolved_once_equals_it_on_the_whole_input():
-    from model.warping import OffsetNet
+    from crestereo_pp.model.warping import OffsetNet
 
     torch.manual_seed(2)
     net = OffsetNet(feature_dim=8, hidden=12, groups=4, max_offset=10.0).double()

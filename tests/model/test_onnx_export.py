@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cli.main import main
-from model import load_model
-from model.weights import WEIGHTS_DIR
-from stereo_data.synthetic import SceneConfig, SceneGenerator
+from crestereo_pp.cli.main import main
+from crestereo_pp.model import load_model
+from crestereo_pp.model.weights import WEIGHTS_DIR
+from crestereo_pp.stereo_data.synthetic import SceneConfig, SceneGenerator
 
 ort = pytest.importorskip("onnxruntime", reason="onnxruntime is a test dependency (pip install -e '.[test]')")
 

@@ -21,10 +21,10 @@ import numpy as np
 import pytest
 import torch
 
-from cli.main import main
-from model import load_model
-from model.inference import resolve_backend, resolve_precision
-from model.openvino_backend import native_bf16
+from crestereo_pp.cli.main import main
+from crestereo_pp.model import load_model
+from crestereo_pp.model.inference import resolve_backend, resolve_precision
+from crestereo_pp.model.openvino_backend import native_bf16
 from shared_data import STEREO_DEV
 
 REPO = Path(__file__).resolve().parents[2]
@@ -72,7 +72,7 @@ def first_call(cache_dir, tsukuba):
     before = predictor.predict(*tsukuba, iters=ITERS)
     counts = (predictor.openvino.runs, predictor.openvino.fallback_runs, predictor.openvino.exports)
     exporting = [thread.name for thread in threading.enumerate() if thread.name == "openvino-export"]
-    logger, messages = logging.getLogger("model.openvino_backend"), Messages()
+    logger, messages = logging.getLogger("crestereo_pp.model.openvino_backend"), Messages()
     logger.addHandler(messages)
     logger.setLevel(logging.INFO)
     try:
@@ -179,7 +179,7 @@ def export_child(parent: int) -> int | None:
     """The pid of `parent`'s export process, once it runs."""
     for task in Path(f"/proc/{parent}/task").iterdir():
         for pid in (task / "children").read_text().split():
-            if b"model.openvino_backend" in Path(f"/proc/{pid}/cmdline").read_bytes():
+            if b"crestereo_pp.model.openvino_backend" in Path(f"/proc/{pid}/cmdline").read_bytes():
                 return int(pid)
     return None
 

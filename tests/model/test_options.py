@@ -2,7 +2,7 @@
 
 import pytest
 
-from model import InferenceOptions, parse_iterations, parse_two_pass
+from crestereo_pp.model import InferenceOptions, parse_iterations, parse_two_pass
 
 
 @pytest.mark.parametrize(

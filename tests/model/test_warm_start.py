@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 import torch
 
-from model import InferenceOptions, StereoPredictor, load_model
-from model.inference import shrink
-from stereo_data.formats import read_image
+from crestereo_pp.model import InferenceOptions, StereoPredictor, load_model
+from crestereo_pp.model.inference import shrink
+from crestereo_pp.stereo_data.formats import read_image
 from tests.shared_data import STEREO_DEV
 
 PAIR = STEREO_DEV / "middlebury2003_teddy"

@@ -4,7 +4,7 @@ import math
 
 import torch
 
-from model.warping import ContentAwareWarp, bilinear_warp, deformable_sample, sampling_grid
+from crestereo_pp.model.warping import ContentAwareWarp, bilinear_warp, deformable_sample, sampling_grid
 
 
 def bilinear_at(feature: torch.Tensor, x: float, y: float) -> torch.Tensor:

@@ -7,9 +7,9 @@ import warnings
 import pytest
 import torch
 
-from model import CREStereoPP, ModelConfig, load_model
-from model.config import MODEL_NAMES, PRESETS
-from model.weights import model_config_of, network_from_weights, read_weights, write_weights
+from crestereo_pp.model import CREStereoPP, ModelConfig, load_model
+from crestereo_pp.model.config import MODEL_NAMES, PRESETS
+from crestereo_pp.model.weights import model_config_of, network_from_weights, read_weights, write_weights
 
 
 def test_every_model_name_has_exactly_one_preset():
@@ -42,7 +42,7 @@ def test_a_file_without_a_config_uses_the_preset_of_its_name():
 
 
 def test_weights_count_as_trained_only_with_a_good_validation_on_real_pairs():
-    from model.weights import is_trained
+    from crestereo_pp.model.weights import is_trained
 
     assert not is_trained(None)
     assert not is_trained({"runs": [{"validation": None}]})  # trained on scenes, never validated

@@ -14,15 +14,24 @@ from pathlib import Path
 import pytest
 from ray_helpers import write_pairs
 
-from cli.main import main
+from crestereo_pp.cli.main import main
+from crestereo_pp.stereo_data.formats import read_pfm
 from service_helpers import REPO, assert_same_maps
-from stereo_data.formats import read_pfm
 
 pytest.importorskip("ray", reason="the `ray` extra is not installed")
 
 
 def ray_job(lefts: Path, rights: Path, out: Path, *extra: str) -> subprocess.Popen[str]:
-    command = [sys.executable, "-m", "cli.main", "predict", str(lefts), str(rights), "-o", str(out / "disparity")]
+    command = [
+        sys.executable,
+        "-m",
+        "crestereo_pp.cli.main",
+        "predict",
+        str(lefts),
+        str(rights),
+        "-o",
+        str(out / "disparity"),
+    ]
     command += ["--uncertainty", str(out / "uncertainty"), "--mkdir", "--backend", "torch", "--ray", "--workers", "2"]
     environment = {**os.environ, "PYTHONWARNINGS": "ignore::RuntimeWarning"}
     return subprocess.Popen(

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from ray_helpers import CROP_HEIGHT, CROP_WIDTH, ray_processes, real_crops, replica_processes
 
-from service.local import LocalService, start_service
+from crestereo_pp.service.local import LocalService, start_service
 from service_helpers import assert_same_maps, decode_array, quiet_load_model
 
 pytest.importorskip("ray", reason="the `ray` extra is not installed")
@@ -37,7 +37,7 @@ def ray_service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Loca
     run (the command says so once Ray Serve has deployed them all) and the proxy routes to both."""
     log_path = tmp_path_factory.mktemp("ray-serve") / "serve.log"
     settings = {"CRESTEREO_MODELS": "lite", "CRESTEREO_BACKEND": "torch", "PYTHONWARNINGS": "ignore::RuntimeWarning"}
-    command = ("-m", "cli.main", "serve", "--ray", "--replicas", "2", "--replica-cpus", "1")
+    command = ("-m", "crestereo_pp.cli.main", "serve", "--ray", "--replicas", "2", "--replica-cpus", "1")
     with log_path.open("wb") as log:
         try:
             service = start_service(settings, log, READY_TIMEOUT_S, command)

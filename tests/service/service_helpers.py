@@ -23,11 +23,11 @@ import pytest
 from fastapi import FastAPI
 from websockets.sync.client import ClientConnection, connect
 
-from model import load_model
-from service.app import create_app
-from service.local import start_service
-from service.settings import Settings
-from service.stereo_batches import Predictor
+from crestereo_pp.model import load_model
+from crestereo_pp.service.app import create_app
+from crestereo_pp.service.local import start_service
+from crestereo_pp.service.settings import Settings
+from crestereo_pp.service.stereo_batches import Predictor
 
 REPO = Path(__file__).resolve().parents[2]
 HEIGHT, WIDTH = 64, 96
@@ -177,7 +177,7 @@ _logs = itertools.count()
 
 @contextmanager
 def run_uvicorn(tmp_path: Path, **env: str) -> Iterator[Server]:
-    """`python -m service` (uvicorn with the service's limits) on a free loopback port with `CRESTEREO_*`
+    """`python -m crestereo_pp.service` (uvicorn with the service's limits) on a free loopback port with `CRESTEREO_*`
     settings from `env` (lite only unless given); stopped (and killed if need be) on exit."""
     log_path = tmp_path / f"uvicorn-{next(_logs)}.log"
     settings = {

@@ -10,9 +10,10 @@ import cv2
 import numpy as np
 import pytest
 
-from model import load_model
-from service.logs import JsonFormatter
-from service.settings import Settings
+from crestereo_pp.model import load_model
+from crestereo_pp.service.logs import JsonFormatter
+from crestereo_pp.service.settings import Settings
+from crestereo_pp.stereo_data.visualize import BAR_HEIGHT, PREVIEW_GAP
 from service_helpers import (
     HEIGHT,
     WIDTH,
@@ -24,7 +25,6 @@ from service_helpers import (
     serve_asgi,
     stereo_pair,
 )
-from stereo_data.visualize import BAR_HEIGHT, PREVIEW_GAP
 
 pytestmark = pytest.mark.anyio
 
@@ -175,11 +175,11 @@ async def test_logs_are_json_lines_carrying_the_request_id():
     handler = logging.StreamHandler(stream)
     handler.setFormatter(JsonFormatter())
     async with serve_asgi() as h:
-        logging.getLogger("service").addHandler(handler)
+        logging.getLogger("crestereo_pp").addHandler(handler)
         try:
             await h.client.post("/disparity", headers={"X-Request-Id": "req-1"}, files=pair_files(*stereo_pair()))
         finally:
-            logging.getLogger("service").removeHandler(handler)
+            logging.getLogger("crestereo_pp").removeHandler(handler)
     lines = [json.loads(line) for line in stream.getvalue().splitlines()]
     access = [line for line in lines if line["message"] == "request"]
     assert access == [

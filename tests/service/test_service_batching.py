@@ -19,8 +19,8 @@ import numpy as np
 import pytest
 import torch
 
-from service.logs import JsonFormatter
-from service.settings import Settings
+from crestereo_pp.service.logs import JsonFormatter
+from crestereo_pp.service.settings import Settings
 from service_helpers import (
     Harness,
     assert_same_maps,
@@ -225,7 +225,7 @@ async def test_an_inference_exception_fails_only_its_batch_and_logs_an_error_id(
     handler = logging.StreamHandler(stream)
     handler.setFormatter(JsonFormatter())
     async with serve_asgi() as h:
-        logging.getLogger("service").addHandler(handler)  # after create_app set up logging
+        logging.getLogger("crestereo_pp").addHandler(handler)  # after create_app set up logging
         try:
             async with worker_held(h, "before") as requests:
                 requests.post("faulty", black, black, headers={"X-Request-Id": "faulty-1"})
@@ -234,7 +234,7 @@ async def test_an_inference_exception_fails_only_its_batch_and_logs_an_error_id(
             after = await h.client.post("/disparity", files=pair_files(*stereo_pair()))
             ready = await h.client.get("/health/ready")
         finally:
-            logging.getLogger("service").removeHandler(handler)
+            logging.getLogger("crestereo_pp").removeHandler(handler)
     faulty = requests.responses["faulty"]
     assert faulty.status_code == 500
     assert faulty.json()["error"]["code"] == "inference_failed"

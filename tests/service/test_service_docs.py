@@ -14,8 +14,8 @@ from urllib.parse import urljoin, urlsplit
 import httpx
 import pytest
 
-from service.app import create_app
-from service.routes.page import STATIC_DIR
+from crestereo_pp.service.app import create_app
+from crestereo_pp.service.routes.page import STATIC_DIR
 from service_helpers import lite_settings
 
 pytestmark = pytest.mark.anyio
@@ -64,6 +64,6 @@ def test_the_shipped_swagger_ui_files_are_the_pinned_ones_and_package_data():
     for name, digest in PIN["files"].items():
         assert "sha256:" + hashlib.sha256((DOCS_DIR / name).read_bytes()).hexdigest() == digest, name
     pyproject = tomllib.loads((STATIC_DIR.parents[1] / "pyproject.toml").read_text())
-    patterns = pyproject["tool"]["setuptools"]["package-data"]["service"]
+    patterns = pyproject["tool"]["setuptools"]["package-data"]["crestereo_pp.service"]
     packaged = {path for pattern in patterns for path in STATIC_DIR.parent.glob(pattern)}
     assert {DOCS_DIR / name for name in [*PIN["files"], "swagger-ui-dist.json"]} <= packaged

@@ -6,8 +6,8 @@ import cv2
 import numpy as np
 import pytest
 
-from service.encoding import encode_preview
-from stereo_data.visualize import BAR_HEIGHT, PREVIEW_GAP, scale_range
+from crestereo_pp.service.encoding import encode_preview
+from crestereo_pp.stereo_data.visualize import BAR_HEIGHT, PREVIEW_GAP, scale_range
 
 
 def test_preview_puts_disparity_left_of_uncertainty_with_color_bars_on_their_scales():

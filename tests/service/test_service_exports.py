@@ -16,8 +16,8 @@ from typing import Any
 
 import pytest
 
-from service.app import create_app
-from service.logs import JsonFormatter, configure_logging
+from crestereo_pp.service.app import create_app
+from crestereo_pp.service.logs import JsonFormatter, configure_logging
 from service_helpers import REPO, lite_settings, pair_files, quiet_load_model, serve_asgi, stereo_pair
 
 pytestmark = pytest.mark.anyio
@@ -38,7 +38,7 @@ def export_processes() -> list[str]:
     """The command lines of this process's children that export a graph."""
     children = (pid for task in Path("/proc/self/task").iterdir() for pid in (task / "children").read_text().split())
     commands = (Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode() for pid in children)
-    return [command for command in commands if "model.openvino_backend" in command]
+    return [command for command in commands if "crestereo_pp.model.openvino_backend" in command]
 
 
 async def test_requests_with_21_distinct_iterations_start_no_export(tmp_path, openvino_cache):
@@ -72,7 +72,7 @@ async def test_the_service_prepares_the_iterations_its_settings_name_when_it_loa
 
 
 async def test_the_log_says_ready_once_the_models_are_loaded():
-    records, logger = Records(), logging.getLogger("service.runtime")
+    records, logger = Records(), logging.getLogger("crestereo_pp.service.runtime")
     logger.addHandler(records)
     try:
         async with serve_asgi():

@@ -16,8 +16,8 @@ from pydantic import ValidationError
 from websockets.exceptions import ConnectionClosed, InvalidStatus
 from websockets.sync.client import ClientConnection
 
-from service.routes.disparity import repeated_option
-from service.settings import Settings
+from crestereo_pp.service.routes.disparity import repeated_option
+from crestereo_pp.service.settings import Settings
 from service_helpers import (
     encode,
     lite_settings,

@@ -7,14 +7,14 @@ import json
 
 import yaml
 
-from service.openapi import openapi_schema, render_yaml
+from crestereo_pp.service.openapi import openapi_schema, render_yaml
 from service_helpers import REPO
 
 
 def test_openapi_yaml_equals_the_generated_schema():
     committed = yaml.safe_load((REPO / "openapi.yaml").read_text())
     generated = json.loads(json.dumps(openapi_schema()))
-    assert committed == generated, "regenerate: python -m service.openapi > openapi.yaml"
+    assert committed == generated, "regenerate: python -m crestereo_pp.service.openapi > openapi.yaml"
     assert yaml.safe_load(render_yaml(generated)) == generated
 
 

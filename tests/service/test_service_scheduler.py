@@ -11,11 +11,11 @@ from dataclasses import dataclass
 import anyio
 import pytest
 
-from model import InferenceOptions
-from service.batching import Batcher, JobResult
-from service.metrics import Metrics
-from service.scheduling import BatchLimits, ComputeTimes, choose_batch
-from service.stereo_batches import Maps, StereoBatches, StereoKey, StereoPair, relative_cost, stereo_key
+from crestereo_pp.model import InferenceOptions
+from crestereo_pp.service.batching import Batcher, JobResult
+from crestereo_pp.service.metrics import Metrics
+from crestereo_pp.service.scheduling import BatchLimits, ComputeTimes, choose_batch
+from crestereo_pp.service.stereo_batches import Maps, StereoBatches, StereoKey, StereoPair, relative_cost, stereo_key
 from service_helpers import GatedPredictor, lite_settings, quiet_load_model, stereo_pair
 
 pytestmark = pytest.mark.anyio  # the async tests; the sync ones ignore it

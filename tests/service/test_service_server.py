@@ -13,6 +13,7 @@ import httpx
 import numpy as np
 import pytest
 
+from crestereo_pp.stereo_data.formats import read_image, read_pfm
 from service_helpers import (
     Server,
     assert_same_maps,
@@ -23,7 +24,6 @@ from service_helpers import (
     stereo_pair,
 )
 from shared_data import STEREO_DEV
-from stereo_data.formats import read_image, read_pfm
 
 REAL_PAIR = STEREO_DEV / "middlebury2003_teddy"
 SCALE = 4  # the real pair is downscaled by this factor to keep the test fast on a small CPU

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 from pydantic import ValidationError
 
-from service.settings import Settings
+from crestereo_pp.service.settings import Settings
 from service_helpers import REPO
 
 

@@ -12,10 +12,10 @@ import pytest
 from websockets.exceptions import ConnectionClosed, InvalidStatus
 from websockets.sync.client import connect
 
-from client import ServiceError, StereoClient
-from model import InferenceOptions
+from crestereo_pp.client import ServiceError, StereoClient
+from crestereo_pp.model import InferenceOptions
+from crestereo_pp.stereo_data.synthetic import SceneConfig, SceneGenerator
 from service_helpers import assert_same_maps, encode, quiet_load_model, run_uvicorn, ws_url
-from stereo_data.synthetic import SceneConfig, SceneGenerator
 
 
 def panned_frames(count: int) -> list[tuple[np.ndarray, np.ndarray]]:

@@ -8,7 +8,7 @@ import threading
 
 import pytest
 
-from service.worker import DaemonWorker, any_busy
+from crestereo_pp.service.worker import DaemonWorker, any_busy
 from service_helpers import REPO
 
 

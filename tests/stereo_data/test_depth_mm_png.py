@@ -7,7 +7,7 @@ import cv2
 import numpy as np
 from PIL import Image
 
-from stereo_data.formats import DEPTH_MM_TEXT, encode_depth_mm_png, write_depth_mm
+from crestereo_pp.stereo_data.formats import DEPTH_MM_TEXT, encode_depth_mm_png, write_depth_mm
 
 
 def test_depth_reads_back_as_uint16_millimetres_with_0_where_there_is_none_or_beyond_65_535_m(tmp_path: Path) -> None:

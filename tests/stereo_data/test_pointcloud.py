@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from plyfile import PlyData
 
-from stereo_data.pointcloud import (
+from crestereo_pp.stereo_data.pointcloud import (
     IMAGE_FRAME,
     METRIC_FRAME,
     Calibration,

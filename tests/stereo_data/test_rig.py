@@ -27,7 +27,7 @@ from raw_camera import (
     ros_camera_info_files,
 )
 
-from stereo_data.rig import MAX_TURN_DEGREES, Rectifier, RigError, StereoRig, parse_rig, read_rig
+from crestereo_pp.stereo_data.rig import MAX_TURN_DEGREES, Rectifier, RigError, StereoRig, parse_rig, read_rig
 
 
 def test_a_raw_pair_is_rectified_onto_rows_at_the_disparity_its_geometry_gives(tmp_path):

@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from stereo_data.formats import (
+from crestereo_pp.stereo_data.formats import (
     KITTI_SCALE,
     UNCERTAINTY_SCALE,
     FormatError,

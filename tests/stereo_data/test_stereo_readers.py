@@ -8,9 +8,9 @@ import cv2
 import numpy as np
 import pytest
 
+from crestereo_pp.stereo_data.formats import FormatError, write_kitti_disparity, write_pfm
+from crestereo_pp.stereo_data.readers import LAYOUTS, StereoSample, open_dataset
 from shared_data import STEREO_DEV
-from stereo_data.formats import FormatError, write_kitti_disparity, write_pfm
-from stereo_data.readers import LAYOUTS, StereoSample, open_dataset
 
 HEIGHT, WIDTH = 6, 10
 

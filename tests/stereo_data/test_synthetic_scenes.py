@@ -9,10 +9,10 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from stereo_data import synthetic
-from stereo_data.hard_cases import repetitive_period_texels
-from stereo_data.photos import PHOTOS, load_photos
-from stereo_data.synthetic import MAX_SIDES, PhotometricConfig, Scene, SceneConfig, SceneGenerator
+from crestereo_pp.stereo_data import synthetic
+from crestereo_pp.stereo_data.hard_cases import repetitive_period_texels
+from crestereo_pp.stereo_data.photos import PHOTOS, load_photos
+from crestereo_pp.stereo_data.synthetic import MAX_SIDES, PhotometricConfig, Scene, SceneConfig, SceneGenerator
 
 
 @pytest.fixture(autouse=True, scope="module")

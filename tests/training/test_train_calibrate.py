@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import torch
 
-from model import CREStereoPP, ModelConfig, load_model
-from model.calibration import FEATURES
-from training.calibrate import calibrate_weights_file, fit_calibration, fit_probability
+from crestereo_pp.model import CREStereoPP, ModelConfig, load_model
+from crestereo_pp.model.calibration import FEATURES
+from crestereo_pp.training.calibrate import calibrate_weights_file, fit_calibration, fit_probability
 
 
 def test_the_fit_recovers_a_known_error_probability_from_the_features_and_is_monotone():

@@ -5,8 +5,8 @@ from dataclasses import fields
 
 import pytest
 
-from cli.dataclass_args import add_dataclass_options, given_options, option_name
-from training.config import PRESETS, SYNTHETIC, DataSource, TrainConfig, preset
+from crestereo_pp.cli.dataclass_args import add_dataclass_options, given_options, option_name
+from crestereo_pp.training.config import PRESETS, SYNTHETIC, DataSource, TrainConfig, preset
 
 
 def test_pretrain_preset_is_the_papers_first_stage():

@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 import torch
 
-import training.data
-from stereo_data.readers import StereoSample
-from training.config import SYNTHETIC, DataSource, TrainConfig
-from training.data import HostPartsByStep, TrainingData, augment_real_pair, plan_step
+import crestereo_pp.training.data
+from crestereo_pp.stereo_data.readers import StereoSample
+from crestereo_pp.training.config import SYNTHETIC, DataSource, TrainConfig
+from crestereo_pp.training.data import HostPartsByStep, TrainingData, augment_real_pair, plan_step
 
 
 def constant_pair(
@@ -95,7 +95,9 @@ def test_host_parts_without_a_generator_hold_only_the_real_part_of_each_batch():
 
 
 def test_training_data_mixes_sources_into_full_batches(monkeypatch):
-    monkeypatch.setattr(training.data, "open_dataset", lambda path: [constant_pair(64, 96, 4.0, known_fraction=0.5)])
+    monkeypatch.setattr(
+        crestereo_pp.training.data, "open_dataset", lambda path: [constant_pair(64, 96, 4.0, known_fraction=0.5)]
+    )
     config = TrainConfig(
         sources=(DataSource("/fake", 1.0),), batch_size=2, crop_height=32, crop_width=64, max_steps=3, num_workers=0
     )

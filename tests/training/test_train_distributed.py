@@ -6,10 +6,10 @@ from pathlib import Path
 import torch
 import torch.multiprocessing as mp
 
-from model import CREStereoPP, ModelConfig
-from service.local import free_port
-from training.records import read_csv
-from training.trainer import train
+from crestereo_pp.model import CREStereoPP, ModelConfig
+from crestereo_pp.service.local import free_port
+from crestereo_pp.training.records import read_csv
+from crestereo_pp.training.trainer import train
 from training_helpers import tiny
 
 WORLD_SIZE = 2

@@ -4,10 +4,10 @@ Their speed is a CUDA matter (bench/gpu_check.py measures it)."""
 import pytest
 import torch
 
-from training.config import TrainConfig
-from training.data import TrainingData
-from training.distributed import DistributedContext
-from training.trainer import Trainer, is_on, train
+from crestereo_pp.training.config import TrainConfig
+from crestereo_pp.training.data import TrainingData
+from crestereo_pp.training.distributed import DistributedContext
+from crestereo_pp.training.trainer import Trainer, is_on, train
 from training_helpers import tiny
 
 CPU = torch.device("cpu")

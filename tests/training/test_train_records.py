@@ -2,7 +2,7 @@
 
 import cv2
 
-from training.records import CsvLog, plot_curves, read_csv
+from crestereo_pp.training.records import CsvLog, plot_curves, read_csv
 
 
 def test_a_new_log_replaces_an_old_file(tmp_path):

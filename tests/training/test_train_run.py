@@ -7,16 +7,16 @@ import numpy as np
 import pytest
 import torch
 
-import training.data
-import training.trainer
-from cli.main import main
-from model import load_model
-from model.network import CREStereoPP
-from model.weights import read_weights
-from stereo_data.readers import StereoSample
-from training.config import DataSource, TrainConfig
-from training.records import read_csv
-from training.trainer import takes_two_passes, train
+import crestereo_pp.training.data
+import crestereo_pp.training.trainer
+from crestereo_pp.cli.main import main
+from crestereo_pp.model import load_model
+from crestereo_pp.model.network import CREStereoPP
+from crestereo_pp.model.weights import read_weights
+from crestereo_pp.stereo_data.readers import StereoSample
+from crestereo_pp.training.config import DataSource, TrainConfig
+from crestereo_pp.training.records import read_csv
+from crestereo_pp.training.trainer import takes_two_passes, train
 from training_helpers import tiny
 
 
@@ -34,8 +34,8 @@ def textured_pair(seed: int, disparity: float = 3.0) -> StereoSample:
 def real_pairs(monkeypatch) -> DataSource:
     """A training source of three in-memory real pairs (open_dataset is replaced for the test)."""
     pairs = [textured_pair(seed, 2.0 + seed) for seed in range(3)]
-    monkeypatch.setattr(training.data, "open_dataset", lambda path: pairs)
-    monkeypatch.setattr(training.trainer, "open_dataset", lambda path: pairs)
+    monkeypatch.setattr(crestereo_pp.training.data, "open_dataset", lambda path: pairs)
+    monkeypatch.setattr(crestereo_pp.training.trainer, "open_dataset", lambda path: pairs)
     return DataSource("/in-memory", 1.0)
 
 
@@ -224,13 +224,13 @@ def test_validation_computes_each_pair_in_one_pass_so_the_learning_curve_measure
     tmp_path, real_pairs, monkeypatch
 ):
     options = []
-    evaluate = training.trainer.evaluate
+    evaluate = crestereo_pp.training.trainer.evaluate
 
     def recording(*args, **kwargs):
         options.append(kwargs["options"])
         return evaluate(*args, **kwargs)
 
-    monkeypatch.setattr(training.trainer, "evaluate", recording)
+    monkeypatch.setattr(crestereo_pp.training.trainer, "evaluate", recording)
     train(tiny(tmp_path, sources=(real_pairs,), max_steps=1, checkpoint_every=1, val_data="/in-memory"), progress=False)
     assert [o.two_pass for o in options] == [False]
 

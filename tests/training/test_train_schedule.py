@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from training.schedule import build_scheduler, learning_rate_factor
+from crestereo_pp.training.schedule import build_scheduler, learning_rate_factor
 
 
 def test_warmup_ramps_linearly_to_the_peak():

@@ -2,7 +2,7 @@
 
 from pathlib import Path
 
-from training.config import TrainConfig
+from crestereo_pp.training.config import TrainConfig
 
 
 def tiny(out_dir: Path, **overrides) -> TrainConfig:
