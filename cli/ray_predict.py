@@ -15,8 +15,8 @@ from typing import Any
 
 from tqdm import tqdm
 
-from crestereo_pp.service.cpu import configure_torch_threads
-from crestereo_pp.service.ray_serve import connect, cpu_share, require_ray
+from crestereo_pp.service.batching.cpu import configure_torch_threads
+from crestereo_pp.service.ray.serve import connect, cpu_share, require_ray
 
 from .options import inference_options, load_predictor
 from .prediction import (

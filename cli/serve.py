@@ -49,7 +49,7 @@ def run(args: argparse.Namespace) -> int:
 
         serve(args.host, args.port)
         return 0
-    from crestereo_pp.service.ray_serve import Scale, serve_on_ray
+    from crestereo_pp.service.ray.serve import Scale, serve_on_ray
 
     scale = Scale(args.replicas, args.min_replicas, args.max_replicas, args.replica_cpus)
     serve_on_ray(args.host, args.port, scale, args.address)

@@ -17,9 +17,9 @@ from typing import TypedDict
 
 import uvicorn
 
-from crestereo_pp.service.admission import largest_image_file
+from crestereo_pp.service.batching.daemon_thread import any_busy
 from crestereo_pp.service.settings import Settings
-from crestereo_pp.service.worker import any_busy
+from crestereo_pp.service.uploads.budgets import largest_image_file
 
 
 class ServerLimits(TypedDict):
@@ -69,7 +69,7 @@ def serve(host: str, port: int) -> None:
     settings = Settings.from_env()
     shutdown_s = math.ceil(settings.drain_timeout_s) + SHUTDOWN_MARGIN_S
     uvicorn.run(
-        "crestereo_pp.service.app:create_app",
+        "crestereo_pp.service.api.app:create_app",
         factory=True,
         host=host,
         port=port,

@@ -11,7 +11,7 @@ from typing import Any
 
 import yaml
 
-from crestereo_pp.service.app import create_app
+from crestereo_pp.service.api.app import create_app
 from crestereo_pp.service.settings import Settings
 
 

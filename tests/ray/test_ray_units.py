@@ -11,8 +11,8 @@ from ray_helpers import write_pairs
 from starlette.types import Message, Receive, Scope, Send
 
 from crestereo_pp.cli.main import main
-from crestereo_pp.service.ray_proxy import ProxyAnswerMiddleware
-from crestereo_pp.service.ray_serve import Scale
+from crestereo_pp.service.ray.proxy import ProxyAnswerMiddleware
+from crestereo_pp.service.ray.serve import Scale
 
 
 def test_a_fixed_count_or_an_autoscaling_range_of_replicas_and_each_ones_cpus():
@@ -107,7 +107,7 @@ def test_ray_jobs_refuse_a_video_or_a_sequence(tmp_path: Path, capsys):
 
 
 def test_the_application_builder_refuses_unknown_arguments():
-    from crestereo_pp.service.ray_serve import app
+    from crestereo_pp.service.ray.serve import app
 
     with pytest.raises(ValueError, match="unknown arguments \\['replica'\\]"):
         app({"replica": "2"})

@@ -24,10 +24,10 @@ from fastapi import FastAPI
 from websockets.sync.client import ClientConnection, connect
 
 from crestereo_pp.model import load_model
-from crestereo_pp.service.app import create_app
+from crestereo_pp.service.api.app import create_app
+from crestereo_pp.service.batching.stereo import Predictor
 from crestereo_pp.service.local import start_service
 from crestereo_pp.service.settings import Settings
-from crestereo_pp.service.stereo_batches import Predictor
 
 REPO = Path(__file__).resolve().parents[2]
 HEIGHT, WIDTH = 64, 96

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from crestereo_pp.model import load_model
-from crestereo_pp.service.logs import JsonFormatter
+from crestereo_pp.service.api.logs import JsonFormatter
 from crestereo_pp.service.settings import Settings
 from crestereo_pp.stereo_data.visualize import BAR_HEIGHT, PREVIEW_GAP
 from service_helpers import (

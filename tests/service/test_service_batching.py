@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 import torch
 
-from crestereo_pp.service.logs import JsonFormatter
+from crestereo_pp.service.api.logs import JsonFormatter
 from crestereo_pp.service.settings import Settings
 from service_helpers import (
     Harness,

@@ -37,13 +37,13 @@ from raw_camera import (
     unrectify,
 )
 
-import crestereo_pp.service.rigs
+import crestereo_pp.service.uploads.rectifiers
 from crestereo_pp.client import ServiceError, StereoClient
-from crestereo_pp.service.batching import DeadlineExceeded
-from crestereo_pp.service.decoding import DecoderLimits, DecoderPool
-from crestereo_pp.service.errors import ApiError
-from crestereo_pp.service.rigs import BYTES_PER_PIXEL, RectifierCache
-from crestereo_pp.service.uploads import ImageLimits, UploadError
+from crestereo_pp.service.api.errors import ApiError
+from crestereo_pp.service.batching.batcher import DeadlineExceeded
+from crestereo_pp.service.uploads.multipart import ImageLimits, UploadError
+from crestereo_pp.service.uploads.rectifiers import BYTES_PER_PIXEL, RectifierCache
+from crestereo_pp.service.uploads.sandbox import DecoderLimits, DecoderPool
 from crestereo_pp.stereo_data.rig import Rectifier, parse_rig
 from service_helpers import decode_array, lite_settings, pair_files, serve_asgi, stereo_pair
 
@@ -280,14 +280,14 @@ def rig_json(folder, camera: int) -> str:
 def builds(monkeypatch) -> list[str]:
     """The rigs whose rectifiers are built from now on (each build takes at least 0.3 s)."""
     built: list[str] = []
-    build = crestereo_pp.service.rigs._build
+    build = crestereo_pp.service.uploads.rectifiers._build
 
     def counted(rig: str) -> Rectifier:
         built.append(rig)
         time.sleep(0.3)
         return build(rig)
 
-    monkeypatch.setattr(crestereo_pp.service.rigs, "_build", counted)
+    monkeypatch.setattr(crestereo_pp.service.uploads.rectifiers, "_build", counted)
     return built
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import os
 
-from crestereo_pp.service.cpu import cgroup_cpu_quota, usable_cpus
+from crestereo_pp.service.batching.cpu import cgroup_cpu_quota, usable_cpus
 
 
 def test_cpu_quota_is_read_from_cgroup_v2(tmp_path):

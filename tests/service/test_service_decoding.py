@@ -18,10 +18,10 @@ import httpx
 import numpy as np
 import pytest
 
-from crestereo_pp.service.batching import ClientDisconnected
-from crestereo_pp.service.decoding import DecoderLimits, DecoderPool
-from crestereo_pp.service.images import read_header
-from crestereo_pp.service.uploads import ImageLimits, UploadError
+from crestereo_pp.service.batching.batcher import ClientDisconnected
+from crestereo_pp.service.uploads.images import read_header
+from crestereo_pp.service.uploads.multipart import ImageLimits, UploadError
+from crestereo_pp.service.uploads.sandbox import DecoderLimits, DecoderPool
 from service_helpers import Server, encode, lite_settings, pair_files, run_uvicorn, serve_asgi, stereo_pair
 
 pytestmark = pytest.mark.anyio
@@ -192,7 +192,7 @@ def waiting_decoders(parent: int) -> list[int]:
         for pid in (task / "children").read_text().split():
             with contextlib.suppress(FileNotFoundError):
                 waiting = "pipe_read" in Path(f"/proc/{pid}/wchan").read_text()
-                if waiting and b"crestereo_pp.service.decoding" in Path(f"/proc/{pid}/cmdline").read_bytes():
+                if waiting and b"crestereo_pp.service.uploads.sandbox" in Path(f"/proc/{pid}/cmdline").read_bytes():
                     pids.append(int(pid))
     return sorted(pids)
 

@@ -14,8 +14,8 @@ from urllib.parse import urljoin, urlsplit
 import httpx
 import pytest
 
-from crestereo_pp.service.app import create_app
-from crestereo_pp.service.routes.page import STATIC_DIR
+from crestereo_pp.service.api.app import create_app
+from crestereo_pp.service.api.routes.page import STATIC_DIR
 from service_helpers import lite_settings
 
 pytestmark = pytest.mark.anyio

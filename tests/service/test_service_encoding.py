@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from crestereo_pp.service.encoding import encode_preview
+from crestereo_pp.service.api.response_bodies import encode_preview
 from crestereo_pp.stereo_data.visualize import BAR_HEIGHT, PREVIEW_GAP, scale_range
 
 

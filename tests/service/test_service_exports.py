@@ -16,8 +16,8 @@ from typing import Any
 
 import pytest
 
-from crestereo_pp.service.app import create_app
-from crestereo_pp.service.logs import JsonFormatter, configure_logging
+from crestereo_pp.service.api.app import create_app
+from crestereo_pp.service.api.logs import JsonFormatter, configure_logging
 from service_helpers import REPO, lite_settings, pair_files, quiet_load_model, serve_asgi, stereo_pair
 
 pytestmark = pytest.mark.anyio
@@ -72,7 +72,7 @@ async def test_the_service_prepares_the_iterations_its_settings_name_when_it_loa
 
 
 async def test_the_log_says_ready_once_the_models_are_loaded():
-    records, logger = Records(), logging.getLogger("crestereo_pp.service.runtime")
+    records, logger = Records(), logging.getLogger("crestereo_pp.service.batching.runtime")
     logger.addHandler(records)
     try:
         async with serve_asgi():

@@ -20,7 +20,7 @@ import httpx
 import numpy as np
 import pytest
 
-from crestereo_pp.service.images import ImageError, read_header
+from crestereo_pp.service.uploads.images import ImageError, read_header
 from service_helpers import REPO, encode, metric_total, read_answer, run_uvicorn, stereo_pair
 
 

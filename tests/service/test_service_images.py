@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from crestereo_pp.service.images import ImageError, decode_rgb, read_header
+from crestereo_pp.service.uploads.images import ImageError, decode_rgb, read_header
 from service_helpers import encode, stereo_pair
 
 

@@ -12,10 +12,10 @@ import anyio
 import pytest
 
 from crestereo_pp.model import InferenceOptions
-from crestereo_pp.service.batching import Batcher, JobResult
-from crestereo_pp.service.metrics import Metrics
-from crestereo_pp.service.scheduling import BatchLimits, ComputeTimes, choose_batch
-from crestereo_pp.service.stereo_batches import Maps, StereoBatches, StereoKey, StereoPair, relative_cost, stereo_key
+from crestereo_pp.service.api.metrics import Metrics
+from crestereo_pp.service.batching.batcher import Batcher, JobResult
+from crestereo_pp.service.batching.policy import BatchLimits, ComputeTimes, choose_batch
+from crestereo_pp.service.batching.stereo import Maps, StereoBatches, StereoKey, StereoPair, relative_cost, stereo_key
 from service_helpers import GatedPredictor, lite_settings, quiet_load_model, stereo_pair
 
 pytestmark = pytest.mark.anyio  # the async tests; the sync ones ignore it

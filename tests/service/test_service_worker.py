@@ -8,7 +8,7 @@ import threading
 
 import pytest
 
-from crestereo_pp.service.worker import DaemonWorker, any_busy
+from crestereo_pp.service.batching.daemon_thread import DaemonWorker, any_busy
 from service_helpers import REPO
 
 

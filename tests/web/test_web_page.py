@@ -20,8 +20,8 @@ from raw_camera import D1, D2, K1, K2, PLANE_Z, R, T, opencv_file, raw_view
 from raw_camera import HEIGHT as RAW_HEIGHT
 from raw_camera import WIDTH as RAW_WIDTH
 
-from crestereo_pp.service.routes.page import STATIC_DIR
-from crestereo_pp.service.schemas import OutputFormat
+from crestereo_pp.service.api.routes.page import STATIC_DIR
+from crestereo_pp.service.api.schemas import OutputFormat
 from crestereo_pp.stereo_data.visualize import DISPARITY_COLORMAP, PREVIEW_GAP, colorize, robust_range
 from service_helpers import Server, run_uvicorn
 from web_helpers import WebPage

@@ -21,7 +21,7 @@ more on another, and only a second such loss is put down to the upload.
 The parent and the processes talk over pipes in frames of a JSON header and raw buffers (never
 pickle: what comes back from a decoder is as untrusted as its input).
 
-    python -m crestereo_pp.service.decoding MEMORY_BYTES CPU_SECONDS   # one decoder process (started by the pool)
+    python -m crestereo_pp.service.uploads.sandbox MEMORY_BYTES CPU_SECONDS  # one decoder process (the pool starts it)
 """
 
 from __future__ import annotations
@@ -41,8 +41,15 @@ from typing import Any, BinaryIO
 
 import numpy as np
 
-from crestereo_pp.service.images import ImageHeader
-from crestereo_pp.service.uploads import ImageLimits, Upload, UploadError, check_headers, decode_pair, read_pair
+from crestereo_pp.service.uploads.images import ImageHeader
+from crestereo_pp.service.uploads.multipart import (
+    ImageLimits,
+    Upload,
+    UploadError,
+    check_headers,
+    decode_pair,
+    read_pair,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -285,7 +292,7 @@ class DecoderPool:
         return await asyncio.create_subprocess_exec(
             sys.executable,
             "-m",
-            "crestereo_pp.service.decoding",
+            "crestereo_pp.service.uploads.sandbox",
             str(self.limits.memory_bytes),
             str(self.limits.cpu_seconds),
             stdin=asyncio.subprocess.PIPE,

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 from typing import Any
 
-from crestereo_pp.service.schemas import ErrorResponse
-from crestereo_pp.service.uploads import CALIBRATION_FIELD, IMAGE_FIELDS
+from crestereo_pp.service.api.schemas import ErrorResponse
+from crestereo_pp.service.uploads.multipart import CALIBRATION_FIELD, IMAGE_FIELDS
 
 
 def _binary(media_type: str) -> dict[str, Any]:

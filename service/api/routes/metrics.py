@@ -5,7 +5,7 @@ from __future__ import annotations
 from fastapi import APIRouter, Response
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 
-from crestereo_pp.service.dependencies import RuntimeDep
+from crestereo_pp.service.api.dependencies import RuntimeDep
 
 router = APIRouter(tags=["metrics"])
 

@@ -28,17 +28,17 @@ from starlette.concurrency import run_in_threadpool
 from starlette.websockets import WebSocketState
 
 from crestereo_pp.model import WarmStart, parse_iterations
-from crestereo_pp.service.admission import ByteBudget, StreamSlots, largest_image_file
-from crestereo_pp.service.batching import BatchingError
-from crestereo_pp.service.dependencies import bearer_accepted
-from crestereo_pp.service.encoding import render
-from crestereo_pp.service.errors import ApiError, bad_input, batching_answer
-from crestereo_pp.service.images import ImageHeader
-from crestereo_pp.service.routes.disparity import repeated_option
-from crestereo_pp.service.runtime import ServiceRuntime, weights_identity
-from crestereo_pp.service.schemas import DisparityOptions, OutputFormat
-from crestereo_pp.service.stereo_batches import StereoPair, stereo_key
-from crestereo_pp.service.uploads import ImageLimits, UploadError
+from crestereo_pp.service.api.dependencies import bearer_accepted
+from crestereo_pp.service.api.errors import ApiError, bad_input, batching_answer
+from crestereo_pp.service.api.response_bodies import render
+from crestereo_pp.service.api.routes.disparity import repeated_option
+from crestereo_pp.service.api.schemas import DisparityOptions, OutputFormat
+from crestereo_pp.service.batching.batcher import BatchingError
+from crestereo_pp.service.batching.runtime import ServiceRuntime, weights_identity
+from crestereo_pp.service.batching.stereo import StereoPair, stereo_key
+from crestereo_pp.service.uploads.budgets import ByteBudget, StreamSlots, largest_image_file
+from crestereo_pp.service.uploads.images import ImageHeader
+from crestereo_pp.service.uploads.multipart import ImageLimits, UploadError
 
 logger = logging.getLogger(__name__)
 router = APIRouter()

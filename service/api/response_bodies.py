@@ -7,9 +7,7 @@ import io
 
 import numpy as np
 
-from crestereo_pp.service.batching import JobResult
-from crestereo_pp.service.images import ImageHeader
-from crestereo_pp.service.schemas import (
+from crestereo_pp.service.api.schemas import (
     DisparityOptions,
     DisparityResponse,
     EncodedArray,
@@ -19,7 +17,9 @@ from crestereo_pp.service.schemas import (
     RectifiedCamera,
     Timings,
 )
-from crestereo_pp.service.stereo_batches import Maps
+from crestereo_pp.service.batching.batcher import JobResult
+from crestereo_pp.service.batching.stereo import Maps
+from crestereo_pp.service.uploads.images import ImageHeader
 from crestereo_pp.stereo_data.formats import KITTI_SCALE, UNCERTAINTY_SCALE, encode_png, encode_png16
 from crestereo_pp.stereo_data.output_maps import output_maps
 from crestereo_pp.stereo_data.pointcloud import IMAGE_FRAME, METRIC_FRAME, DepthRange, encode_ply, point_cloud

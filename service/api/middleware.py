@@ -11,12 +11,12 @@ import uuid
 from fastapi.security.utils import get_authorization_scheme_param
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from crestereo_pp.service.admission import ByteBudget
-from crestereo_pp.service.dependencies import bearer_accepted
-from crestereo_pp.service.errors import ApiError, error_response
-from crestereo_pp.service.logs import request_id_var
-from crestereo_pp.service.metrics import Metrics
+from crestereo_pp.service.api.dependencies import bearer_accepted
+from crestereo_pp.service.api.errors import ApiError, error_response
+from crestereo_pp.service.api.logs import request_id_var
+from crestereo_pp.service.api.metrics import Metrics
 from crestereo_pp.service.settings import Settings
+from crestereo_pp.service.uploads.budgets import ByteBudget
 
 REQUEST_ID_HEADER = "X-Request-Id"
 _VALID_REQUEST_ID = re.compile(r"[A-Za-z0-9._:-]{1,128}")

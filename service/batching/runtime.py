@@ -12,16 +12,16 @@ from pathlib import Path
 from types import FrameType
 from typing import Any
 
-from crestereo_pp.service.batching import Batcher, Draining
-from crestereo_pp.service.cpu import configure_torch_threads, usable_cpus
-from crestereo_pp.service.decoding import DecoderLimits, DecoderPool
-from crestereo_pp.service.errors import ApiError, bad_input, draining
-from crestereo_pp.service.metrics import Metrics
-from crestereo_pp.service.rigs import RectifierCache
-from crestereo_pp.service.schemas import BatchingConfig, HealthResponse, ModelStatus, ServiceState
+from crestereo_pp.service.api.errors import ApiError, bad_input, draining
+from crestereo_pp.service.api.metrics import Metrics
+from crestereo_pp.service.api.schemas import BatchingConfig, HealthResponse, ModelStatus, ServiceState
+from crestereo_pp.service.batching.batcher import Batcher, Draining
+from crestereo_pp.service.batching.cpu import configure_torch_threads, usable_cpus
+from crestereo_pp.service.batching.daemon_thread import DaemonWorker
+from crestereo_pp.service.batching.stereo import Maps, Predictor, StereoBatches, StereoKey, StereoPair
 from crestereo_pp.service.settings import Settings
-from crestereo_pp.service.stereo_batches import Maps, Predictor, StereoBatches, StereoKey, StereoPair
-from crestereo_pp.service.worker import DaemonWorker
+from crestereo_pp.service.uploads.rectifiers import RectifierCache
+from crestereo_pp.service.uploads.sandbox import DecoderLimits, DecoderPool
 
 logger = logging.getLogger(__name__)
 

@@ -8,19 +8,19 @@ from contextlib import asynccontextmanager
 from fastapi import FastAPI
 
 from crestereo_pp.model import load_model
-from crestereo_pp.service.admission import ByteBudget, StreamSlots
-from crestereo_pp.service.errors import install_error_handlers
-from crestereo_pp.service.logs import configure_logging
-from crestereo_pp.service.middleware import (
+from crestereo_pp.service.api.errors import install_error_handlers
+from crestereo_pp.service.api.logs import configure_logging
+from crestereo_pp.service.api.middleware import (
     ApiKeyMiddleware,
     ConcurrencyLimitMiddleware,
     RequestContextMiddleware,
     RequestSizeLimitMiddleware,
     UploadBudgetMiddleware,
 )
-from crestereo_pp.service.routes import disparity, docs, health, metrics, models, page, stream
-from crestereo_pp.service.runtime import ModelLoader, ServiceRuntime
+from crestereo_pp.service.api.routes import disparity, docs, health, metrics, models, page, stream
+from crestereo_pp.service.batching.runtime import ModelLoader, ServiceRuntime
 from crestereo_pp.service.settings import Settings
+from crestereo_pp.service.uploads.budgets import ByteBudget, StreamSlots
 
 API_VERSION = "1.0.0"  # version of the HTTP contract in openapi.yaml
 

@@ -8,8 +8,8 @@ from typing import Annotated
 from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
-from crestereo_pp.service.errors import ApiError
-from crestereo_pp.service.runtime import ServiceRuntime
+from crestereo_pp.service.api.errors import ApiError
+from crestereo_pp.service.batching.runtime import ServiceRuntime
 from crestereo_pp.service.settings import Settings
 
 

@@ -18,8 +18,8 @@ from dataclasses import dataclass
 
 import cv2
 
-from crestereo_pp.service.decoding import Stop, unless
-from crestereo_pp.service.errors import bad_input
+from crestereo_pp.service.api.errors import bad_input
+from crestereo_pp.service.uploads.sandbox import Stop, unless
 from crestereo_pp.stereo_data.rig import Rectifier, RigError, StereoRig
 
 BYTES_PER_PIXEL = 24

@@ -7,11 +7,11 @@ from typing import Any
 
 from fastapi import APIRouter
 
-from crestereo_pp.service.dependencies import RuntimeDep
-from crestereo_pp.service.errors import ApiError
-from crestereo_pp.service.runtime import ServiceRuntime, weights_identity
-from crestereo_pp.service.schemas import ErrorResponse, ModelInfo, ModelList, TensorMetadata, TrainingSummary
-from crestereo_pp.service.stereo_batches import Predictor
+from crestereo_pp.service.api.dependencies import RuntimeDep
+from crestereo_pp.service.api.errors import ApiError
+from crestereo_pp.service.api.schemas import ErrorResponse, ModelInfo, ModelList, TensorMetadata, TrainingSummary
+from crestereo_pp.service.batching.runtime import ServiceRuntime, weights_identity
+from crestereo_pp.service.batching.stereo import Predictor
 
 router = APIRouter(tags=["models"])
 

@@ -11,7 +11,9 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from crestereo_pp.service.batching import (
+from crestereo_pp.service.api.metrics import Metrics, RejectReason
+from crestereo_pp.service.api.schemas import ErrorDetail, ErrorResponse
+from crestereo_pp.service.batching.batcher import (
     BatchingError,
     ClientDisconnected,
     DeadlineExceeded,
@@ -19,9 +21,7 @@ from crestereo_pp.service.batching import (
     InferenceFailed,
     QueueFull,
 )
-from crestereo_pp.service.metrics import Metrics, RejectReason
-from crestereo_pp.service.schemas import ErrorDetail, ErrorResponse
-from crestereo_pp.service.uploads import UploadError
+from crestereo_pp.service.uploads.multipart import UploadError
 
 logger = logging.getLogger(__name__)
 

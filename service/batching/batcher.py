@@ -26,8 +26,8 @@ from contextlib import asynccontextmanager
 from dataclasses import dataclass, field
 from typing import Generic, Protocol, TypeVar
 
-from crestereo_pp.service.metrics import Metrics
-from crestereo_pp.service.scheduling import BatchKey, BatchLimits, ComputeTime, ComputeTimes, choose_batch
+from crestereo_pp.service.api.metrics import Metrics
+from crestereo_pp.service.batching.policy import BatchKey, BatchLimits, ComputeTime, ComputeTimes, choose_batch
 from crestereo_pp.service.settings import Settings
 
 logger = logging.getLogger(__name__)

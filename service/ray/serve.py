@@ -21,15 +21,15 @@ from typing import Any
 from fastapi import FastAPI
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from crestereo_pp.service.app import create_app
-from crestereo_pp.service.cpu import usable_cpus
+from crestereo_pp.service.api.app import create_app
+from crestereo_pp.service.batching.cpu import usable_cpus
 from crestereo_pp.service.settings import ENV_PREFIX, Settings
 
 HAVE_RAY = importlib.util.find_spec("ray") is not None  # imported where used: it takes seconds
 
 APP_NAME = "crestereo-pp"
 REPLICA_HEADER = "X-Replica"
-PROXY_CALLBACK = "crestereo_pp.service.ray_proxy.proxy_middlewares"
+PROXY_CALLBACK = "crestereo_pp.service.ray.proxy.proxy_middlewares"
 """Import path of the callback that gives Ray's HTTP proxy its middleware."""
 
 logger = logging.getLogger(__name__)

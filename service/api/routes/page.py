@@ -14,9 +14,9 @@ from pathlib import Path
 from fastapi import APIRouter
 from fastapi.responses import FileResponse
 
-from crestereo_pp.service.errors import ApiError
+from crestereo_pp.service.api.errors import ApiError
 
-STATIC_DIR = Path(__file__).resolve().parents[1] / "static"
+STATIC_DIR = Path(__file__).resolve().parents[2] / "static"
 
 MEDIA_TYPES = {
     ".html": "text/html; charset=utf-8",

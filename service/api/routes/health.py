@@ -6,8 +6,8 @@ from __future__ import annotations
 from fastapi import APIRouter
 from fastapi.responses import JSONResponse
 
-from crestereo_pp.service.dependencies import RuntimeDep
-from crestereo_pp.service.schemas import HealthResponse, ProbeResponse
+from crestereo_pp.service.api.dependencies import RuntimeDep
+from crestereo_pp.service.api.schemas import HealthResponse, ProbeResponse
 
 router = APIRouter(tags=["health"])
 

@@ -17,7 +17,7 @@ import numpy as np
 from python_multipart.exceptions import MultipartParseError
 from python_multipart.multipart import MultipartParser, parse_options_header
 
-from crestereo_pp.service.images import ImageError, ImageHeader, decode_rgb, read_header
+from crestereo_pp.service.uploads.images import ImageError, ImageHeader, decode_rgb, read_header
 from crestereo_pp.stereo_data.calibration_files import MAX_CALIBRATION_BYTES
 from crestereo_pp.stereo_data.rig import RigError, parse_rig
 

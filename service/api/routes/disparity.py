@@ -20,17 +20,17 @@ from pydantic import BeforeValidator
 from starlette.concurrency import run_in_threadpool
 from starlette.requests import ClientDisconnect
 
-from crestereo_pp.service.batching import ClientDisconnected, DeadlineExceeded, Draining, JobResult
-from crestereo_pp.service.dependencies import RuntimeDep, require_api_key
-from crestereo_pp.service.disparity_docs import RESPONSES, UPLOAD_BODY
-from crestereo_pp.service.encoding import render
-from crestereo_pp.service.errors import ApiError, bad_input, client_gone
-from crestereo_pp.service.images import ImageHeader
-from crestereo_pp.service.logs import request_id_var
-from crestereo_pp.service.runtime import ServiceRuntime, weights_identity
-from crestereo_pp.service.schemas import DisparityOptions, DisparityResponse
-from crestereo_pp.service.stereo_batches import Maps, Predictor, StereoPair, stereo_key
-from crestereo_pp.service.uploads import ImageLimits, boundary_of
+from crestereo_pp.service.api.dependencies import RuntimeDep, require_api_key
+from crestereo_pp.service.api.disparity_docs import RESPONSES, UPLOAD_BODY
+from crestereo_pp.service.api.errors import ApiError, bad_input, client_gone
+from crestereo_pp.service.api.logs import request_id_var
+from crestereo_pp.service.api.response_bodies import render
+from crestereo_pp.service.api.schemas import DisparityOptions, DisparityResponse
+from crestereo_pp.service.batching.batcher import ClientDisconnected, DeadlineExceeded, Draining, JobResult
+from crestereo_pp.service.batching.runtime import ServiceRuntime, weights_identity
+from crestereo_pp.service.batching.stereo import Maps, Predictor, StereoPair, stereo_key
+from crestereo_pp.service.uploads.images import ImageHeader
+from crestereo_pp.service.uploads.multipart import ImageLimits, boundary_of
 
 router = APIRouter(tags=["disparity"])
 
