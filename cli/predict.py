@@ -1,6 +1,7 @@
 """`crestereo-pp predict`: disparity (and uncertainty, colour) files for one pair or many.
 
-Its arguments; what it does is in `cli.prediction`, imported when it runs.
+Its arguments; what it does is in `cli.prediction` (and with --ray `cli.ray_predict`), imported
+when it runs.
 """
 
 from __future__ import annotations
@@ -140,4 +141,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from . import prediction
 
-    return prediction.run(args)
+    job = prediction.prepare(args)
+    if args.ray:
+        from .ray_predict import run_on_ray
+
+        return run_on_ray(job)
+    return prediction.run(job)

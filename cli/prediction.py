@@ -13,8 +13,7 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from crestereo_pp.model import FrameStream
-from crestereo_pp.model.options import parse_iterations
+from crestereo_pp.inference import FrameStream, parse_iterations
 from crestereo_pp.stereo_data.formats import (
     encode_png,
     read_image,
@@ -23,17 +22,10 @@ from crestereo_pp.stereo_data.formats import (
     write_disparity,
     write_uncertainty,
 )
-from crestereo_pp.stereo_data.output_maps import output_maps
-from crestereo_pp.stereo_data.pointcloud import (
-    IMAGE_FRAME,
-    METRIC_FRAME,
-    Calibration,
-    DepthRange,
-    encode_ply,
-    point_cloud,
-)
+from crestereo_pp.stereo_data.output_maps import OutputOptions, PredictionOutputs
+from crestereo_pp.stereo_data.pointcloud import Calibration, DepthRange
 from crestereo_pp.stereo_data.rig import Rectifier, read_rig
-from crestereo_pp.stereo_data.visualize import disparity_picture, scale_range
+from crestereo_pp.stereo_data.visualize import disparity_picture
 
 from .options import inference_options, load_predictor
 
@@ -61,7 +53,7 @@ def is_video_pair(left: str, right: str) -> bool:
 
 
 @dataclass(frozen=True)
-class Frame:
+class PairImages:
     """One pair to compute: where it comes from (the output stem) and its images, RGB."""
 
     pair: PairPaths
@@ -69,13 +61,13 @@ class Frame:
     right: np.ndarray
 
 
-def read_frames(left: str, right: str) -> tuple[int, Iterator[Frame]]:
+def read_frames(left: str, right: str) -> tuple[int, Iterator[PairImages]]:
     """How many pairs LEFT and RIGHT hold (a video's count is its container's estimate) and
     the pairs themselves, read one at a time."""
     if is_video_pair(left, right):
         return video_frames(Path(left), Path(right))
     pairs = find_pairs(left, right)
-    return len(pairs), (Frame(pair, *read_pair(pair)) for pair in pairs)
+    return len(pairs), (PairImages(pair, *read_pair(pair)) for pair in pairs)
 
 
 def read_pair(pair: PairPaths) -> tuple[np.ndarray, np.ndarray]:
@@ -88,7 +80,7 @@ def read_pair(pair: PairPaths) -> tuple[np.ndarray, np.ndarray]:
     return left, right
 
 
-def video_frames(left: Path, right: Path) -> tuple[int, Iterator[Frame]]:
+def video_frames(left: Path, right: Path) -> tuple[int, Iterator[PairImages]]:
     """The frames of two videos of one stereo camera, in lockstep (ValueError where they cannot
     be read or hold different numbers of frames)."""
     videos = [cv2.VideoCapture(str(path)) for path in (left, right)]
@@ -99,14 +91,14 @@ def video_frames(left: Path, right: Path) -> tuple[int, Iterator[Frame]]:
     if counts[0] != counts[1]:
         raise ValueError(f"{left} has {counts[0]} frames but {right} has {counts[1]}: a stereo video has one count")
 
-    def frames() -> Iterator[Frame]:
+    def frames() -> Iterator[PairImages]:
         try:
             for index in range(counts[0]):
                 read = [video.read() for video in videos]
                 if not all(ok for ok, _ in read):
                     return  # the containers over-counted: what was read is what there is
                 images = [cv2.cvtColor(image, cv2.COLOR_BGR2RGB) for _, image in read]
-                yield Frame(PairPaths(left, right, Path(f"frame_{index:06d}")), images[0], images[1])
+                yield PairImages(PairPaths(left, right, Path(f"frame_{index:06d}")), images[0], images[1])
         finally:
             for video in videos:
                 video.release()
@@ -192,9 +184,7 @@ class Job:
     args: argparse.Namespace
     targets: list[Output]
     single: bool
-    rectifier: Rectifier | None
-    calibration: Calibration | None
-    limits: DepthRange
+    outputs: OutputOptions  # its rectifier, where the pairs are raw, rectifies them first
 
 
 def plan(args: argparse.Namespace) -> Job:
@@ -222,7 +212,16 @@ def plan(args: argparse.Namespace) -> Job:
         if args.focal_px is None
         else Calibration(args.focal_px, args.baseline_m, args.cx, args.cy)
     )
-    return Job(args, targets, single, rectifier, calibration, DepthRange(args.min_disparity, args.max_depth_m))
+    options = OutputOptions(
+        calibration=calibration,
+        limits=DepthRange(args.min_disparity, args.max_depth_m),
+        rectifier=rectifier,
+        original=args.frame == "original",
+        color_min=args.color_min,
+        color_max=args.color_max,
+        max_uncertainty=args.max_uncertainty,
+    )
+    return Job(args, targets, single, options)
 
 
 def is_complete(job: Job, pair: PairPaths) -> bool:
@@ -230,24 +229,19 @@ def is_complete(job: Job, pair: PairPaths) -> bool:
     return all(output.file(pair, job.single).is_file() for output in job.targets)
 
 
-def predict_and_write(job: Job, stream: FrameStream, frame: Frame) -> None:
+def predict_and_write(job: Job, stream: FrameStream, images: PairImages) -> None:
     """Compute one pair (rectified first where the job has a calibration; warm-started from the
     stream's previous pair only with --sequence) and write its outputs, each to a temporary name
     first and then renamed: an interrupted run leaves no partial file."""
-    args, pair, left, right = job.args, frame.pair, frame.left, frame.right
+    args, pair, left, right = job.args, images.pair, images.left, images.right
     if not args.sequence:
         stream.restart()  # every pair on its own
-    if job.rectifier is not None:
-        left, right = job.rectifier.rectify(left, right)
+    rectifier = job.outputs.rectifier
+    if rectifier is not None:
+        left, right = rectifier.rectify(left, right)
     prediction = stream.predict(left, right)
-    disparity, uncertainty, depth = output_maps(
-        prediction.disparity,
-        prediction.uncertainty,
-        job.calibration,
-        job.limits,
-        job.rectifier,
-        args.frame == "original",
-    )
+    outputs = PredictionOutputs(prediction.disparity, prediction.uncertainty, left, job.outputs)
+    disparity, uncertainty, depth = outputs.maps
     for output in job.targets:
         path = output.file(pair, job.single)
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -260,15 +254,9 @@ def predict_and_write(job: Job, stream: FrameStream, frame: Frame) -> None:
             assert depth is not None  # checked in plan()
             (write_depth if output.flag == "--depth" else write_depth_mm)(partial, depth)
         elif output.flag == "--color":
-            shown = np.where(np.isfinite(disparity), disparity, 0.0)
-            scale = scale_range(shown, args.color_min, args.color_max)
-            partial.write_bytes(encode_png(disparity_picture(shown, scale)))
+            partial.write_bytes(encode_png(disparity_picture(*outputs.colored_disparity())))
         else:  # points in the (rectified) left camera's frame, coloured by the image the network saw
-            points, colors = point_cloud(
-                prediction.disparity, left, prediction.uncertainty, job.calibration, args.max_uncertainty, job.limits
-            )
-            frame_name = IMAGE_FRAME if job.calibration is None else METRIC_FRAME
-            partial.write_bytes(encode_ply(points, colors, frame_name))
+            partial.write_bytes(outputs.ply())
         os.replace(partial, path)
         if job.single:
             print(f"wrote {output.what} {path}")
@@ -283,14 +271,18 @@ def describe_camera(calibration: Calibration) -> str:
     )
 
 
-def run(args: argparse.Namespace) -> int:
+def prepare(args: argparse.Namespace) -> Job:
+    """The job the arguments describe (`plan`); where its pairs are raw, the rectified camera
+    its depth comes from is printed first."""
     job = plan(args)
-    if job.rectifier is not None:
-        print(describe_camera(job.rectifier.depth_calibration))
-    if args.ray:
-        from .ray_predict import run_on_ray
+    if job.outputs.rectifier is not None:
+        print(describe_camera(job.outputs.rectifier.depth_calibration))
+    return job
 
-        return run_on_ray(job)
+
+def run(job: Job) -> int:
+    """Compute the job's pairs here, one after the other (a sequence's each from the previous one)."""
+    args = job.args
     if args.address is not None or args.workers is not None:
         raise ValueError("--address and --workers only apply with --ray")
     warm_iters = parse_iterations(args.warm_iters)
@@ -298,8 +290,8 @@ def run(args: argparse.Namespace) -> int:
     predictor = load_predictor(args)
     stream = predictor.stream(inference_options(args), warm_iters)
     written = 0
-    for frame in tqdm(frames, total=count, desc=f"predict {args.model}", unit="pair", disable=job.single):
-        predict_and_write(job, stream, frame)
+    for images in tqdm(frames, total=count, desc=f"predict {args.model}", unit="pair", disable=job.single):
+        predict_and_write(job, stream, images)
         written += 1
     if not job.single:  # every output was written once per pair (any failure stops the command)
         for output in job.targets:

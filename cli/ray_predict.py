@@ -16,12 +16,12 @@ from typing import Any
 from tqdm import tqdm
 
 from crestereo_pp.service.batching.cpu import configure_torch_threads
-from crestereo_pp.service.ray.serve import connect, cpu_share, require_ray
+from crestereo_pp.service.ray.cluster import connect, cpu_share, require_ray
 
 from .options import inference_options, load_predictor
 from .prediction import (
-    Frame,
     Job,
+    PairImages,
     PairPaths,
     find_pairs,
     is_complete,
@@ -55,7 +55,7 @@ class PairWorker:
 
     def compute(self, pair: PairPaths) -> PairResult:
         try:
-            predict_and_write(self.job, self.stream, Frame(pair, *read_pair(pair)))
+            predict_and_write(self.job, self.stream, PairImages(pair, *read_pair(pair)))
         except Exception as error:  # reported per pair; the job goes on
             return PairResult(pair, f"{type(error).__name__}: {error}")
         return PairResult(pair, None)

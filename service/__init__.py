@@ -1,11 +1,14 @@
 """HTTP service for CREStereo++ stereo disparity: FastAPI app with dynamic CPU batching.
 
-Run: `uvicorn service.app:create_app --factory`; configuration in `service/README.md`.
+Run: `python -m crestereo_pp.service` (uvicorn with its limits; the app is
+`service.api.app.create_app`); configuration in `service/README.md`. The package answers four
+questions, one subpackage each: HTTP (`api`), untrusted uploads (`uploads`), batching
+(`batching`) and scale-out on Ray (`ray`).
 """
 
 import os
 
-# The inference worker shares the CPU with the event loop and the decoding threads (and, in a
+# The inference thread shares the CPU with the event loop and the decoding threads (and, in a
 # container, with its CPU quota): OpenMP threads that spin-wait between parallel regions steal
 # that time and, once the CPU is oversubscribed, slow inference down by an order of magnitude.
 # Sleeping waits avoid it. OpenMP reads this once, when torch loads, hence here, before any

@@ -14,9 +14,9 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from crestereo_pp.inference.backend_choice import BackendChoice, PrecisionChoice
+from crestereo_pp.inference.options import Iterations, parse_iterations
 from crestereo_pp.model.config import MODEL_NAMES, ModelName
-from crestereo_pp.model.inference import BackendChoice, PrecisionChoice
-from crestereo_pp.model.options import Iterations, parse_iterations
 from crestereo_pp.service import DEFAULT_MAX_IMAGE_PIXELS
 
 ENV_PREFIX = "CRESTEREO_"

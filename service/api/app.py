@@ -1,4 +1,5 @@
-"""The FastAPI application. Serve with `uvicorn service.app:create_app --factory`."""
+"""The FastAPI application. Serve with `python -m crestereo_pp.service` (uvicorn with the limits
+it is sized for)."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
 
-from crestereo_pp.model import load_model
+from crestereo_pp.inference import load_model
 from crestereo_pp.service.api.errors import install_error_handlers
 from crestereo_pp.service.api.logs import configure_logging
 from crestereo_pp.service.api.middleware import (
@@ -28,7 +29,7 @@ API_VERSION = "1.0.0"  # version of the HTTP contract in openapi.yaml
 def create_app(
     settings: Settings | None = None, loader: ModelLoader = load_model, load_before_serving: bool = False
 ) -> FastAPI:
-    """Build the app; its lifespan loads the models once and runs the batching worker.
+    """Build the app; its lifespan loads the models once and runs the inference thread that computes the batches.
 
     settings: defaults to `Settings.from_env()` (the `CRESTEREO_*` variables).
     loader: `model.load_model`, or a wrapper of it (tests inject faults through it).
@@ -57,7 +58,7 @@ def create_app(
         "computed by CREStereo++ (`full`) or Lite-CREStereo++ (`lite`). Errors are JSON "
         '`{"error": {"code", "message"}}`; every response echoes `X-Request-Id`.',
         lifespan=lifespan,
-        docs_url=None,  # served by service.routes.docs from the package, under a Content-Security-Policy
+        docs_url=None,  # served by service.api.routes.docs from the package, under a Content-Security-Policy
         redoc_url=None,  # no ReDoc: /docs is the one documentation page
     )
     app.state.runtime = runtime

@@ -15,6 +15,7 @@ from crestereo_pp.service.api.dependencies import bearer_accepted
 from crestereo_pp.service.api.errors import ApiError, error_response
 from crestereo_pp.service.api.logs import request_id_var
 from crestereo_pp.service.api.metrics import Metrics
+from crestereo_pp.service.api.query import query_too_long
 from crestereo_pp.service.settings import Settings
 from crestereo_pp.service.uploads.budgets import ByteBudget
 
@@ -131,13 +132,10 @@ class ApiKeyMiddleware:
 
 MAX_HEADER_BYTES = 16 * 1024
 """Largest request header block (names and values) the app accepts: 431 beyond."""
-MAX_QUERY_BYTES = 4 * 1024
-"""Longest query string the app accepts: 414 beyond (every option of `/disparity` together fits
-in a few hundred bytes), so no later check of the query costs more than this much input."""
 
 
 class RequestSizeLimitMiddleware:
-    """Refuses query strings over MAX_QUERY_BYTES with 414, header blocks over MAX_HEADER_BYTES
+    """Refuses query strings over 4 KiB (`query_too_long`) with 414, header blocks over MAX_HEADER_BYTES
     with 431, and bodies over `max_bytes` with 413: at once from `Content-Length`, else as soon as
     the streamed body passes the limit (chunked uploads). A WebSocket handshake gets the same 414
     and 431 (JSON HTTP answers, before the connection opens)."""
@@ -172,9 +170,9 @@ class RequestSizeLimitMiddleware:
     def _refusal(self, scope: Scope) -> tuple[int, str, str] | None:
         """(status, code, message) for a request whose query, headers or declared body are over
         their limits, else None."""
-        query_bytes = len(scope.get("query_string", b""))
-        if query_bytes > MAX_QUERY_BYTES:
-            return 414, "query_too_long", f"query string of {query_bytes} bytes; the limit is {MAX_QUERY_BYTES}"
+        too_long = query_too_long(scope.get("query_string", b""))
+        if too_long is not None:
+            return 414, "query_too_long", too_long
         header_bytes = sum(len(name) + len(value) for name, value in scope["headers"])
         if header_bytes > MAX_HEADER_BYTES:
             return 431, "headers_too_large", f"request headers of {header_bytes} bytes; the limit is {MAX_HEADER_BYTES}"

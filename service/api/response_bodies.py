@@ -1,4 +1,4 @@
-"""Encoding result maps for the response formats of `POST /disparity`."""
+"""The bodies of the answers of `POST /disparity` and `/disparity/stream`, one per response format."""
 
 from __future__ import annotations
 
@@ -18,18 +18,18 @@ from crestereo_pp.service.api.schemas import (
     Timings,
 )
 from crestereo_pp.service.batching.batcher import JobResult
-from crestereo_pp.service.batching.stereo import Maps
+from crestereo_pp.service.batching.stereo import StereoMaps
 from crestereo_pp.service.uploads.images import ImageHeader
 from crestereo_pp.stereo_data.formats import KITTI_SCALE, UNCERTAINTY_SCALE, encode_png, encode_png16
-from crestereo_pp.stereo_data.output_maps import output_maps
-from crestereo_pp.stereo_data.pointcloud import IMAGE_FRAME, METRIC_FRAME, DepthRange, encode_ply, point_cloud
+from crestereo_pp.stereo_data.output_maps import OutputOptions, PredictionOutputs
+from crestereo_pp.stereo_data.pointcloud import DepthRange
 from crestereo_pp.stereo_data.rig import Rectifier
-from crestereo_pp.stereo_data.visualize import preview, scale_range
+from crestereo_pp.stereo_data.visualize import preview
 
 
-def render(
+def response_body(
     options: DisparityOptions,
-    result: JobResult[Maps],
+    result: JobResult[StereoMaps],
     left: np.ndarray,
     weights: str,
     size: ImageHeader,
@@ -39,20 +39,25 @@ def render(
 
     result: the request's maps (float32 HxW: disparity in px of the left image the network saw,
     uncertainty in [0, 1]) and timings; left: that left image, uint8 HxWx3 RGB (colours of the point
-    cloud); weights: the weights' identity (`service.runtime.weights_identity`); size: the input
-    images' size; rectifier: a raw pair's (it gives the depth calibration, and with
+    cloud); weights: the weights' identity (`service.batching.runtime.weights_identity`); size: the
+    input images' size; rectifier: a raw pair's (it gives the depth calibration, and with
     `frame=original` the maps are resampled into the original left image's pixels).
     """
-    calibration = options.calibration if rectifier is None else rectifier.depth_calibration
-    limits = DepthRange(options.min_disparity, options.max_depth_m)
-    disparity, uncertainty, depth = output_maps(
+    outputs = PredictionOutputs(
         result.output.disparity,
         result.output.uncertainty,
-        calibration,
-        limits,
-        rectifier,
-        options.frame is Frame.original,
+        left,
+        OutputOptions(
+            calibration=options.calibration if rectifier is None else rectifier.depth_calibration,
+            limits=DepthRange(options.min_disparity, options.max_depth_m),
+            rectifier=rectifier,
+            original=options.frame is Frame.original,
+            color_min=options.color_min,
+            color_max=options.color_max,
+            max_uncertainty=options.max_uncertainty,
+        ),
     )
+    disparity, uncertainty, depth = outputs.maps
     match options.format:
         case OutputFormat.json:
             body = DisparityResponse(
@@ -76,8 +81,7 @@ def render(
                 maps["depth"] = depth
             return encode_npz(maps), "application/x-npz"
         case OutputFormat.png:
-            shown = np.where(np.isfinite(disparity), disparity, 0.0)  # no rectified counterpart: the scale's bottom
-            disparity_range = scale_range(shown, options.color_min, options.color_max)
+            shown, disparity_range = outputs.colored_disparity()
             return encode_preview(shown, uncertainty, disparity_range), "image/png"
         case OutputFormat.disparity_png16:
             return encode_png16(disparity, KITTI_SCALE), "image/png"
@@ -87,11 +91,7 @@ def render(
         case OutputFormat.uncertainty_png16:
             return encode_png16(uncertainty, UNCERTAINTY_SCALE), "image/png"
         case OutputFormat.ply:
-            points, colors = point_cloud(
-                result.output.disparity, left, result.output.uncertainty, calibration, options.max_uncertainty, limits
-            )
-            frame = IMAGE_FRAME if calibration is None else METRIC_FRAME
-            return encode_ply(points, colors, frame), "application/x-ply"
+            return outputs.ply(), "application/x-ply"
 
 
 def rectified_camera(rectifier: Rectifier) -> RectifiedCamera:

@@ -8,9 +8,9 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, field_validator, model_validator
 
+from crestereo_pp.inference.options import InferenceOptions, TwoPass, parse_iterations
+from crestereo_pp.inference.scaling import scaled_size
 from crestereo_pp.model.config import ModelName
-from crestereo_pp.model.inference import scaled_size
-from crestereo_pp.model.options import InferenceOptions, TwoPass, parse_iterations
 from crestereo_pp.stereo_data.pointcloud import MIN_DISPARITY, Calibration
 from crestereo_pp.stereo_data.rig import MAX_FOCAL_BASELINE
 
@@ -365,7 +365,10 @@ class ModelInfo(BaseModel):
 
     name: str
     versions: list[str] = Field(description="The weights' identity, as `X-Weights`.")
-    platform: Literal["pytorch"] = "pytorch"
+    platform: Literal["pytorch", "openvino"] = Field(
+        description="What computes requests with the default iterations now: `openvino` once `backend` is "
+        "`openvino` and its graph is `compiled`, else `pytorch`."
+    )
     inputs: list[TensorMetadata]
     outputs: list[TensorMetadata]
     status: Literal["trained", "untrained"] = Field(

@@ -1,13 +1,13 @@
-"""Dynamic batching: requests queue per model and run, one batch at a time, on one worker thread.
+"""Dynamic batching: requests queue per model and run, one batch at a time, on one inference thread.
 
-The batcher knows nothing of what it computes: a request is a key (`service.scheduling.BatchKey`:
+The batcher knows nothing of what it computes: a request is a key (`service.batching.policy.BatchKey`:
 requests with equal keys may share a batch) and a payload; an adapter says what a request costs
-(`work`) and computes a batch of payloads on the worker thread (`compute`). The stereo adapter is
-`service.stereo_batches.StereoBatches` (a batch holds pairs of one model, one set of inference
-options and one input shape). Whenever the worker is free, `service.scheduling.choose_batch`
+(`work`) and computes a batch of payloads on the inference thread (`compute`). The stereo adapter is
+`service.batching.stereo.StereoBatches` (a batch holds pairs of one model, one set of inference
+options and one input shape). Whenever the inference thread is free, `service.batching.policy.choose_batch`
 picks the next batch from the queued requests and those still being received or decoded. Before
 a batch runs, requests whose client has gone, whose deadline has passed or cannot be met
-(estimated from the measured compute time per unit of work, `service.scheduling.ComputeTimes`) are
+(estimated from the measured compute time per unit of work, `service.batching.policy.ComputeTimes`) are
 dropped. An exception in the network fails only the batch it happened in.
 """
 
@@ -79,7 +79,7 @@ OutputOut = TypeVar("OutputOut", covariant=True)
 class Adapter(Protocol[KeyIn, PayloadIn, OutputOut]):
     """What the batcher computes: one queue per model of `models`; `work(key)`, the units of
     compute of one request of `key` (the compute-time estimates count in them); `compute(key,
-    payloads)`, the outputs of a batch, in order, on the worker thread."""
+    payloads)`, the outputs of a batch, in order, on the inference thread."""
 
     @property
     def models(self) -> list[str]: ...
@@ -150,7 +150,7 @@ class Admission(Generic[KeyT, PayloadT, OutputT]):
 
 
 class Batcher(Generic[KeyT, PayloadT, OutputT]):
-    """Per-model queues, the batch scheduler and the worker thread that computes batches."""
+    """Per-model queues, the batch scheduler and the inference thread that computes batches."""
 
     def __init__(
         self,

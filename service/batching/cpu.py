@@ -1,4 +1,4 @@
-"""How many CPU threads the inference worker may use, and setting them in torch."""
+"""How many CPU threads the inference thread may use, and setting them in torch."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The inference worker: one daemon thread that runs submitted calls in order.
+"""The inference thread: one daemon thread that runs submitted calls in order (an Executor).
 
 `concurrent.futures.ThreadPoolExecutor` would do, except that the interpreter joins its threads
 at exit: a batch still computing when the drain timeout ends (minutes, for a large image on
@@ -17,15 +17,15 @@ from collections.abc import Callable
 from concurrent.futures import Executor, Future
 from typing import Any
 
-_WORKERS: weakref.WeakSet[DaemonWorker] = weakref.WeakSet()
+_EXECUTORS: weakref.WeakSet[DaemonThreadExecutor] = weakref.WeakSet()
 
 
 def any_busy() -> bool:
-    """Whether any worker of this process is running a call now."""
-    return any(worker.busy for worker in list(_WORKERS))
+    """Whether any daemon thread executor of this process is running a call now."""
+    return any(executor.busy for executor in list(_EXECUTORS))
 
 
-class DaemonWorker(Executor):
+class DaemonThreadExecutor(Executor):
     """An Executor of exactly one daemon thread, started at construction."""
 
     def __init__(
@@ -39,11 +39,11 @@ class DaemonWorker(Executor):
         self.busy = False
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
         self._thread.start()
-        _WORKERS.add(self)
+        _EXECUTORS.add(self)
 
     def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> Future[Any]:
         if self._closed:
-            raise RuntimeError("the worker is shut down")
+            raise RuntimeError("the executor is shut down")
         future: Future[Any] = Future()
         self._calls.put((future, fn, args, kwargs))
         return future

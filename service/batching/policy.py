@@ -1,7 +1,7 @@
-"""The batch scheduler's decisions, apart from its queues and the event loop (`service.batching`),
+"""The batch scheduler's decisions, apart from its queues and the event loop (`service.batching.batcher`),
 for requests of any kind: which batch runs next (`choose_batch`) and the measured compute times
 that estimate the work ahead (`ComputeTimes`). Which requests may share a batch is their key's
-business (`BatchKey`; the stereo one is `service.stereo_batches.StereoKey`)."""
+business (`BatchKey`; the stereo one is `service.batching.stereo.StereoKey`)."""
 
 from __future__ import annotations
 
@@ -86,7 +86,7 @@ def choose_batch(
 @dataclass(frozen=True)
 class ComputeTime:
     """Running means over the batches of one model, in units of work (what the adapter's `work`
-    counts: for stereo, padded pixels of a plain request, see `service.stereo_batches`)."""
+    counts: for stereo, padded pixels of a plain request, see `service.batching.stereo`)."""
 
     seconds_per_work: float  # compute seconds per unit of work of a batch
     work_per_request: float  # units of work of one request

@@ -1,4 +1,4 @@
-"""What one running service owns: settings, metrics, loaded models, the worker and its batcher."""
+"""What one running service owns: settings, metrics, loaded models, the inference thread and its batcher."""
 
 from __future__ import annotations
 
@@ -17,8 +17,8 @@ from crestereo_pp.service.api.metrics import Metrics
 from crestereo_pp.service.api.schemas import BatchingConfig, HealthResponse, ModelStatus, ServiceState
 from crestereo_pp.service.batching.batcher import Batcher, Draining
 from crestereo_pp.service.batching.cpu import configure_torch_threads, usable_cpus
-from crestereo_pp.service.batching.daemon_thread import DaemonWorker
-from crestereo_pp.service.batching.stereo import Maps, Predictor, StereoBatches, StereoKey, StereoPair
+from crestereo_pp.service.batching.daemon_thread import DaemonThreadExecutor
+from crestereo_pp.service.batching.stereo import Predictor, StereoBatches, StereoKey, StereoMaps, StereoPair
 from crestereo_pp.service.settings import Settings
 from crestereo_pp.service.uploads.rectifiers import RectifierCache
 from crestereo_pp.service.uploads.sandbox import DecoderLimits, DecoderPool
@@ -28,7 +28,7 @@ logger = logging.getLogger(__name__)
 ModelLoader = Callable[..., Predictor]  # called as model.load_model is: loader(name, weights=..., device=..., ...)
 
 
-StereoBatcher = Batcher[StereoKey, StereoPair, Maps]
+StereoBatcher = Batcher[StereoKey, StereoPair, StereoMaps]
 """The service's batcher: stereo pairs in, their maps out."""
 
 
@@ -38,7 +38,7 @@ def weights_identity(predictor: Predictor) -> str:
 
 
 class ServiceRuntime:
-    """Lifecycle: `start()` loads the models on the worker thread in the background (the service
+    """Lifecycle: `start()` loads the models on the inference thread in the background (the service
     answers 503 `loading` meanwhile), then batching starts (`ready`). SIGTERM switches to
     `draining`: nothing new is admitted and admitted work has `drain_timeout_s` to finish."""
 
@@ -56,15 +56,17 @@ class ServiceRuntime:
         self.drain_over = asyncio.Event()  # set when the drain timeout has passed
         self._load_finished = asyncio.Event()  # set when the models loaded, or failed to
         self._loader = loader
-        self._executor: DaemonWorker | None = None
+        self._executor: DaemonThreadExecutor | None = None
         self._tasks: set[asyncio.Task[None]] = set()
         self._previous_sigterm: Callable[[int, FrameType | None], object] | None = None
 
     async def start(self) -> None:
         await self.decoders.start()
         configure_torch_threads(self.torch_threads)
-        # The single worker thread owns the CPU: it loads the models and computes every batch.
-        self._executor = DaemonWorker("inference", initializer=configure_torch_threads, initargs=(self.torch_threads,))
+        # The single inference thread owns the CPU: it loads the models and computes every batch.
+        self._executor = DaemonThreadExecutor(
+            "inference", initializer=configure_torch_threads, initargs=(self.torch_threads,)
+        )
         self._spawn(self._load_models())
         self._hook_sigterm()
 
@@ -123,7 +125,7 @@ class ServiceRuntime:
 
     @property
     def is_alive(self) -> bool:
-        """False when the process should be restarted: models failed to load or the worker died."""
+        """False when the process should be restarted: models failed to load or the inference thread died."""
         return self.state != "failed" and (self.batcher is None or self.batcher.is_running)
 
     def health(self) -> HealthResponse:

@@ -1,4 +1,4 @@
-"""The stereo side of batching, the adapter `service.batching.Batcher` runs: which requests may
+"""The stereo side of batching, the adapter `service.batching.batcher.Batcher` runs: which requests may
 share a batch (`StereoKey`, `stereo_key`), what a request costs (`relative_cost`), and how a batch
 of pairs is computed (`StereoBatches`)."""
 
@@ -10,9 +10,10 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from crestereo_pp.model import InferenceOptions, Iterations, ModelConfig, Prediction, StageCounts, TwoPass, padded_size
-from crestereo_pp.model.calibration import UncertaintyCalibration
-from crestereo_pp.model.inference import Backend, Precision
+from crestereo_pp.inference import InferenceOptions, Iterations, Prediction, StageCounts, TwoPass
+from crestereo_pp.inference.backend_choice import Backend, Precision
+from crestereo_pp.inference.uncertainty_calibration import UncertaintyCalibration
+from crestereo_pp.model import ModelConfig, padded_size
 
 
 class Predictor(Protocol):
@@ -112,7 +113,7 @@ class StereoPair:
 
 
 @dataclass(frozen=True)
-class Maps:
+class StereoMaps:
     """One request's output: disparity (float32 HxW, px of the left image) and uncertainty
     (float32 HxW in [0, 1])."""
 
@@ -138,8 +139,8 @@ class StereoBatches:
         cost = relative_cost(counts, predictor.config.iters, key.options.scale, key.options.two_pass)
         return key.pixels * cost
 
-    def compute(self, key: StereoKey, pairs: Sequence[StereoPair]) -> list[Maps]:
-        """Run one batch on the calling (worker) thread: `StereoPredictor.predict_batch`, which pads
+    def compute(self, key: StereoKey, pairs: Sequence[StereoPair]) -> list[StereoMaps]:
+        """Run one batch on the calling (inference) thread: `StereoPredictor.predict_batch`, which pads
         every pair (and warm start) to the batch shape the way the network pads one and returns
         host arrays."""
         inits = [pair.init for pair in pairs if pair.init is not None] if key.warm_start else None
@@ -149,4 +150,4 @@ class StereoBatches:
             init_disparities=inits,
             **key.options.keywords(),
         )
-        return [Maps(p.disparity, p.uncertainty) for p in predictions]
+        return [StereoMaps(p.disparity, p.uncertainty) for p in predictions]

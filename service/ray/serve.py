@@ -9,7 +9,6 @@ the service imports this module.
 
 from __future__ import annotations
 
-import importlib.util
 import logging
 import os
 import signal
@@ -22,10 +21,8 @@ from fastapi import FastAPI
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from crestereo_pp.service.api.app import create_app
-from crestereo_pp.service.batching.cpu import usable_cpus
+from crestereo_pp.service.ray.cluster import connect, cpu_share, require_ray
 from crestereo_pp.service.settings import ENV_PREFIX, Settings
-
-HAVE_RAY = importlib.util.find_spec("ray") is not None  # imported where used: it takes seconds
 
 APP_NAME = "crestereo-pp"
 REPLICA_HEADER = "X-Replica"
@@ -33,12 +30,6 @@ PROXY_CALLBACK = "crestereo_pp.service.ray.proxy.proxy_middlewares"
 """Import path of the callback that gives Ray's HTTP proxy its middleware."""
 
 logger = logging.getLogger(__name__)
-
-
-def require_ray() -> None:
-    """Raise a clear error where the `ray` extra is not installed."""
-    if not HAVE_RAY:
-        raise ValueError("--ray needs Ray Serve: pip install 'crestereo-pp[ray]' (or 'ray[serve]')")
 
 
 @dataclass(frozen=True)
@@ -121,9 +112,9 @@ def _deployment() -> Any:
             return self.fastapi
 
         def check_health(self) -> None:
-            """Ray's liveness check: a replica whose worker died is replaced."""
+            """Ray's liveness check: a replica whose inference thread died is replaced."""
             if self.fastapi is not None and not self.fastapi.state.runtime.is_alive:
-                raise RuntimeError("the inference worker stopped; this replica is replaced")
+                raise RuntimeError("the inference thread stopped; this replica is replaced")
 
     return StereoReplica
 
@@ -155,10 +146,10 @@ def build_application(settings: Settings, scale: Scale, cpus: int) -> Any:
 
 
 def app(args: dict[str, str]) -> Any:
-    """Ray Serve's application builder, for `serve run service.ray_serve:app replicas=2` and for a
-    config file (KubeRay's RayService: `import_path: service.ray_serve:app`). Arguments, all
-    optional: `replicas`, or `min_replicas` and `max_replicas`; `replica_cpus`. The `CRESTEREO_*`
-    variables of the process that builds it configure the replicas."""
+    """Ray Serve's application builder, for `serve run crestereo_pp.service.ray.serve:app replicas=2`
+    and for a config file (KubeRay's RayService: `import_path: crestereo_pp.service.ray.serve:app`).
+    Arguments, all optional: `replicas`, or `min_replicas` and `max_replicas`; `replica_cpus`. The
+    `CRESTEREO_*` variables of the process that builds it configure the replicas."""
     known = {"replicas", "min_replicas", "max_replicas", "replica_cpus"}
     if set(args) - known:
         raise ValueError(f"unknown arguments {sorted(set(args) - known)}; known: {sorted(known)}")
@@ -172,29 +163,6 @@ def app(args: dict[str, str]) -> Any:
 def service_environment() -> dict[str, str]:
     """The `CRESTEREO_*` variables of this process (the replicas get the same)."""
     return {name: value for name, value in os.environ.items() if name.startswith(ENV_PREFIX)}
-
-
-def connect(address: str | None) -> None:
-    """Join the Ray cluster at `address` (`auto`, or the head's host:port), or start a local one
-    of this machine's usable CPUs (stopped again by `ray.shutdown()`)."""
-    import ray
-
-    if address is None:
-        ray.init(num_cpus=usable_cpus(), include_dashboard=False, logging_level=logging.WARNING)
-    else:
-        ray.init(address=address, logging_level=logging.WARNING)
-
-
-def cpu_share(count: int | None) -> tuple[int, int]:
-    """`count` workers' equal shares of the connected cluster's CPUs, as (count, CPUs each): at
-    least 1 CPU, and no more than its largest node has. None: one worker per CPU."""
-    import ray
-
-    nodes = [node for node in ray.nodes() if node.get("Alive")]  # type: ignore[no-untyped-call]
-    per_node = [int(node["Resources"].get("CPU", 0)) for node in nodes]
-    if count is None:
-        return max(1, sum(per_node)), 1
-    return count, max(1, min(sum(per_node) // count, max(per_node, default=1)))
 
 
 def serve_on_ray(host: str, port: int, scale: Scale, address: str | None = None) -> None:

@@ -1,11 +1,11 @@
 """The uploads of `POST /disparity`, from the raw body to RGB images: the multipart files `left`
-and `right` (`read_pair`), checked from their file headers (`service.images.read_header`) before
+and `right` (`read_pair`), checked from their file headers (`service.uploads.images.read_header`) before
 any pixel is decoded, then decoded (`decode_pair`); and the camera's calibration where the pair is
 raw (the optional `calibration` part: one OpenCV file, or two ROS camera_info files), parsed and
 checked against the images' size.
 
 These functions take untrusted bytes and can be made to work hard: the service runs them in its
-decoder processes (`service.decoding`), never on the event loop. They raise `UploadError`.
+decoder processes (`service.uploads.sandbox`), never on the event loop. They raise `UploadError`.
 """
 
 from __future__ import annotations
@@ -199,7 +199,7 @@ def check_headers(limits: ImageLimits, left: bytes, right: bytes) -> ImageHeader
 
 
 def decode_pair(left: bytes, right: bytes) -> tuple[np.ndarray, np.ndarray]:
-    """The two uploads as uint8 HxWx3 RGB images (`service.images.decode_rgb`)."""
+    """The two uploads as uint8 HxWx3 RGB images (`service.uploads.images.decode_rgb`)."""
     decoded = []
     for name, data in zip(IMAGE_FIELDS, (left, right), strict=True):
         try:

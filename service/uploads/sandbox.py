@@ -4,7 +4,7 @@ A multipart body or an image file can be crafted to make its parser or decoder w
 far beyond its size (a TIFF tile bomb, a progressive JPEG of thousands of scans, padding that a
 parser walks byte by byte). Header checks refuse the known cases cheaply, but the guarantee is
 structural: every such parse and decode (`service.uploads.read_pair`, `decode_pair`) runs in one
-of a few worker processes, each with an address-space cap above what it needs to start
+of a few decoder processes, each with an address-space cap above what it needs to start
 (`RLIMIT_AS`) and a CPU-time limit per job (a profiling timer whose signal ends the process; a
 wall-clock limit backs it up). A
 process that breaches a limit dies or is killed and is replaced, and its request is answered 413
@@ -66,10 +66,10 @@ _OUT_OF_MEMORY = 3  # exit status of a decoder process that ran out of its memor
 
 @dataclass(frozen=True)
 class DecoderLimits:
-    """workers: decoder processes; memory_bytes: address space each may add to what it has after
+    """processes: decoder processes; memory_bytes: address space each may add to what it has after
     start-up; cpu_seconds: CPU time one job may use."""
 
-    workers: int
+    processes: int
     memory_bytes: int
     cpu_seconds: float
 
@@ -96,7 +96,7 @@ class _Lost:
 
 
 class DecoderPool:
-    """`workers` decoder processes; a job waits for a free one. `start()` and `close()` run on the
+    """`processes` decoder processes; a job waits for a free one. `start()` and `close()` run on the
     event loop that uses the pool."""
 
     def __init__(self, limits: DecoderLimits) -> None:
@@ -109,7 +109,7 @@ class DecoderPool:
         self.restarts = 0  # processes replaced: after a breach, or lost from outside
 
     async def start(self) -> None:
-        for _ in range(self.limits.workers):
+        for _ in range(self.limits.processes):
             self._spawn()
 
     async def close(self) -> None:

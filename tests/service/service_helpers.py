@@ -23,7 +23,7 @@ import pytest
 from fastapi import FastAPI
 from websockets.sync.client import ClientConnection, connect
 
-from crestereo_pp.model import load_model
+from crestereo_pp.inference import load_model
 from crestereo_pp.service.api.app import create_app
 from crestereo_pp.service.batching.stereo import Predictor
 from crestereo_pp.service.local import start_service

@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
-from crestereo_pp.model import load_model
+from crestereo_pp.inference import load_model
 from crestereo_pp.service.api.logs import JsonFormatter
 from crestereo_pp.service.settings import Settings
 from crestereo_pp.stereo_data.visualize import BAR_HEIGHT, PREVIEW_GAP
@@ -219,6 +219,20 @@ async def test_models_describe_each_loaded_model_in_open_inference_protocol_shap
     assert (missing.status_code, missing.json()["error"]["code"]) == (404, "model_not_found")
     assert info["status"] == "trained"
     assert (info["backend"], info["precision"], info["compiled"]) == ("torch", "fp32", True)
+
+
+async def test_models_platform_names_what_computes_default_requests_now_not_only_pytorch():
+    async with serve_asgi() as h:
+        gated = h.predictors["lite"]
+        on_torch = (await h.client.get("/models/lite")).json()
+        gated.backend = "openvino"  # as loaded with CRESTEREO_BACKEND=openvino, its graph still compiling
+        gated.ready = lambda iters=None, *, warm_start=False: False
+        compiling = (await h.client.get("/models/lite")).json()
+        gated.ready = lambda iters=None, *, warm_start=False: True  # the graph is ready
+        compiled = (await h.client.get("/models")).json()["models"][0]
+    assert (on_torch["backend"], on_torch["compiled"], on_torch["platform"]) == ("torch", True, "pytorch")
+    assert (compiling["backend"], compiling["compiled"], compiling["platform"]) == ("openvino", False, "pytorch")
+    assert (compiled["backend"], compiled["compiled"], compiled["platform"]) == ("openvino", True, "openvino")
 
 
 async def test_on_openvino_the_service_says_so_and_answers_with_the_maps_torch_gives(openvino_cache):

@@ -186,7 +186,7 @@ async def test_a_malformed_calibration_is_answered_422_by_the_decoder_which_is_n
     }
     calibrations["binary tag held OpenCV"] = HANG
     fields = {name: field for name, (_, _, field) in MALFORMED.items()} | {"binary tag held OpenCV": "K1"}
-    pool = DecoderPool(DecoderLimits(workers=1, memory_bytes=768 << 20, cpu_seconds=5.0))
+    pool = DecoderPool(DecoderLimits(processes=1, memory_bytes=768 << 20, cpu_seconds=5.0))
     await pool.start()
 
     async def never() -> Exception:

@@ -1,4 +1,4 @@
-"""Spec of the decoder processes (`service.decoding`): uploads are parsed and decoded in worker
+"""Spec of the decoder processes (`service.uploads.sandbox`): uploads are parsed and decoded in
 processes with a memory cap and a CPU-time limit per job; a breach or an abandoned job costs
 only that process, which is replaced, and the server's event loop keeps running meanwhile."""
 
@@ -26,7 +26,7 @@ from service_helpers import Server, encode, lite_settings, pair_files, run_uvico
 
 pytestmark = pytest.mark.anyio
 
-GENEROUS = DecoderLimits(workers=1, memory_bytes=768 << 20, cpu_seconds=5.0)
+GENEROUS = DecoderLimits(processes=1, memory_bytes=768 << 20, cpu_seconds=5.0)
 LIMITS = ImageLimits(model="lite", max_pixels=4_194_304, min_side=32)
 
 
@@ -91,7 +91,7 @@ async def test_a_form_that_is_not_two_images_is_refused_by_name(files, code):
 async def test_a_decode_beyond_its_memory_answers_413_and_the_process_is_replaced():
     rgba16 = np.full((2048, 2048, 4), 1000, dtype=np.uint16)
     heavy = cv2.imencode(".png", rgba16)[1].tobytes()  # a small file of 34 MB of pixels, then conversions
-    pool = await started(DecoderLimits(workers=1, memory_bytes=64 << 20, cpu_seconds=5.0))
+    pool = await started(DecoderLimits(processes=1, memory_bytes=64 << 20, cpu_seconds=5.0))
     try:
         with pytest.raises(UploadError) as refused:
             await pool.decode_pair(heavy, heavy, read_header(heavy), never)
@@ -106,7 +106,7 @@ async def test_a_decode_beyond_its_memory_answers_413_and_the_process_is_replace
 
 async def test_a_decode_beyond_its_cpu_time_answers_422_while_the_event_loop_keeps_running():
     costly = large_progressive_jpeg()
-    pool = await started(DecoderLimits(workers=1, memory_bytes=768 << 20, cpu_seconds=0.05))
+    pool = await started(DecoderLimits(processes=1, memory_bytes=768 << 20, cpu_seconds=0.05))
     ticks = 0
 
     async def ticker() -> None:
@@ -200,7 +200,7 @@ def waiting_decoders(parent: int) -> list[int]:
 async def test_idle_decoders_killed_or_stopped_from_outside_cost_the_next_jobs_nothing():
     left, right = stereo_pair()
     files = encode(left), encode(right)
-    pool = await started(DecoderLimits(workers=2, memory_bytes=768 << 20, cpu_seconds=5.0))
+    pool = await started(DecoderLimits(processes=2, memory_bytes=768 << 20, cpu_seconds=5.0))
     try:
         with anyio.fail_after(60):
             while len(waiting_decoders(os.getpid())) < 2:

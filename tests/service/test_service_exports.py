@@ -38,7 +38,7 @@ def export_processes() -> list[str]:
     """The command lines of this process's children that export a graph."""
     children = (pid for task in Path("/proc/self/task").iterdir() for pid in (task / "children").read_text().split())
     commands = (Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode() for pid in children)
-    return [command for command in commands if "crestereo_pp.model.openvino_backend" in command]
+    return [command for command in commands if "crestereo_pp.inference.openvino_export" in command]
 
 
 async def test_requests_with_21_distinct_iterations_start_no_export(tmp_path, openvino_cache):
@@ -108,7 +108,7 @@ def test_a_read_only_image_reaches_the_network_without_a_torch_warning():
     # torch warns once per process about those, so the check runs in a process of its own.
     script = (
         "import numpy as np, torch\n"
-        "from model.inference import as_image_batch\n"
+        "from crestereo_pp.inference.prediction import as_image_batch\n"
         "image = np.frombuffer(bytes(64 * 96 * 3), np.uint8).reshape(64, 96, 3)\n"
         "assert not image.flags.writeable\n"
         "as_image_batch(image, torch.device('cpu'))\n"

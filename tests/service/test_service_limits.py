@@ -16,7 +16,7 @@ from pydantic import ValidationError
 from websockets.exceptions import ConnectionClosed, InvalidStatus
 from websockets.sync.client import ClientConnection
 
-from crestereo_pp.service.api.routes.disparity import repeated_option
+from crestereo_pp.service.api.query import repeated_option
 from crestereo_pp.service.settings import Settings
 from service_helpers import (
     encode,

@@ -11,11 +11,18 @@ from dataclasses import dataclass
 import anyio
 import pytest
 
-from crestereo_pp.model import InferenceOptions
+from crestereo_pp.inference import InferenceOptions
 from crestereo_pp.service.api.metrics import Metrics
 from crestereo_pp.service.batching.batcher import Batcher, JobResult
 from crestereo_pp.service.batching.policy import BatchLimits, ComputeTimes, choose_batch
-from crestereo_pp.service.batching.stereo import Maps, StereoBatches, StereoKey, StereoPair, relative_cost, stereo_key
+from crestereo_pp.service.batching.stereo import (
+    StereoBatches,
+    StereoKey,
+    StereoMaps,
+    StereoPair,
+    relative_cost,
+    stereo_key,
+)
 from service_helpers import GatedPredictor, lite_settings, quiet_load_model, stereo_pair
 
 pytestmark = pytest.mark.anyio  # the async tests; the sync ones ignore it
@@ -149,7 +156,9 @@ async def connected() -> bool:
 
 
 @asynccontextmanager
-async def batcher(**settings: float) -> AsyncIterator[tuple[Batcher[StereoKey, StereoPair, Maps], GatedPredictor]]:
+async def batcher(
+    **settings: float,
+) -> AsyncIterator[tuple[Batcher[StereoKey, StereoPair, StereoMaps], GatedPredictor]]:
     predictor = GatedPredictor(quiet_load_model("lite"))
     with ThreadPoolExecutor(max_workers=1) as executor:
         batcher = Batcher(lite_settings(**settings), StereoBatches({"lite": predictor}), executor, Metrics(8))
@@ -163,13 +172,13 @@ async def batcher(**settings: float) -> AsyncIterator[tuple[Batcher[StereoKey, S
 PLAIN = stereo_key("lite", InferenceOptions(), *LEFT.shape[:2])
 
 
-async def run(batcher: Batcher[StereoKey, StereoPair, Maps], results: list[JobResult[Maps]]) -> None:
+async def run(batcher: Batcher[StereoKey, StereoPair, StereoMaps], results: list[JobResult[StereoMaps]]) -> None:
     async with batcher.admit("lite") as admission:
         results.append(await admission.run(PLAIN, StereoPair(LEFT, RIGHT), deadline=None, is_disconnected=connected))
 
 
 async def test_an_idle_server_runs_a_lone_request_at_once_whatever_the_max_wait():
-    results: list[JobResult[Maps]] = []
+    results: list[JobResult[StereoMaps]] = []
     async with batcher(max_wait_ms=600_000) as (b, predictor):
         with anyio.fail_after(60):
             await run(b, results)
@@ -177,7 +186,7 @@ async def test_an_idle_server_runs_a_lone_request_at_once_whatever_the_max_wait(
 
 
 async def test_a_partial_batch_waits_for_requests_still_being_decoded():
-    results: list[JobResult[Maps]] = []
+    results: list[JobResult[StereoMaps]] = []
     async with batcher(max_wait_ms=600_000) as (b, predictor):
         with anyio.fail_after(60):
             async with b.admit("lite") as decoding, anyio.create_task_group() as tg:
@@ -191,7 +200,7 @@ async def test_a_partial_batch_waits_for_requests_still_being_decoded():
 
 
 async def test_a_partial_batch_runs_once_it_has_waited_max_wait():
-    results: list[JobResult[Maps]] = []
+    results: list[JobResult[StereoMaps]] = []
     async with batcher(max_wait_ms=50) as (b, predictor):
         with anyio.fail_after(60):
             async with b.admit("lite"):  # admitted, but never queued
@@ -204,7 +213,7 @@ async def test_a_request_that_leaves_while_queued_frees_its_place():
         predictor.gate.clear()
         with anyio.fail_after(60):
             async with anyio.create_task_group() as tg:
-                results: list[JobResult[Maps]] = []
+                results: list[JobResult[StereoMaps]] = []
                 tg.start_soon(run, b, results)
                 while predictor.calls != [1]:
                     await anyio.sleep(0.005)

@@ -13,7 +13,7 @@ from websockets.exceptions import ConnectionClosed, InvalidStatus
 from websockets.sync.client import connect
 
 from crestereo_pp.client import ServiceError, StereoClient
-from crestereo_pp.model import InferenceOptions
+from crestereo_pp.inference import InferenceOptions
 from crestereo_pp.stereo_data.synthetic import SceneConfig, SceneGenerator
 from service_helpers import assert_same_maps, encode, quiet_load_model, run_uvicorn, ws_url
 

@@ -1,34 +1,33 @@
 """`POST /disparity`: a stereo pair in (rectified, or raw with its calibration), disparity and
 uncertainty (and depth) out.
 
-The route keeps HTTP: options, headers, readiness and the answer's headers. Uploads are read and
-checked by `service.uploads`, the maps are rendered by `service.encoding.render`, and what the
-batcher raises is answered by the error handlers (`service.errors.batching_answer`).
+The route keeps HTTP: options, headers, readiness, the body and the answer's headers. Uploads are
+read and checked in the decoder processes (`service.uploads`), the pair is computed and its body
+made by the pipeline it shares with `/disparity/stream` (`service.api.pipeline.answer_pair`), and
+what the batcher raises is answered by the error handlers (`service.api.errors.batching_answer`).
 """
 
 from __future__ import annotations
 
 import asyncio
 import time
-from collections import Counter
-from collections.abc import Callable, Iterable
+from collections.abc import Callable
 from functools import partial
 from typing import Annotated
 
 from fastapi import APIRouter, Depends, Header, Query, Request, Response
 from pydantic import BeforeValidator
-from starlette.concurrency import run_in_threadpool
 from starlette.requests import ClientDisconnect
 
 from crestereo_pp.service.api.dependencies import RuntimeDep, require_api_key
 from crestereo_pp.service.api.disparity_docs import RESPONSES, UPLOAD_BODY
 from crestereo_pp.service.api.errors import ApiError, bad_input, client_gone
 from crestereo_pp.service.api.logs import request_id_var
-from crestereo_pp.service.api.response_bodies import render
+from crestereo_pp.service.api.pipeline import Answer, answer_pair
+from crestereo_pp.service.api.query import repeated_option
 from crestereo_pp.service.api.schemas import DisparityOptions, DisparityResponse
-from crestereo_pp.service.batching.batcher import ClientDisconnected, DeadlineExceeded, Draining, JobResult
-from crestereo_pp.service.batching.runtime import ServiceRuntime, weights_identity
-from crestereo_pp.service.batching.stereo import Maps, Predictor, StereoPair, stereo_key
+from crestereo_pp.service.batching.batcher import ClientDisconnected, DeadlineExceeded, Draining
+from crestereo_pp.service.batching.runtime import ServiceRuntime
 from crestereo_pp.service.uploads.images import ImageHeader
 from crestereo_pp.service.uploads.multipart import ImageLimits, boundary_of
 
@@ -100,34 +99,21 @@ async def estimate_disparity(
     # Parsing and decoding untrusted bytes happen in the decoder processes, never here.
     upload = await runtime.decoders.read_pair(body, content_type, limits, stop)
     del body
-    header = upload.header
     problem = options.calibration_problem(upload.rig is not None)
     if problem is not None:
         raise bad_input(422, "invalid_request", problem)
-    problem = options.scale_problem(header.height, header.width)
-    if problem is not None:
-        raise bad_input(422, "scale_too_small", problem)
-    key = stereo_key(options.model, options.inference, header.height, header.width)
-    # Admitted before a raw pair's rectifier is built: building one is work, bounded like decoding.
-    async with (
-        batcher.admit(options.model, key, deadline=deadline) as admission,
-        runtime.rectifiers.use(upload.rig, stop) as rectifier,
-    ):
-        left, right = await runtime.decoders.decode_pair(upload.left, upload.right, header, stop)
-        if rectifier is not None:  # a raw pair: the network sees it rectified
-            left, right = await run_in_threadpool(rectifier.rectify, left, right)
-        result = await admission.run(
-            key,
-            StereoPair(left, right),
-            deadline=deadline,
-            is_disconnected=request.is_disconnected,
-            request_id=request_id_var.get(),
-        )
-        request.state.batch_size = result.batch_size
-        predictor = runtime.predictors[options.model]
-        weights = weights_identity(predictor)
-        content, media_type = await run_in_threadpool(render, options, result, left, weights, header, rectifier)
-    return Response(content, media_type=media_type, headers=_result_headers(predictor, weights, header, result))
+    answer = await answer_pair(
+        runtime,
+        batcher,
+        options,
+        upload,
+        stop=stop,
+        is_disconnected=request.is_disconnected,
+        deadline=deadline,
+        request_id=request_id_var.get(),
+    )
+    request.state.batch_size = answer.result.batch_size
+    return Response(answer.body, media_type=answer.media_type, headers=_result_headers(answer, upload.header))
 
 
 async def _read_body(request: Request, timeout_s: float) -> bytes:
@@ -175,21 +161,13 @@ def _refuse_repeated_headers(request: Request) -> None:
         raise bad_input(422, "invalid_request", "header.X-Request-Timeout-Ms: given more than once")
 
 
-def repeated_option(items: Iterable[tuple[str, str]]) -> str | None:
-    """What is wrong with a query that gives an option more than once (`?model=lite&model=full` is
-    ambiguous: refused rather than silently taking one), else None. One pass over the query, linear
-    in its length (which the middleware bounds); `/disparity/stream` checks its query with it too."""
-    counts = Counter(name for name, _ in items)
-    repeated = min((name for name, count in counts.items() if count > 1), default=None)
-    return None if repeated is None else f"query.{repeated}: given more than once"
-
-
-def _result_headers(predictor: Predictor, weights: str, size: ImageHeader, result: JobResult[Maps]) -> dict[str, str]:
+def _result_headers(answer: Answer, size: ImageHeader) -> dict[str, str]:
     """The result facts every answer carries as headers."""
+    result = answer.result
     return {
-        "X-Model": predictor.name,
-        "X-Model-Status": "trained" if predictor.trained else "untrained",
-        "X-Weights": weights,
+        "X-Model": answer.predictor.name,
+        "X-Model-Status": "trained" if answer.predictor.trained else "untrained",
+        "X-Weights": answer.weights,
         "X-Image-Size": f"{size.width}x{size.height}",
         "X-Batch-Size": str(result.batch_size),
         "X-Queue-Ms": f"{result.queue_seconds * 1000:.2f}",

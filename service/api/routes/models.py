@@ -54,16 +54,18 @@ async def get_model(name: str, runtime: RuntimeDep) -> ModelInfo:
 def model_info(runtime: ServiceRuntime, name: str) -> ModelInfo:
     predictor = runtime.predictors[name]
     settings = runtime.settings
+    compiled = predictor.ready()
     return ModelInfo(
         name=name,
         versions=[weights_identity(predictor)],
+        platform="openvino" if predictor.backend == "openvino" and compiled else "pytorch",
         inputs=INPUTS,
         outputs=OUTPUTS,
         status="trained" if predictor.trained else "untrained",
         parameters=predictor.num_parameters,
         backend=predictor.backend,
         precision=predictor.precision,
-        compiled=predictor.ready(),
+        compiled=compiled,
         iterations=list(predictor.config.iters),
         uncertainty=uncertainty_meaning(predictor),
         training=training_summary(predictor.training),

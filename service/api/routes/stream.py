@@ -7,7 +7,8 @@ each pair as two binary messages, the left image file then the right one, and re
 message per pair: the answer in `format` (text for `json`, binary otherwise), or a text message
 `{"error": {"code", "message"}, "frame": N}` for a frame that could not be computed (the
 connection stays open). The same image limits, decoder processes, batching, and bearer key apply
-as to `POST /disparity`.
+as to `POST /disparity`: once its image headers pass, a pair goes through the pipeline that route
+uses (`service.api.pipeline.answer_pair`).
 
 What a stream may hold is bounded: a place among `max_streams` (`max_streams_per_client` per client
 address), one pair at a time, each image no larger than its model's pixel limit allows and counted
@@ -24,21 +25,18 @@ from contextlib import ExitStack, contextmanager
 
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 from pydantic import ValidationError
-from starlette.concurrency import run_in_threadpool
 from starlette.websockets import WebSocketState
 
-from crestereo_pp.model import WarmStart, parse_iterations
+from crestereo_pp.inference import WarmStart, parse_iterations
 from crestereo_pp.service.api.dependencies import bearer_accepted
-from crestereo_pp.service.api.errors import ApiError, bad_input, batching_answer
-from crestereo_pp.service.api.response_bodies import render
-from crestereo_pp.service.api.routes.disparity import repeated_option
+from crestereo_pp.service.api.errors import ApiError, batching_answer
+from crestereo_pp.service.api.pipeline import answer_pair
+from crestereo_pp.service.api.query import repeated_option
 from crestereo_pp.service.api.schemas import DisparityOptions, OutputFormat
 from crestereo_pp.service.batching.batcher import BatchingError
-from crestereo_pp.service.batching.runtime import ServiceRuntime, weights_identity
-from crestereo_pp.service.batching.stereo import StereoPair, stereo_key
+from crestereo_pp.service.batching.runtime import ServiceRuntime
 from crestereo_pp.service.uploads.budgets import ByteBudget, StreamSlots, largest_image_file
-from crestereo_pp.service.uploads.images import ImageHeader
-from crestereo_pp.service.uploads.multipart import ImageLimits, UploadError
+from crestereo_pp.service.uploads.multipart import ImageLimits, Upload, UploadError
 
 logger = logging.getLogger(__name__)
 router = APIRouter()
@@ -184,24 +182,20 @@ async def _answer(
         raise AssertionError("unreachable")
 
     batcher = runtime.batcher_for(options.model)
-    header: ImageHeader = await runtime.decoders.check_headers(left_bytes, right_bytes, limits, never)
-    problem = options.scale_problem(header.height, header.width)
-    if problem is not None:
-        raise bad_input(422, "scale_too_small", problem)
-    inference, init = frames.next(header.height, header.width)
-    key = stereo_key(options.model, inference, header.height, header.width, warm_start=init is not None)
-    async with batcher.admit(options.model, key) as admission:
-        left, right = await runtime.decoders.decode_pair(left_bytes, right_bytes, header, never)
-        result = await admission.run(
-            key, StereoPair(left, right, init), deadline=None, is_disconnected=_gone(websocket)
-        )
-    frames.record(result.output.disparity)
-    weights = weights_identity(runtime.predictors[options.model])
-    content, _ = await run_in_threadpool(render, options, result, left, weights, header)
+    header = await runtime.decoders.check_headers(left_bytes, right_bytes, limits, never)
+    answer = await answer_pair(
+        runtime,
+        batcher,
+        options,
+        Upload(left_bytes, right_bytes, header, rig=None),
+        stop=never,
+        is_disconnected=_gone(websocket),
+        frames=frames,
+    )
     if options.format is OutputFormat.json:
-        await websocket.send_text(content.decode())
+        await websocket.send_text(answer.body.decode())
     else:
-        await websocket.send_bytes(content)
+        await websocket.send_bytes(answer.body)
 
 
 def _gone(websocket: WebSocket) -> Callable[[], Awaitable[bool]]:

@@ -1,4 +1,4 @@
-"""The inference worker: calls in order on one daemon thread that never holds the process."""
+"""The inference thread: calls in order on one daemon thread that never holds the process."""
 
 from __future__ import annotations
 
@@ -8,13 +8,13 @@ import threading
 
 import pytest
 
-from crestereo_pp.service.batching.daemon_thread import DaemonWorker, any_busy
+from crestereo_pp.service.batching.daemon_thread import DaemonThreadExecutor, any_busy
 from service_helpers import REPO
 
 
 def test_calls_run_in_order_on_one_named_daemon_thread_and_errors_reach_the_caller():
     seen: list[tuple[int, str, bool]] = []
-    worker = DaemonWorker("inference-test", initializer=seen.append, initargs=((0, "init", True),))
+    worker = DaemonThreadExecutor("inference-test", initializer=seen.append, initargs=((0, "init", True),))
 
     def call(n: int) -> int:
         thread = threading.current_thread()
@@ -33,7 +33,7 @@ def test_calls_run_in_order_on_one_named_daemon_thread_and_errors_reach_the_call
 
 def test_busy_is_true_exactly_while_a_call_runs():
     release = threading.Event()
-    worker = DaemonWorker("inference-test")
+    worker = DaemonThreadExecutor("inference-test")
     started = threading.Event()
     future = worker.submit(lambda: (started.set(), release.wait(10)))
     assert started.wait(10)
@@ -47,9 +47,9 @@ def test_busy_is_true_exactly_while_a_call_runs():
 @pytest.mark.slow
 def test_a_process_can_exit_while_its_worker_waits_for_work():
     script = (
-        "from service.worker import DaemonWorker\n"
+        "from crestereo_pp.service.batching.daemon_thread import DaemonThreadExecutor\n"
         "import torch\n"
-        "w = DaemonWorker('inference')\n"
+        "w = DaemonThreadExecutor('inference')\n"
         "w.submit(torch.nn.functional.conv2d, torch.randn(1, 8, 64, 64), torch.randn(8, 8, 3, 3)).result()\n"
     )
     result = subprocess.run([sys.executable, "-c", script], cwd=REPO, capture_output=True, text=True)

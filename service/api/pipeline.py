@@ -1,0 +1,85 @@
+"""The request pipeline `POST /disparity` and `/disparity/stream` share, from a pair whose image
+headers have passed to its answer's body: admitted to its model's queue, decoded in a decoder
+process, rectified where it is raw, computed in a batch, its body made in the answer's format.
+The routes keep what differs: how the pair arrives (a multipart body, two WebSocket messages) and
+how its answer leaves."""
+
+from __future__ import annotations
+
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass
+
+from starlette.concurrency import run_in_threadpool
+
+from crestereo_pp.inference import WarmStart
+from crestereo_pp.service.api.errors import bad_input
+from crestereo_pp.service.api.response_bodies import response_body
+from crestereo_pp.service.api.schemas import DisparityOptions
+from crestereo_pp.service.batching.batcher import JobResult
+from crestereo_pp.service.batching.runtime import ServiceRuntime, StereoBatcher, weights_identity
+from crestereo_pp.service.batching.stereo import Predictor, StereoMaps, StereoPair, stereo_key
+from crestereo_pp.service.uploads.multipart import Upload
+from crestereo_pp.service.uploads.sandbox import Stop
+
+
+@dataclass(frozen=True)
+class Answer:
+    """A computed pair: its result (maps, batch size, timings), the predictor that computed it and
+    its weights' identity, and the answer's body and media type."""
+
+    result: JobResult[StereoMaps]
+    predictor: Predictor
+    weights: str
+    body: bytes
+    media_type: str
+
+
+async def answer_pair(
+    runtime: ServiceRuntime,
+    batcher: StereoBatcher,
+    options: DisparityOptions,
+    upload: Upload,
+    *,
+    stop: Stop,
+    is_disconnected: Callable[[], Awaitable[bool]],
+    deadline: float | None = None,
+    frames: WarmStart | None = None,
+    request_id: str | None = None,
+) -> Answer:
+    """Compute the pair of `upload` (its image files, checked from their headers, and its rig
+    where it is raw) with `options` on `batcher`, and make its answer.
+
+    stop: resolves with the error to raise once the request is abandoned while its images are
+    decoded or its rectifier built; is_disconnected: whether the client has gone (the batcher
+    drops such requests); deadline: `time.monotonic()` by which the answer is due; frames: a
+    stream's warm starts (each pair starts from the previous one's disparity), None for a pair on
+    its own. 422 `scale_too_small` before anything is admitted where `options.scale` leaves the
+    network too little of the image; otherwise what admission, decoding and batching raise.
+    """
+    header = upload.header
+    problem = options.scale_problem(header.height, header.width)
+    if problem is not None:
+        raise bad_input(422, "scale_too_small", problem)
+    inference, init = (options.inference, None) if frames is None else frames.next(header.height, header.width)
+    key = stereo_key(options.model, inference, header.height, header.width, warm_start=init is not None)
+    # Admitted before a raw pair's rectifier is built: building one is work, bounded like decoding.
+    async with (
+        batcher.admit(options.model, key, deadline=deadline) as admission,
+        runtime.rectifiers.use(upload.rig, stop) as rectifier,
+    ):
+        left, right = await runtime.decoders.decode_pair(upload.left, upload.right, header, stop)
+        if rectifier is not None:  # a raw pair: the network sees it rectified
+            left, right = await run_in_threadpool(rectifier.rectify, left, right)
+        result = await admission.run(
+            key,
+            StereoPair(left, right, init),
+            deadline=deadline,
+            is_disconnected=is_disconnected,
+            request_id=request_id,
+        )
+        if frames is not None:
+            frames.record(result.output.disparity)
+        predictor = runtime.predictors[options.model]
+        weights = weights_identity(predictor)
+        body, media_type = await run_in_threadpool(response_body, options, result, left, weights, header, rectifier)
+    return Answer(result, predictor, weights, body, media_type)
