@@ -9,10 +9,11 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from crestereo_pp.stereo_data import synthetic
-from crestereo_pp.stereo_data.hard_cases import repetitive_period_texels
 from crestereo_pp.stereo_data.photos import PHOTOS, load_photos
 from crestereo_pp.stereo_data.synthetic import MAX_SIDES, PhotometricConfig, Scene, SceneConfig, SceneGenerator
+from crestereo_pp.stereo_data.synthetic.geometry import covers, seen_from_right, surface_disparity
+from crestereo_pp.stereo_data.synthetic.hard_cases import repetitive_period_texels
+from crestereo_pp.stereo_data.synthetic.visibility import nearest_surface, view_bounds
 
 
 @pytest.fixture(autouse=True, scope="module")
@@ -589,15 +590,15 @@ def test_the_z_buffer_evaluates_each_surface_only_inside_a_box_that_holds_all_it
     x = torch.arange(config.width, dtype=torch.float32).view(1, 1, 1, -1)
     y = torch.arange(config.height, dtype=torch.float32).view(1, 1, -1, 1)
     for view in ("left", "right"):
-        x_left = x if view == "left" else synthetic._seen_from_right(scene, x, y)
-        covered = synthetic._covers(scene, x_left, y) & scene.present[..., None, None]  # (B, S, H, W)
-        low_x, high_x, low_y, high_y = (b[..., None, None] for b in synthetic._view_bounds(scene, view).unbind(-1))
+        x_left = x if view == "left" else seen_from_right(scene, x, y)
+        covered = covers(scene, x_left, y) & scene.present[..., None, None]  # (B, S, H, W)
+        low_x, high_x, low_y, high_y = (b[..., None, None] for b in view_bounds(scene, view).unbind(-1))
         in_box = (x >= low_x) & (x <= high_x) & (y >= low_y) & (y <= high_y)
         assert covered.any() and not (covered & ~in_box).any()
         bounded = torch.isfinite(low_x) & torch.isfinite(high_x)  # foreground shapes: small boxes
         assert in_box[bounded.expand_as(in_box)].float().mean() < 0.5
 
-        disparity = synthetic._surface_disparity(
+        disparity = surface_disparity(
             scene.plane[..., None, None, :],
             scene.curvature[..., None, None, :],
             scene.apex[..., None, None, :],
@@ -605,13 +606,13 @@ def test_the_z_buffer_evaluates_each_surface_only_inside_a_box_that_holds_all_it
             y,
         )
         everywhere = torch.where(covered, disparity, -math.inf).max(dim=1, keepdim=True)
-        nearest, index, _ = synthetic._nearest_surface(scene, x, y, view)
+        nearest, index, _ = nearest_surface(scene, x, y, view)
         assert torch.equal(index, everywhere.indices)
         # the right view's root, computed on other tensor shapes, may round differently (1e-6 px)
         torch.testing.assert_close(nearest, everywhere.values, rtol=0, atol=0 if view == "left" else 1e-4)
 
 
-# Hard cases (stereo_data.hard_cases): off by default, leaving the recipe's batches as they were.
+# Hard cases (stereo_data.synthetic.hard_cases): off by default, leaving the recipe's batches as they were.
 
 RECIPE_SUMS = {
     # Sums of (left, right, disparity, occluded) of the batch of 2 of seed 0, recorded before the
@@ -686,7 +687,7 @@ def test_thin_structures_are_bars_1_to_6_px_wide_far_in_front_of_the_background(
 
     batch = generator.render(scene)
     x, y = pixel_grid(THIN)
-    _, surface, _ = synthetic._nearest_surface(scene, x, y, "left")
+    _, surface, _ = nearest_surface(scene, x, y, "left")
     thin = surface > 0
     a, b, c = (part[:, None, None, None] for part in scene.plane[:, 0].unbind(-1))
     above_background = (batch.disparity - (a * x + b * y + c))[thin]
@@ -705,7 +706,7 @@ def test_thin_structures_are_never_broken_into_dashes_in_either_view() -> None:
     scene.present[:, 2:] = False
     x, y = pixel_grid(THIN)
     for view in ("left", "right"):
-        _, surface, _ = synthetic._nearest_surface(scene, x, y, view)
+        _, surface, _ = nearest_surface(scene, x, y, view)
         for n in range(8):
             bar = (surface[n, 0] == 1).to(torch.uint8).numpy()
             if bar.any():
@@ -731,7 +732,7 @@ def texture_and_shading(generator: SceneGenerator, scene: Scene) -> tuple[torch.
     the surface index there (outside: -1)."""
     grey = generator.render(scene).left.mean(1, keepdim=True)
     shading = F.avg_pool2d(grey, 7, 1, 3, count_include_pad=False)
-    _, surface, _ = synthetic._nearest_surface(scene, *pixel_grid(generator.config), "left")
+    _, surface, _ = nearest_surface(scene, *pixel_grid(generator.config), "left")
     index = surface.float()
     one_surface = F.max_pool2d(index, 7, 1, 3) == -F.max_pool2d(-index, 7, 1, 3)
     return grey - shading, shading, torch.where(one_surface, surface, -1)

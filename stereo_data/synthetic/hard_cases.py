@@ -4,19 +4,18 @@ planes with slow shading, repetitive patterns and wide disparity ranges (see `Sc
 
 Each option is off by default, and an option that is off draws nothing from the scene's random
 generator: a seed then gives the same batch, bit for bit, as before these options existed.
-`stereo_data.synthetic` applies what is drawn here.
+The scenes' sampling and textures (`sampling`, `textures`) apply what is drawn here.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import torch
 
-if TYPE_CHECKING:
-    from .synthetic import SceneConfig, _Draw
+from .config import SceneConfig
+from .draw import Draw
 
 THIN_WIDTH = (1.0, 6.0)
 """Full width of thin structures, output px (not magnified by the scene's scale), log-uniform; at
@@ -72,7 +71,7 @@ class SurfaceKinds:
     repetitive_tilt: torch.Tensor
 
     @staticmethod
-    def draw(shape: tuple[int, int], cfg: SceneConfig, draw: _Draw) -> SurfaceKinds:
+    def draw(shape: tuple[int, int], cfg: SceneConfig, draw: Draw) -> SurfaceKinds:
         """The kinds of (B, S) surfaces; a kind whose probability is 0 is nowhere, and draws nothing."""
         none = torch.zeros(shape, dtype=torch.bool, device=draw.device)
         zero = torch.zeros(shape, device=draw.device)
@@ -107,7 +106,7 @@ class SurfaceKinds:
         )
 
 
-def scene_max_disparity(batch_size: int, cfg: SceneConfig, draw: _Draw) -> float | torch.Tensor:
+def scene_max_disparity(batch_size: int, cfg: SceneConfig, draw: Draw) -> float | torch.Tensor:
     """Each scene's largest disparity, px: ``cfg.max_disparity``, or for a wide-range scene (drawn
     with ``cfg.wide_range_probability``) uniform in [max_disparity, wide_max_disparity]. A (B,)
     tensor where the option is on; else the number itself, so that scenes are computed as before."""
