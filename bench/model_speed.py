@@ -38,10 +38,10 @@ import torch
 from torch.utils.flop_counter import FlopCounterMode
 
 from crestereo_pp.evaluation.sgbm import sgbm_disparity
-from crestereo_pp.model import load_model
+from crestereo_pp.inference import load_model
+from crestereo_pp.inference.backend_choice import Backend, Precision
+from crestereo_pp.inference.openvino_backend import native_bf16
 from crestereo_pp.model.config import MODEL_NAMES
-from crestereo_pp.model.inference import Backend, Precision
-from crestereo_pp.model.openvino_backend import native_bf16
 
 
 def matmul_gflops(n: int = 2048, runs: int = 10) -> float:

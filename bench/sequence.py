@@ -28,8 +28,8 @@ import numpy as np
 import torch
 from gpu_check import dev_pairs  # bench/'s sibling script
 
-from crestereo_pp.model import InferenceOptions, StereoPredictor, load_model
-from crestereo_pp.model.inference import shrink
+from crestereo_pp.inference import InferenceOptions, StereoPredictor, load_model
+from crestereo_pp.inference.scaling import shrink
 from crestereo_pp.stereo_data.formats import read_image
 
 Pair = tuple[np.ndarray, np.ndarray]

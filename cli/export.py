@@ -44,8 +44,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 def run_onnx(args: argparse.Namespace) -> int:
-    from crestereo_pp.model import load_model, parse_iterations
-    from crestereo_pp.model.onnx_export import export_onnx
+    from crestereo_pp.inference import load_model, parse_iterations
+    from crestereo_pp.inference.onnx_export import export_onnx
     from crestereo_pp.model.weights import read_weights
 
     if args.height is None or args.width is None:

@@ -13,14 +13,13 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
-    from crestereo_pp.model import InferenceOptions, StereoPredictor
-    from crestereo_pp.model.inference import BackendChoice
-    from crestereo_pp.model.options import Iterations
+    from crestereo_pp.inference import InferenceOptions, Iterations, StereoPredictor
+    from crestereo_pp.inference.backend_choice import BackendChoice
 
 MODEL_NAMES = ("lite", "full")
 """`model.config.MODEL_NAMES`, spelled here so that `--help` does not import torch (a test keeps them equal)."""
 TWO_PASS_CHOICES = ("auto", "on", "off")
-"""`model.options.TWO_PASS_CHOICES`, likewise."""
+"""`inference.options.TWO_PASS_CHOICES`, likewise."""
 
 
 def add_network_options(parser: argparse.ArgumentParser) -> None:
@@ -77,7 +76,7 @@ def add_model_options(parser: argparse.ArgumentParser) -> None:
 def inference_options(args: argparse.Namespace) -> InferenceOptions:
     """--iters, --two-pass, --scale (and --raw-uncertainty where the command has it) as one value;
     a usage error where they are invalid."""
-    from crestereo_pp.model import InferenceOptions, parse_iterations, parse_two_pass
+    from crestereo_pp.inference import InferenceOptions, parse_iterations, parse_two_pass
 
     try:
         return InferenceOptions(
@@ -94,7 +93,7 @@ def graphs_needed(args: argparse.Namespace) -> list[tuple[Iterations, bool]]:
     """The (iterations, warm start) of the forwards the command runs: cold at --iters; warm at
     --iters unless --two-pass off (the second of two passes starts warm); with --sequence, warm
     at --warm-iters too (the frames after the first)."""
-    from crestereo_pp.model import parse_iterations
+    from crestereo_pp.inference import parse_iterations
 
     options = inference_options(args)
     graphs: list[tuple[Iterations, bool]] = [(options.iters, False)]
@@ -111,8 +110,8 @@ def load_predictor(args: argparse.Namespace) -> StereoPredictor:
     pick (auto), it takes OpenVINO only where the graphs of the command's forwards are in the
     cache already, else torch: a one-off command never waits for an export. Asked for OpenVINO
     (--backend openvino, or $CRESTEREO_BACKEND), it exports the missing graphs first, saying so."""
-    from crestereo_pp.model import load_model
-    from crestereo_pp.model.device import resolve_device
+    from crestereo_pp.inference import load_model
+    from crestereo_pp.inference.device import resolve_device
 
     graphs = graphs_needed(args)  # invalid options are an error before anything loads
     device = resolve_device(args.device, 0)

@@ -23,7 +23,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Exit status 1 where an export failed (those calls run on torch)."""
-    from crestereo_pp.model import load_model, parse_iterations
+    from crestereo_pp.inference import load_model, parse_iterations
 
     iters = parse_iterations(args.iters)
     predictor = load_model(args.model, args.weights, "cpu", backend="openvino")

@@ -7,9 +7,10 @@
 
     from crestereo_pp import StereoClient           # the same from a running service, over HTTP
 
-The project's folders are its subpackages (installed as `crestereo_pp.model`, `crestereo_pp.service`,
-...; pyproject.toml maps them). The names below are imported when first used, so that importing one
-subpackage (the client, a decoder process) does not load torch.
+The project's folders are its subpackages (installed as `crestereo_pp.model`,
+`crestereo_pp.inference`, `crestereo_pp.service`, ...; pyproject.toml maps them). The names below
+are imported when first used, so that importing one subpackage (the client, a decoder process)
+does not load torch.
 """
 
 from __future__ import annotations
@@ -19,15 +20,16 @@ from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     from .client import AsyncStereoClient, DisparityResult, DisparityStream, ServiceError, StereoClient
-    from .model import FrameStream, ModelConfig, Prediction, StereoPredictor, TensorPrediction, load_model
+    from .inference import FrameStream, Prediction, StereoPredictor, TensorPrediction, load_model
+    from .model import ModelConfig
 
 # public name -> the subpackage that owns it
 _OWNERS = {
-    "load_model": "model",
-    "StereoPredictor": "model",
-    "Prediction": "model",
-    "TensorPrediction": "model",
-    "FrameStream": "model",
+    "load_model": "inference",
+    "StereoPredictor": "inference",
+    "Prediction": "inference",
+    "TensorPrediction": "inference",
+    "FrameStream": "inference",
     "ModelConfig": "model",
     "StereoClient": "client",
     "AsyncStereoClient": "client",

@@ -11,8 +11,9 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from crestereo_pp.model import InferenceOptions, Prediction, StereoPredictor
-from crestereo_pp.model.inference import scaled_size, two_pass_possible
+from crestereo_pp.inference import InferenceOptions, Prediction, StereoPredictor
+from crestereo_pp.inference.scaling import scaled_size
+from crestereo_pp.inference.two_pass import two_pass_possible
 from crestereo_pp.stereo_data.formats import encode_png
 from crestereo_pp.stereo_data.readers import StereoSample
 

@@ -1,7 +1,7 @@
 """Where two-pass inference pays, pair by pair: the evidence ``two_pass="auto"`` decides by (the
 99th percentile of a quick quarter-resolution pass's disparity) beside bad-2 and EPE of one pass and
 of two passes, what auto picks, and the mean bad-2 that each threshold between the pairs'
-evidence would give. How ``model.inference.LARGE_DISPARITY_PX`` is measured for new weights:
+evidence would give. How ``inference.two_pass.LARGE_DISPARITY_PX`` is measured for new weights:
 
     python -m crestereo_pp.evaluation.two_pass_rule ../shared/data/stereo-dev [--model lite] [--weights W]
                                        [--backend auto] [--precision auto]
@@ -18,8 +18,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from crestereo_pp.evaluation.metrics import DisparityMetrics, compute_metrics
-from crestereo_pp.model import StereoPredictor, load_model
-from crestereo_pp.model.inference import LARGE_DISPARITY_PX, as_image_batch
+from crestereo_pp.inference import StereoPredictor, load_model
+from crestereo_pp.inference.prediction import as_image_batch
+from crestereo_pp.inference.two_pass import LARGE_DISPARITY_PX
 from crestereo_pp.stereo_data.readers import StereoSample, open_dataset
 
 

@@ -1,45 +1,20 @@
-"""CREStereo++ and Lite-CREStereo++ in plain PyTorch.
+"""CREStereo++ and Lite-CREStereo++ in plain PyTorch: the network, one block of the paper per
+file, and its weights file. Running it on images of any size is ``crestereo_pp.inference``'s.
 
 Disparity is positive everywhere, in pixels of the left image (the right match is at x - d).
 
-    from crestereo_pp.model import load_model
-    predictor = load_model("lite")                  # bundled weights if present
-    disparity, uncertainty = predictor.predict(left_rgb, right_rgb)
+    from crestereo_pp.model import CREStereoPP, ModelConfig
+    network = CREStereoPP(ModelConfig.preset("lite"))
+    out = network(left, right)                      # (B, 3, H, W) in [0, 255], H, W multiples of 32
+    out.disparity, out.uncertainty                  # (B, 1, H, W) each
 """
 
 from .config import ModelConfig
-from .inference import FrameStream, Prediction, StereoPredictor, TensorPrediction, load_model
-from .loss import matching_loss, sequence_loss
 from .network import CREStereoPP, NetworkOutput, padded_size
-from .options import (
-    TWO_PASS_CHOICES,
-    InferenceOptions,
-    Iterations,
-    StageCounts,
-    TwoPass,
-    WarmStart,
-    parse_iterations,
-    parse_two_pass,
-)
 
 __all__ = [
-    "TWO_PASS_CHOICES",
     "CREStereoPP",
-    "FrameStream",
-    "InferenceOptions",
-    "Iterations",
     "ModelConfig",
     "NetworkOutput",
-    "Prediction",
-    "StageCounts",
-    "StereoPredictor",
-    "TensorPrediction",
-    "TwoPass",
-    "WarmStart",
-    "load_model",
-    "matching_loss",
     "padded_size",
-    "parse_iterations",
-    "parse_two_pass",
-    "sequence_loss",
 ]

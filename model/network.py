@@ -18,7 +18,7 @@ SCALES = (16, 8, 4)
 """Downsampling factor of each ARM stage, coarse to fine."""
 
 INPUT_MULTIPLE = 32
-"""Input height and width must be multiples of this (``model.inference`` pads to it)."""
+"""Input height and width must be multiples of this (``inference.padding`` pads to it)."""
 
 
 def padded_size(size: int) -> int:
@@ -42,7 +42,7 @@ class NetworkOutput:
         predictions: per stage, per iteration, (B, 1, H, W) full-resolution disparities for the
             loss (paper eq. 6); empty unless the network is in training mode.
         features: (left, right) FEM features (B, C, H/4, W/4) for training-only losses
-            (``model.loss.matching_loss``); None unless the network is in training mode.
+            (``training.loss.matching_loss``); None unless the network is in training mode.
     """
 
     disparity: Tensor
@@ -81,7 +81,7 @@ class CREStereoPP(nn.Module):
             init_disparity: optional (B, 1, H, W) start, positive, in pixels of the input: the
                 first stage that runs starts from it (averaged down to that stage's resolution)
                 instead of from zero. A video's warm start runs every stage from it, the second
-                of two passes 1/4 only (``model.options.WarmStart`` says why).
+                of two passes 1/4 only (``inference.warm_start.WarmStart`` says why).
         """
         height, width = left.shape[-2:]
         if height % INPUT_MULTIPLE or width % INPUT_MULTIPLE:

@@ -26,7 +26,7 @@ class WeightsFile(TypedDict):
     model: the network's state_dict (float32, or float16 for a `--fp16` export).
     config: the ModelConfig as a dict (absent in old files: the preset of the name is used).
     model_name: "lite" | "full".
-    calibration: the fitted uncertainty calibration (model.calibration), when present.
+    calibration: the fitted uncertainty calibration (inference.uncertainty_calibration), when present.
     training: the cumulative training record (training.history); train_config: the TrainConfig
         as a dict; step: optimiser steps done; dtype: "float32" | "float16".
     Checkpoints only (CHECKPOINT_KEYS): train_model: the raw trained weights when "model" is

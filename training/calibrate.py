@@ -1,4 +1,4 @@
-"""Fit the meaning of the served uncertainty for one set of weights (see model.calibration).
+"""Fit the meaning of the served uncertainty for one set of weights (see inference.uncertainty_calibration).
 
 The fit runs the network on procedural validation scenes, never on real pairs: their seeds lie
 in a range no training run draws (training seeds come from numpy generators seeded by
@@ -14,8 +14,13 @@ import torch
 import torch.nn.functional as F
 from scipy.optimize import isotonic_regression
 
-from crestereo_pp.model import StereoPredictor, load_model
-from crestereo_pp.model.calibration import FEATURES, UncertaintyCalibration, confidence_features, score_design
+from crestereo_pp.inference import StereoPredictor, load_model
+from crestereo_pp.inference.uncertainty_calibration import (
+    FEATURES,
+    UncertaintyCalibration,
+    confidence_features,
+    score_design,
+)
 from crestereo_pp.model.weights import read_weights, write_weights
 from crestereo_pp.stereo_data.synthetic import SceneConfig, SceneGenerator
 

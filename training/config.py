@@ -160,7 +160,7 @@ class TrainConfig:
     )
     loss_max_disparity: float = _knob(512.0, "ground truth at or above this (px) is ignored by the loss")
     matching_weight: float = _knob(
-        0.0, "weight of the training-only feature matching loss (model.loss.matching_loss); 0: off"
+        0.0, "weight of the training-only feature matching loss (training.loss.matching_loss); 0: off"
     )
     grad_clip: float = _knob(1.0, "clip the gradient norm to this (0: no clipping)")
     ema_decay: float = _knob(

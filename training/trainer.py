@@ -14,17 +14,11 @@ from torch.nn.parallel import DistributedDataParallel
 from tqdm import tqdm
 
 from crestereo_pp.evaluation.evaluate import evaluate
-from crestereo_pp.model import (
-    CREStereoPP,
-    InferenceOptions,
-    ModelConfig,
-    NetworkOutput,
-    StereoPredictor,
-    matching_loss,
-    sequence_loss,
-)
-from crestereo_pp.model.device import resolve_device
-from crestereo_pp.model.inference import autocast_bf16, half_resolution_start
+from crestereo_pp.inference import InferenceOptions, StereoPredictor
+from crestereo_pp.inference.device import resolve_device
+from crestereo_pp.inference.torch_backend import autocast_bf16
+from crestereo_pp.inference.two_pass import half_resolution_start
+from crestereo_pp.model import CREStereoPP, ModelConfig, NetworkOutput
 from crestereo_pp.model.network import finest_stage_only
 from crestereo_pp.model.weights import WeightsFile, load_state, model_config_of, read_weights, write_weights
 from crestereo_pp.stereo_data.readers import open_dataset
@@ -34,6 +28,7 @@ from .config import Switch, TrainConfig
 from .data import TrainingBatch, TrainingData
 from .distributed import DistributedContext
 from .history import RunRecord, TrainingHistory
+from .loss import matching_loss, sequence_loss
 from .records import CsvLog, plot_curves, read_csv
 from .schedule import build_scheduler
 from .weight_average import WeightAverage

@@ -8,8 +8,8 @@ import pytest
 
 from crestereo_pp.cli.main import COMMANDS
 from crestereo_pp.cli.options import MODEL_NAMES, TWO_PASS_CHOICES
+from crestereo_pp.inference.options import TWO_PASS_CHOICES as MODEL_TWO_PASS_CHOICES
 from crestereo_pp.model.config import MODEL_NAMES as MODEL_CONFIG_NAMES
-from crestereo_pp.model.options import TWO_PASS_CHOICES as MODEL_TWO_PASS_CHOICES
 
 REPO = Path(__file__).resolve().parents[2]
 

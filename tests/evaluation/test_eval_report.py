@@ -8,7 +8,7 @@ import pytest
 
 from crestereo_pp.evaluation.evaluate import SGBM, evaluate
 from crestereo_pp.evaluation.visualize import PANEL_WIDTH
-from crestereo_pp.model import Prediction
+from crestereo_pp.inference import Prediction
 from crestereo_pp.stereo_data.readers import StereoSample
 from crestereo_pp.stereo_data.visualize import colorize
 

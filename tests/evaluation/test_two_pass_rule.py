@@ -6,7 +6,7 @@ import pytest
 
 from crestereo_pp.evaluation.metrics import DisparityMetrics
 from crestereo_pp.evaluation.two_pass_rule import PairRule, main, report, thresholds_between
-from crestereo_pp.model.inference import LARGE_DISPARITY_PX
+from crestereo_pp.inference.two_pass import LARGE_DISPARITY_PX
 from tests.shared_data import SMALL_STEREO_DEV_PAIR, STEREO_DEV
 
 

@@ -66,7 +66,7 @@ def target_device(args: tuple, kwargs: dict) -> torch.device:
 def replay_eagerly(
     run: Callable[[], tuple[Tensor, Tensor]], device: torch.device
 ) -> tuple[Callable[[], None], tuple[Tensor, Tensor]]:
-    """`model.cuda_graphs.capture_cuda_graph` without CUDA: `replay()` reruns `run` and writes
+    """`inference.cuda_graphs.capture_cuda_graph` without CUDA: `replay()` reruns `run` and writes
     its results into the first run's output tensors, as a graph replay rewrites its outputs."""
     outputs = run()
 

@@ -1,4 +1,4 @@
-"""crestereo_pp.model.cuda_graphs: which calls capture, replay or run eagerly, what the static buffers hold, the
+"""crestereo_pp.inference.cuda_graphs: which calls capture, replay or run eagerly, what the static buffers hold, the
 cache bound and the fallback, on the CPU with a capture that replays eagerly; then the real
 capture, on CUDA only."""
 
@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from crestereo_pp.model import load_model
-from crestereo_pp.model.cuda_graphs import GraphedForward, GraphKey, capture_cuda_graph
+from crestereo_pp.inference import load_model
+from crestereo_pp.inference.cuda_graphs import GraphedForward, GraphKey, capture_cuda_graph
 from fake_accelerator import replay_eagerly
 
 ITERS = (1, 1, 2)

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from crestereo_pp.evaluation.evaluate import evaluate
-from crestereo_pp.model import load_model
+from crestereo_pp.inference import load_model
 from crestereo_pp.model.weights import read_weights
 from crestereo_pp.stereo_data.readers import StereoSample
 from crestereo_pp.training.calibrate import calibrate

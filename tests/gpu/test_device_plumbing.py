@@ -6,8 +6,9 @@ import pytest
 import torch
 
 from crestereo_pp.evaluation.evaluate import evaluate
-from crestereo_pp.model import CREStereoPP, InferenceOptions, ModelConfig, StereoPredictor
-from crestereo_pp.model.cuda_graphs import GraphedForward
+from crestereo_pp.inference import InferenceOptions, StereoPredictor
+from crestereo_pp.inference.cuda_graphs import GraphedForward
+from crestereo_pp.model import CREStereoPP, ModelConfig
 from crestereo_pp.stereo_data.readers import StereoSample
 from crestereo_pp.training.config import TrainConfig
 from crestereo_pp.training.data import TrainingBatch

@@ -5,7 +5,8 @@ import dataclasses
 import pytest
 import torch
 
-from crestereo_pp.model import CREStereoPP, ModelConfig, sequence_loss
+from crestereo_pp.model import CREStereoPP, ModelConfig
+from crestereo_pp.training.loss import sequence_loss
 
 
 def count(module: torch.nn.Module) -> int:

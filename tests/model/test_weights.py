@@ -7,7 +7,8 @@ import warnings
 import pytest
 import torch
 
-from crestereo_pp.model import CREStereoPP, ModelConfig, load_model
+from crestereo_pp.inference import load_model
+from crestereo_pp.model import CREStereoPP, ModelConfig
 from crestereo_pp.model.config import MODEL_NAMES, PRESETS
 from crestereo_pp.model.weights import model_config_of, network_from_weights, read_weights, write_weights
 

@@ -8,7 +8,7 @@ import crestereo_pp
 
 def test_every_public_name_resolves_to_the_object_its_subpackage_defines():
     from crestereo_pp.client import StereoClient
-    from crestereo_pp.model import load_model
+    from crestereo_pp.inference import load_model
 
     assert crestereo_pp.load_model is load_model and crestereo_pp.StereoClient is StereoClient
     for name in crestereo_pp.__all__:

@@ -34,7 +34,7 @@ HEIGHT, WIDTH = 64, 96
 
 
 def quiet_load_model(name: str, **kwargs: Any) -> Predictor:
-    """`model.load_model` without the warning about random weights (expected until training)."""
+    """`inference.load_model` without the warning about random weights (expected until training)."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         return load_model(name, **kwargs)

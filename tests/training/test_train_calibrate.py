@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 import torch
 
-from crestereo_pp.model import CREStereoPP, ModelConfig, load_model
-from crestereo_pp.model.calibration import FEATURES
+from crestereo_pp.inference import load_model
+from crestereo_pp.inference.uncertainty_calibration import FEATURES
+from crestereo_pp.model import CREStereoPP, ModelConfig
 from crestereo_pp.training.calibrate import calibrate_weights_file, fit_calibration, fit_probability
 
 

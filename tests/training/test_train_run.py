@@ -10,7 +10,7 @@ import torch
 import crestereo_pp.training.data
 import crestereo_pp.training.trainer
 from crestereo_pp.cli.main import main
-from crestereo_pp.model import load_model
+from crestereo_pp.inference import load_model
 from crestereo_pp.model.network import CREStereoPP
 from crestereo_pp.model.weights import read_weights
 from crestereo_pp.stereo_data.readers import StereoSample

@@ -9,8 +9,8 @@ from pathlib import Path
 import torch
 from torch import Tensor, nn
 
-from .inference import StereoPredictor
 from .options import Iterations
+from .predictor import StereoPredictor
 
 
 class ExportedGraph(nn.Module):

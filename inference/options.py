@@ -1,16 +1,14 @@
-"""How a pair is computed: one type for the per-call inference options, the one parser of
-iteration counts, and the warm start of a video's frames. The HTTP query, the command line, the
-service's batch key and the predictor all speak `InferenceOptions`; the backend and precision are
-the predictor's own (``load_model``).
+"""How a pair is computed: one type for the per-call inference options and the one parser of
+iteration counts. The HTTP query, the command line, the service's batch key and the predictor all
+speak `InferenceOptions`; the backend and precision are the predictor's own (``load_model``); a
+video's frames add a warm start (``inference.warm_start``).
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Any, Literal
-
-import numpy as np
 
 StageCounts = tuple[int, int, int]
 """ARM iterations of the three stages, at 1/16, 1/8 and 1/4 resolution (what the network runs)."""
@@ -96,43 +94,3 @@ class InferenceOptions:
             "scale": self.scale,
             "raw_uncertainty": self.raw_uncertainty,
         }
-
-
-class WarmStart:
-    """The options and warm start of each next frame of one camera (a video, a stream).
-
-    The first frame (and any frame of another size than its predecessor, or after ``restart``)
-    is computed cold with ``options``; each other one runs every stage with ``warm_iters``
-    iterations (default: those of ``options``), without two_pass, its coarsest stage (1/16)
-    starting from the previous frame's disparity instead of from zero. The finer stages re-derive
-    the map from the frame's own images, so a static camera keeps the cold map (shipped lite on
-    Middlebury Teddy, 20 frames: 0.05 px mean absolute difference from it, not growing; only a
-    strip at the left edge whose match lies outside the right image, which has no evidence of
-    its own, settles within a few frames nearer the truth). Refining the previous map at 1/4
-    only, as warm frames did before, drifts: the 1/4 stage does not hold its own answer (3 more
-    iterations from the cold map move it by 0.19 px), and every frame adds its move to the last
-    one's (0.28 px after 20 frames; a pixel 26.6 -> 30.0 px). Fewer ``warm_iters`` than the cold
-    frame's cost accuracy (warm frames keep the cold answer with as many iterations), not
-    stability (tests/model/test_warm_start.py).
-    """
-
-    def __init__(self, options: InferenceOptions, warm_iters: Iterations = None) -> None:
-        self.options = options
-        self.warm_iters = parse_iterations(warm_iters)
-        self._previous: np.ndarray | None = None
-
-    def next(self, height: int, width: int) -> tuple[InferenceOptions, np.ndarray | None]:
-        """The options of the next frame (of this size) and its warm start (float32 HxW px, or None: cold)."""
-        previous = self._previous
-        if previous is None or previous.shape != (height, width):
-            return self.options, None
-        iters = self.options.iters if self.warm_iters is None else self.warm_iters
-        return replace(self.options, iters=iters, two_pass=False), previous
-
-    def record(self, disparity: np.ndarray) -> None:
-        """The disparity the frame just computed had (the next one starts from it)."""
-        self._previous = disparity
-
-    def restart(self) -> None:
-        """Forget the previous frame (a cut): the next one is computed cold."""
-        self._previous = None

@@ -22,9 +22,9 @@ import pytest
 import torch
 
 from crestereo_pp.cli.main import main
-from crestereo_pp.model import load_model
-from crestereo_pp.model.inference import resolve_backend, resolve_precision
-from crestereo_pp.model.openvino_backend import native_bf16
+from crestereo_pp.inference import load_model
+from crestereo_pp.inference.backend_choice import resolve_backend, resolve_precision
+from crestereo_pp.inference.openvino_backend import native_bf16
 from shared_data import STEREO_DEV
 
 REPO = Path(__file__).resolve().parents[2]
@@ -72,7 +72,7 @@ def first_call(cache_dir, tsukuba):
     before = predictor.predict(*tsukuba, iters=ITERS)
     counts = (predictor.openvino.runs, predictor.openvino.fallback_runs, predictor.openvino.exports)
     exporting = [thread.name for thread in threading.enumerate() if thread.name == "openvino-export"]
-    logger, messages = logging.getLogger("crestereo_pp.model.openvino_backend"), Messages()
+    logger, messages = logging.getLogger("crestereo_pp.inference.openvino_backend"), Messages()
     logger.addHandler(messages)
     logger.setLevel(logging.INFO)
     try:
@@ -160,7 +160,7 @@ def test_an_export_ends_with_the_process_that_asked_for_it_and_leaves_no_file(tm
     temporary = tmp_path / "tmp"
     temporary.mkdir()
     environment = {**os.environ, "CRESTEREO_CACHE_DIR": str(tmp_path / "cache"), "TMPDIR": str(temporary)}
-    script = "from model import load_model; load_model('lite', backend='openvino').prepare((1, 1, 1))"
+    script = "from crestereo_pp.inference import load_model; load_model('lite', backend='openvino').prepare((1, 1, 1))"
     parent = subprocess.Popen([sys.executable, "-c", script], env=environment, cwd=REPO)
     try:
         child = wait_for(lambda: export_child(parent.pid), timeout_s=120)
@@ -179,7 +179,7 @@ def export_child(parent: int) -> int | None:
     """The pid of `parent`'s export process, once it runs."""
     for task in Path(f"/proc/{parent}/task").iterdir():
         for pid in (task / "children").read_text().split():
-            if b"crestereo_pp.model.openvino_backend" in Path(f"/proc/{pid}/cmdline").read_bytes():
+            if b"crestereo_pp.inference.openvino_export" in Path(f"/proc/{pid}/cmdline").read_bytes():
                 return int(pid)
     return None
 

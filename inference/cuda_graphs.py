@@ -23,15 +23,8 @@ from typing import TypeVar
 import torch
 from torch import Tensor
 
+from .forward import Forward, Maps
 from .options import StageCounts
-
-Maps = tuple[Tensor, Tensor]
-"""(disparity, uncertainty), each float32 (B, 1, H, W) on the inputs' device."""
-
-Forward = Callable[[Tensor, Tensor, Tensor | None, StageCounts, bool], Maps]
-"""forward(left, right, init, iters, bf16): the network on (B, 3, H, W) float images in [0, 255]
-(H, W multiples of 32), an optional (B, 1, H, W) warm-start disparity (px), the iterations per
-stage and whether to autocast to bf16; returns the maps."""
 
 Capture = Callable[[Callable[[], Maps], torch.device], tuple[Callable[[], None], Maps]]
 """capture(run, device) -> (replay, outputs): record `run` (which reads fixed input buffers on

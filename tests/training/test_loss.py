@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from crestereo_pp.model import matching_loss, sequence_loss
+from crestereo_pp.training.loss import matching_loss, sequence_loss
 
 
 def test_sequence_loss_weights_each_stage_by_gamma_to_the_remaining_iterations():

@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 import torch
 
-from crestereo_pp.model import InferenceOptions, ModelConfig, load_model
-from crestereo_pp.model import inference as inference_module
+from crestereo_pp.inference import InferenceOptions, load_model
+from crestereo_pp.inference import two_pass as two_pass_module
+from crestereo_pp.model import ModelConfig
 from crestereo_pp.model.network import finest_stage_only
 from crestereo_pp.model.weights import file_sha256
 from crestereo_pp.stereo_data.readers import open_dataset
@@ -84,7 +85,7 @@ def test_auto_two_pass_computes_each_pair_of_a_batch_as_its_quick_pass_says(lite
     left, right = torch.cat([near.left, far.left]), torch.cat([near.right, far.right])
     evidence = lite.large_disparity_percentile(left, right)
     assert evidence[0] > evidence[1] + 5  # the scene with the larger disparities says so
-    monkeypatch.setattr(inference_module, "LARGE_DISPARITY_PX", float(evidence.mean()))
+    monkeypatch.setattr(two_pass_module, "LARGE_DISPARITY_PX", float(evidence.mean()))
     auto = lite.predict(left, right, two_pass="auto")
     for i, two in ((0, True), (1, False)):
         alone = lite.predict(left[i : i + 1], right[i : i + 1], two_pass=two)
@@ -104,7 +105,7 @@ def test_the_quick_pass_reads_a_real_pairs_largest_disparities_and_keeps_a_near_
         )[0]
     )
     assert abs(evidence - truth) < 3.0
-    assert evidence < inference_module.LARGE_DISPARITY_PX
+    assert evidence < two_pass_module.LARGE_DISPARITY_PX
     auto, one = (lite.predict(sample.left, sample.right, two_pass=flag).disparity for flag in ("auto", False))
     np.testing.assert_array_equal(auto, one)
 
@@ -155,7 +156,7 @@ def test_mismatched_or_malformed_inputs_are_refused_with_a_clear_error(lite):
 
 
 def test_missing_weights_warn_and_give_the_same_random_network_in_every_process(monkeypatch, tmp_path):
-    monkeypatch.setattr("crestereo_pp.model.inference.WEIGHTS_DIR", tmp_path)  # no bundled weights here
+    monkeypatch.setattr("crestereo_pp.inference.loading.WEIGHTS_DIR", tmp_path)  # no bundled weights here
     with pytest.warns(RuntimeWarning, match="randomly initialised"):
         first = load_model("lite", weights=None)
     assert first.weights_sha256 is None
@@ -250,7 +251,7 @@ def test_bf16_autocast_keeps_the_disparity_within_0_08_px_of_fp32_on_average():
 
 
 def test_a_scale_that_leaves_the_network_too_few_pixels_is_refused_not_extrapolated():
-    from crestereo_pp.model.inference import MIN_SCALED_SIDE, scaled_size
+    from crestereo_pp.inference.scaling import MIN_SCALED_SIDE, scaled_size
 
     assert scaled_size(375, 1242, 0.5) == (188, 621)
     assert scaled_size(20, 20, 1.0) == (20, 20)  # a small image at its own size is fine

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from crestereo_pp.cli.main import main
-from crestereo_pp.model import load_model
+from crestereo_pp.inference import load_model
 from crestereo_pp.model.weights import WEIGHTS_DIR
 from crestereo_pp.stereo_data.synthetic import SceneConfig, SceneGenerator
 

@@ -1,8 +1,8 @@
-"""Spec of model.options: one parser of iteration counts, one type for a prediction's options."""
+"""Spec of inference.options: one parser of iteration counts, one type for a prediction's options."""
 
 import pytest
 
-from crestereo_pp.model import InferenceOptions, parse_iterations, parse_two_pass
+from crestereo_pp.inference import InferenceOptions, parse_iterations, parse_two_pass
 
 
 @pytest.mark.parametrize(

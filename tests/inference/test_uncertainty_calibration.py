@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from crestereo_pp.evaluation.metrics import sparsification
-from crestereo_pp.model import load_model
-from crestereo_pp.model.calibration import FEATURES, UncertaintyCalibration, confidence_features
+from crestereo_pp.inference import load_model
+from crestereo_pp.inference.uncertainty_calibration import FEATURES, UncertaintyCalibration, confidence_features
 from crestereo_pp.stereo_data.readers import open_dataset
 from shared_data import SMALL_STEREO_DEV_PAIR, STEREO_DEV
 

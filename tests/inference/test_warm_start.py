@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 import torch
 
-from crestereo_pp.model import InferenceOptions, StereoPredictor, load_model
-from crestereo_pp.model.inference import shrink
+from crestereo_pp.inference import InferenceOptions, StereoPredictor, load_model
+from crestereo_pp.inference.scaling import shrink
 from crestereo_pp.stereo_data.formats import read_image
 from tests.shared_data import STEREO_DEV
 

@@ -1,0 +1,180 @@
+"""The OpenVINO export: the network as an OpenVINO graph with symbolic batch, height and width,
+computed in a child process of its own (``python -m crestereo_pp.inference.openvino_export``).
+
+One graph per iteration counts and start (cold, or warm from a given disparity): torch's ONNX
+exporter, then ``openvino.convert_model``. The child process reads the network from its standard
+input, writes the graph as OpenVINO IR (.xml and .bin) and ends with the process that started it;
+``inference.openvino_backend`` decides when to export and keeps the graphs in its cache.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import io
+import logging
+import os
+import signal
+import subprocess
+import sys
+import warnings
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+from crestereo_pp.model.network import INPUT_MULTIPLE
+
+from .forward import Maps
+from .options import StageCounts
+
+EXPORT_VERSION = 5
+"""Bumped whenever the exported graph changes for the same weights (part of the cache key)."""
+
+MAX_BATCH = 64
+MAX_SIDE = 8192
+"""Largest batch and padded side (px) an exported graph accepts."""
+
+PR_SET_PDEATHSIG = 1
+"""Linux's prctl option: the signal a process gets when the thread that started it ends."""
+
+
+@dataclass(frozen=True)
+class GraphKind:
+    """What an exported graph computes: the iterations per stage (1/16, 1/8, 1/4) and whether it
+    starts warm from a given disparity (an extra input)."""
+
+    iters: StageCounts
+    warm_start: bool
+
+    @property
+    def file_stem(self) -> str:
+        n16, n8, n4 = self.iters
+        return f"iters{n16}-{n8}-{n4}-{'warm' if self.warm_start else 'cold'}"
+
+
+class _Graph(nn.Module):
+    """The module that is exported: the network at fixed iterations, maps in float32."""
+
+    def __init__(self, network: nn.Module, iters: StageCounts) -> None:
+        super().__init__()
+        self.network = network
+        self.iters = iters
+
+    def forward(self, left: Tensor, right: Tensor, init: Tensor | None = None) -> Maps:
+        out = self.network(left, right, iters=self.iters, init_disparity=init)
+        return out.disparity.float(), out.uncertainty.float()
+
+
+def export_graph(network: nn.Module, kind: GraphKind, onnx_file: Path) -> Any:
+    """The network as an ``openvino.Model`` with symbolic batch, height and width (multiples of
+    INPUT_MULTIPLE): inputs left, right (B, 3, H, W) float32 in [0, 255] and, warm, init
+    (B, 1, H, W) px; outputs disparity and uncertainty (B, 1, H, W) float32.
+
+    Through ONNX (torch's dynamo exporter, which also simplifies the graph), written to
+    `onnx_file` meanwhile: the graph OpenVINO builds from it ran 15-20 % faster than one converted
+    from ``torch.export`` directly."""
+    import openvino as ov
+
+    batch = torch.export.Dim("batch", min=1, max=MAX_BATCH)
+    rows = torch.export.Dim("rows", min=1, max=MAX_SIDE // INPUT_MULTIPLE)
+    columns = torch.export.Dim("columns", min=1, max=MAX_SIDE // INPUT_MULTIPLE)
+    sizes = {0: batch, 2: INPUT_MULTIPLE * rows, 3: INPUT_MULTIPLE * columns}
+    # Batch 2 and distinct tensors: an example of size 1, or one tensor passed twice, would be specialised.
+    left = torch.full((2, 3, 2 * INPUT_MULTIPLE, 4 * INPUT_MULTIPLE), 128.0)
+    inputs: tuple[Tensor, ...] = (left, left + 1.0)
+    names = ["left", "right"]
+    if kind.warm_start:
+        inputs = (*inputs, torch.full((2, 1, *left.shape[-2:]), 4.0))
+        names.append("init")
+    quiet = logging.getLogger("torch.onnx")  # notes about torchvision operators this network does not use
+    level = quiet.level
+    quiet.setLevel(logging.ERROR)
+    try:
+        with torch.no_grad(), warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # the exporter's own deprecation notices, not ours
+            program = torch.onnx.export(
+                _Graph(network, kind.iters).eval(),
+                inputs,
+                dynamo=True,
+                opset_version=18,
+                input_names=names,
+                output_names=["disparity", "uncertainty"],
+                dynamic_shapes=tuple(sizes for _ in inputs),
+                verbose=False,
+            )
+    finally:
+        quiet.setLevel(level)
+    assert program is not None  # dynamo=True always returns the program
+    try:
+        program.save(str(onnx_file))
+        return ov.convert_model(onnx_file)
+    finally:
+        onnx_file.unlink(missing_ok=True)
+
+
+def export_in_child(network: nn.Module, kind: GraphKind, graph_file: Path) -> None:
+    """`export_graph` in a child process (``python -m crestereo_pp.inference.openvino_export``), saved as
+    OpenVINO IR at `graph_file` (.xml, with its .bin beside it). The network reaches it through
+    its standard input: no file of it is left behind, however this process ends.
+
+    Not in a thread of this process: the exporter traces the network under torch's dispatch modes
+    (fake tensors, functionalisation), which other threads running the network would meet too."""
+    network_bytes = io.BytesIO()
+    torch.save(network, network_bytes)
+    n16, n8, n4 = kind.iters
+    command = [
+        sys.executable,
+        "-m",
+        "crestereo_pp.inference.openvino_export",
+        str(os.getpid()),
+        str(n16),
+        str(n8),
+        str(n4),
+    ]
+    command += ["warm" if kind.warm_start else "cold", str(graph_file)]
+    done = subprocess.run(command, input=network_bytes.getvalue(), capture_output=True, check=False)
+    if done.returncode != 0:
+        error = done.stderr.decode(errors="replace")[-2000:]
+        raise RuntimeError(f"the export process failed ({done.returncode}): {error}")
+
+
+def _export_main(arguments: Sequence[str]) -> None:
+    """The export process: PARENT_PID N16 N8 N4 cold|warm GRAPH_XML, the network on stdin. Its
+    files (the .xml and .bin, the .onnx meanwhile) are named after GRAPH_XML."""
+    parent, n16, n8, n4, start, graph_file = arguments
+    _end_with_parent(int(parent))
+    # Read before openvino is imported: its telemetry forks a process from another thread, and a
+    # process forked while this thread holds stdin's lock hangs as it closes stdin.
+    network_bytes = sys.stdin.buffer.read()
+    import openvino as ov
+
+    network = torch.load(io.BytesIO(network_bytes), weights_only=False)  # from the parent, just now
+    xml = Path(graph_file)
+    graph = export_graph(network, GraphKind((int(n16), int(n8), int(n4)), start == "warm"), xml.with_suffix(".onnx"))
+    ov.save_model(graph, xml, compress_to_fp16=False)
+
+
+def _end_with_parent(parent: int) -> None:
+    """Have the kernel kill this process when the thread that started it ends (Linux's
+    PR_SET_PDEATHSIG; that thread waits for this process, so it ends first only when its whole
+    process ends, by exit or by signal); end now if the parent has already ended. Files this
+    process leaves are its parent's partial files (see ``openvino_backend._remove_abandoned_exports``)."""
+    if sys.platform == "linux":
+        libc = ctypes.CDLL(None, use_errno=True)
+        if libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL) != 0:
+            raise OSError(ctypes.get_errno(), "prctl(PR_SET_PDEATHSIG) failed")
+    if os.getppid() != parent:
+        raise SystemExit("the process that asked for this export has ended")
+
+
+def remove_graph(xml: Path) -> None:
+    """Remove the files of a graph, where they exist: .xml, .bin and the .onnx of its export."""
+    for suffix in (".xml", ".bin", ".onnx"):
+        xml.with_suffix(suffix).unlink(missing_ok=True)
+
+
+if __name__ == "__main__":
+    _export_main(sys.argv[1:])

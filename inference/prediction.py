@@ -1,0 +1,58 @@
+"""What a prediction takes and gives: images in (arrays or tensors, onto the predictor's device),
+maps out (``Prediction`` on the host, ``TensorPrediction`` on the device), and the one copy of the
+maps from the device to the host."""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+import torch
+from torch import Tensor
+
+
+class Prediction(NamedTuple):
+    """Disparity (positive, pixels of the left image) and uncertainty (in [0, 1]) maps of a pair
+    given as arrays (``predict``, ``predict_batch``): float32 numpy HxW, on the host."""
+
+    disparity: np.ndarray
+    uncertainty: np.ndarray
+
+
+class TensorPrediction(NamedTuple):
+    """The maps of ``Prediction`` for pairs given as tensors (``predict``): float32 torch
+    (B, H, W) on the predictor's device."""
+
+    disparity: Tensor
+    uncertainty: Tensor
+
+
+def as_image_batch(image: np.ndarray | Tensor, device: torch.device) -> Tensor:
+    """An image as (B, 3, H, W) float32 in [0, 255] on ``device``.
+
+    Arrays: HxWx3 RGB, HxWx4 (alpha dropped), HxW or HxWx1 grayscale (replicated to RGB);
+    uint8 as is, uint16 scaled to [0, 255], floats taken as [0, 255]. Tensors: (B, 3|1, H, W).
+    """
+    if isinstance(image, np.ndarray):
+        array = image[..., None] if image.ndim == 2 else image
+        if array.ndim != 3 or array.shape[2] not in (1, 3, 4):
+            raise ValueError(f"expected an HxW, HxWx1, HxWx3 or HxWx4 image, got shape {image.shape}")
+        scale = 255.0 / 65535.0 if array.dtype == np.uint16 else 1.0
+        # writable: torch warns about every read-only array (decoded from bytes, memory-mapped)
+        pixels = np.require(array[..., :3], requirements=("C", "W"))
+        batch = torch.from_numpy(pixels).to(device).permute(2, 0, 1)[None]
+        batch = batch.float() * scale
+    elif isinstance(image, Tensor):
+        if image.ndim != 4 or image.shape[1] not in (1, 3):
+            raise ValueError(f"expected a (B, 3, H, W) or (B, 1, H, W) tensor, got {tuple(image.shape)}")
+        batch = image.to(device=device, dtype=torch.float32)
+    else:
+        raise TypeError(f"expected a numpy array or a torch tensor, got {type(image).__name__}")
+    return batch.expand(-1, 3, -1, -1) if batch.shape[1] == 1 else batch
+
+
+def to_host(disparity: Tensor, uncertainty: Tensor) -> tuple[np.ndarray, np.ndarray]:
+    """Two maps of one shape (float32 tensors on any device) as numpy arrays, in one copy to the
+    host: the only device-to-host transfer of a prediction."""
+    both = torch.stack((disparity, uncertainty)).cpu().numpy()
+    return both[0], both[1]

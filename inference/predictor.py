@@ -1,0 +1,383 @@
+"""``StereoPredictor``: a network ready for inference, and its ``predict`` on images of any size.
+
+What it puts together has a file each: the options (``inference.options``), the images in and the
+maps out (``inference.prediction``), the padding (``inference.padding``), ``scale``
+(``inference.scaling``), two passes and their auto rule (``inference.two_pass``), batches of mixed
+sizes (``inference.batching``), the warm start of a video's frames (``inference.warm_start``), the
+backends (``inference.torch_backend``, ``inference.cuda_graphs``, ``inference.openvino_backend``)
+and the served uncertainty's calibration (``inference.uncertainty_calibration``); ``load_model``
+(``inference.loading``) builds one.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Iterator, Sequence
+from pathlib import Path
+from typing import Any, overload
+
+import numpy as np
+import torch
+from torch import Tensor
+from torch.nn import functional as F
+
+from crestereo_pp.model.config import ModelConfig
+from crestereo_pp.model.network import CREStereoPP, finest_stage_only
+from crestereo_pp.model.upsample import resize_disparity
+from crestereo_pp.model.weights import is_trained
+
+from .backend_choice import Backend, Precision, resolve_backend
+from .batching import PaddedBatch, batch_two_pass, size_groups
+from .cuda_graphs import GraphedForward
+from .forward import Forward, Maps
+from .openvino_backend import OpenVINOForward
+from .options import InferenceOptions, Iterations, StageCounts, TwoPass, parse_iterations
+from .padding import Padding
+from .prediction import Prediction, TensorPrediction, as_image_batch, to_host
+from .scaling import scaled_size, shrink
+from .torch_backend import eager_forward
+from .two_pass import PaddedForward, cold_maps, large_disparity_percentile
+from .uncertainty_calibration import UncertaintyCalibration
+from .warm_start import FrameStream
+
+
+class StereoPredictor:
+    """A network ready for inference (eval mode, on ``device``, no gradients).
+
+    calibration: what the uncertainty map means for these weights
+    (``inference.uncertainty_calibration``); when given, ``predict`` returns
+    P(|error| > calibration.threshold_px) as the uncertainty, else the paper's raw U.
+    training: the weights file's cumulative training record, as stored there ("total_steps",
+    "total_pairs", "total_minutes", "runs" with each run's validation), or None.
+    precision: "fp32", or "bf16" (see ``Precision``; the maps stay float32; bench/gpu_check.py
+    and the model card measure how far they move); may be changed at any time.
+    backend: "torch", or "openvino" to run every forward through ``openvino`` (an
+    ``OpenVINOForward``: its graphs are cached under the weights' hash in ``cache_dir``, by
+    default ``$CRESTEREO_CACHE_DIR`` or ``~/.cache/crestereo-pp``; calls whose graph is not in
+    the cache run on torch, and only ``prepare`` exports one).
+    graphs: on a CUDA device with ``cuda_graphs``, the CUDA-graph replay
+    (``inference.cuda_graphs``) that ``predict_batch`` runs its forward through, one graph per
+    padded shape; else None.
+    """
+
+    def __init__(
+        self,
+        network: CREStereoPP,
+        name: str,
+        weights_sha256: str | None,
+        device: str | torch.device,
+        calibration: UncertaintyCalibration | None = None,
+        training: dict[str, Any] | None = None,
+        *,
+        backend: Backend = "torch",
+        precision: Precision = "fp32",
+        cuda_graphs: bool = True,
+        cache_dir: Path | None = None,
+    ) -> None:
+        self.device = torch.device(device)
+        self.network = network.to(self.device).eval()
+        self.name = name
+        self.weights_sha256 = weights_sha256
+        self.calibration = calibration
+        self.training = training
+        self.backend: Backend = resolve_backend(backend, self.device)
+        self.precision: Precision = precision
+        self.graphs = GraphedForward(self.forward) if cuda_graphs and self.device.type == "cuda" else None
+        self.openvino = (
+            OpenVINOForward(
+                self.network,
+                self.forward,
+                cache_key=None if weights_sha256 is None else f"{name}-{weights_sha256[:16]}-torch{torch.__version__}",
+                cache_dir=cache_dir,
+            )
+            if self.backend == "openvino"
+            else None
+        )
+
+    @property
+    def config(self) -> ModelConfig:
+        return self.network.config
+
+    @property
+    def trained(self) -> bool:
+        """Whether the weights are trained (`model.weights.is_trained`); random ones never are."""
+        return is_trained(self.training)
+
+    @property
+    def num_parameters(self) -> int:
+        return sum(p.numel() for p in self.network.parameters())
+
+    def prepare(self, iters: Iterations = None, *, warm_start: bool = False, wait: bool = True) -> bool:
+        """Make the fast path of this backend ready for these iterations (and a cold or warm
+        start): on OpenVINO, read its graphs (``graph_kinds``) from the cache or export them
+        (minutes each; in the background unless ``wait``). Returns whether calls of that kind now
+        run on this backend (always True on torch)."""
+        if self.openvino is None:
+            return True
+        kinds = self.graph_kinds(iters, warm_start)  # a list below: every export starts, even after one not ready
+        return all([self.openvino.prepare(counts, init, wait=wait) for counts, init in kinds])
+
+    def ready(self, iters: Iterations = None, *, warm_start: bool = False) -> bool:
+        """Whether calls with these iterations (and a cold or warm start) run on this predictor's
+        backend now; False while OpenVINO is still exporting their graph (torch computes them)."""
+        kinds = self.graph_kinds(iters, warm_start)
+        return self.openvino is None or all(self.openvino.ready(counts, init) for counts, init in kinds)
+
+    def graph_kinds(self, iters: Iterations, warm_start: bool) -> list[tuple[StageCounts, bool]]:
+        """The forwards (stage counts, whether they take a start disparity) of a cold or a warm
+        start with ``iters``: cold, one from zero; warm, the two that start from a given
+        disparity, every stage (a video's next frame, ``FrameStream``) and 1/4 only (the second
+        of two passes)."""
+        counts = self.iterations(iters)
+        return [(counts, True), (finest_stage_only(counts), True)] if warm_start else [(counts, False)]
+
+    def iterations(self, iters: Iterations) -> StageCounts:
+        """The counts per stage (1/16, 1/8, 1/4) that ``iters`` (see ``parse_iterations``) means here."""
+        parsed = parse_iterations(iters)
+        if parsed is None:
+            return self.config.iters
+        if isinstance(parsed, int):
+            return (*self.config.iters[:2], parsed)
+        return parsed
+
+    @overload
+    def predict(
+        self,
+        left: np.ndarray,
+        right: np.ndarray | Tensor,
+        *,
+        iters: Iterations = None,
+        init_disparity: np.ndarray | Tensor | None = None,
+        two_pass: TwoPass = "auto",
+        scale: float = 1.0,
+        raw_uncertainty: bool = False,
+    ) -> Prediction: ...
+
+    @overload
+    def predict(
+        self,
+        left: Tensor,
+        right: np.ndarray | Tensor,
+        *,
+        iters: Iterations = None,
+        init_disparity: np.ndarray | Tensor | None = None,
+        two_pass: TwoPass = "auto",
+        scale: float = 1.0,
+        raw_uncertainty: bool = False,
+    ) -> TensorPrediction: ...
+
+    @torch.inference_mode()
+    def predict(
+        self,
+        left: np.ndarray | Tensor,
+        right: np.ndarray | Tensor,
+        *,
+        iters: Iterations = None,
+        init_disparity: np.ndarray | Tensor | None = None,
+        two_pass: TwoPass = "auto",
+        scale: float = 1.0,
+        raw_uncertainty: bool = False,
+    ) -> Prediction | TensorPrediction:
+        """Disparity and uncertainty of a rectified pair of any size (see ``as_image_batch``).
+
+        init_disparity: warm start (e.g. the previous video frame's result), HxW array or
+            (B, H, W) tensor, positive pixels: every stage runs (``iters``), the coarsest
+            starting from it instead of from zero (see ``FrameStream``).
+        two_pass: first a pass at half resolution, then refinement at full resolution from it
+            (better for large disparities, coarser on fine detail): True, False, or "auto" (two
+            passes where a quick quarter-resolution pass finds disparities above
+            LARGE_DISPARITY_PX). Ignored when init_disparity is given.
+        scale: in (0, 1]: the network sees the pair resized by this factor (fewer pixels, so
+            faster, and disparities shrunk by it); the maps come back at the input's size, the
+            disparity in input pixels.
+        raw_uncertainty: return the paper's U (in [0, 1], at most 0.5 after the first iteration)
+            even when the weights carry a calibration; otherwise the uncertainty is the calibrated
+            probability of an error above ``calibration.threshold_px`` where there is one.
+        A ``left`` array gives a ``Prediction`` (numpy arrays, copied from the device once); a
+        ``left`` tensor a ``TensorPrediction`` (tensors on the predictor's device).
+        """
+        disparity, uncertainty = self.predict_tensors(
+            as_image_batch(left, self.device),
+            as_image_batch(right, self.device),
+            iters=iters,
+            init_disparity=init_disparity,
+            two_pass=two_pass,
+            scale=scale,
+            raw_uncertainty=raw_uncertainty,
+            graphed=False,
+        )
+        if isinstance(left, np.ndarray):
+            return Prediction(*to_host(disparity[0], uncertainty[0]))
+        return TensorPrediction(disparity, uncertainty)
+
+    @torch.inference_mode()
+    def predict_batch(
+        self,
+        lefts: Sequence[np.ndarray],
+        rights: Sequence[np.ndarray],
+        *,
+        iters: Iterations = None,
+        two_pass: TwoPass = "auto",
+        scale: float = 1.0,
+        raw_uncertainty: bool = False,
+        init_disparities: Sequence[np.ndarray] | None = None,
+    ) -> list[Prediction]:
+        """Several pairs (arrays, as ``predict`` takes them) in one forward pass; the maps come
+        back as numpy HxW arrays, copied from the device once for the whole batch. On CUDA the
+        forward is replayed from a CUDA graph of the padded shape (``self.graphs``).
+        ``init_disparities``: a warm start per pair (HxW px of its size), as ``predict``'s.
+
+        Pairs of different sizes are replicate-padded at the bottom and right to one shape, a
+        multiple of INPUT_MULTIPLE, exactly as ``predict`` pads a single pair, so each result
+        equals ``predict`` on its pair alone up to float rounding. With ``two_pass=True`` or a
+        ``scale`` the resized passes would see the padding: all pairs must then have one size;
+        with ``two_pass="auto"`` (and no warm starts) pairs of different sizes run as one batch per size,
+        unless none of them is large enough for two passes (``two_pass_possible``).
+        """
+        if not lefts or len(lefts) != len(rights):
+            raise ValueError(
+                f"need as many right images as left ones (at least one), got {len(lefts)} and {len(rights)}"
+            )
+        sizes = [image.shape[:2] for image in lefts]
+        batch_pass = batch_two_pass(sizes, two_pass, init_disparities is not None, scale)
+        if batch_pass is None:
+            results: dict[int, Prediction] = {}
+            for group in size_groups(sizes):
+                predictions = self.predict_batch(
+                    [lefts[i] for i in group],
+                    [rights[i] for i in group],
+                    iters=iters,
+                    two_pass=two_pass,
+                    raw_uncertainty=raw_uncertainty,
+                )
+                results.update(zip(group, predictions, strict=True))
+            return [results[i] for i in range(len(lefts))]
+        batch = PaddedBatch.of(sizes)
+        init: Tensor | None = None
+        if init_disparities is not None:
+            if len(init_disparities) != len(lefts):
+                raise ValueError(f"need one warm start per pair, got {len(init_disparities)} for {len(lefts)}")
+            init = batch.stack(
+                [torch.as_tensor(d, dtype=torch.float32, device=self.device)[None, None] for d in init_disparities]
+            )[:, 0]
+
+        left_batch = batch.stack([as_image_batch(image, self.device) for image in lefts])
+        disparity_batch, uncertainty_batch = self.predict_tensors(
+            left_batch,
+            batch.stack([as_image_batch(image, self.device) for image in rights]),
+            iters=iters,
+            init_disparity=init,
+            two_pass=batch_pass,
+            scale=scale,
+            raw_uncertainty=raw_uncertainty or batch.mixed,
+            graphed=True,
+        )
+        if batch.mixed and not raw_uncertainty:  # served from each pair's own maps, borders as ``predict`` sees them
+            uncertainty_batch = batch.served_per_pair(
+                uncertainty_batch, disparity_batch, left_batch, self.served_uncertainty
+            )
+        return batch.predictions(disparity_batch, uncertainty_batch)
+
+    def stream(self, options: InferenceOptions | None = None, warm_iters: Iterations = None) -> FrameStream:
+        """A video's pairs one at a time, each warm-started from the previous one (``FrameStream``)."""
+        return FrameStream(self, options or InferenceOptions(), warm_iters)
+
+    def predict_sequence(
+        self,
+        pairs: Iterable[tuple[np.ndarray, np.ndarray]],
+        options: InferenceOptions | None = None,
+        warm_iters: Iterations = None,
+    ) -> Iterator[Prediction]:
+        """The maps of consecutive pairs of one camera (a video), lazily, in order: the first cold
+        with ``options``, each next one warm-started from its predecessor's disparity with
+        ``warm_iters`` (default: ``options.iters``; see ``FrameStream``);
+        ``options`` default to the model's."""
+        frames = self.stream(options, warm_iters)
+        for left, right in pairs:
+            yield frames.predict(left, right)
+
+    def predict_tensors(
+        self,
+        left_batch: Tensor,
+        right_batch: Tensor,
+        *,
+        iters: Iterations,
+        init_disparity: np.ndarray | Tensor | None,
+        two_pass: TwoPass,
+        scale: float,
+        raw_uncertainty: bool,
+        graphed: bool,
+    ) -> tuple[Tensor, Tensor]:
+        """``predict`` on (B, 3, H, W) float images on the device: disparity and uncertainty,
+        float32 (B, H, W) on the device. graphed: run the forward through ``self.graphs``
+        (where there are graphs)."""
+        if left_batch.shape != right_batch.shape:
+            raise ValueError(f"left and right differ in size: {tuple(left_batch.shape)} vs {tuple(right_batch.shape)}")
+        forward = self.openvino or (self.graphs if graphed and self.graphs is not None else self.forward)
+        counts = self.iterations(iters)
+        height, width = left_batch.shape[-2:]
+        size = scaled_size(height, width, scale)
+        original_left = left_batch
+        if size != (height, width):
+            left_batch, right_batch = (shrink(image, size) for image in (left_batch, right_batch))
+        if init_disparity is not None:
+            init = torch.as_tensor(init_disparity, dtype=torch.float32, device=self.device)
+            init = init.reshape(left_batch.shape[0], 1, height, width)
+            init = init if size == (height, width) else resize_disparity(init, *size)
+            disparity, uncertainty = self.forward_padded(left_batch, right_batch, counts, init, forward)
+        else:
+            disparity, uncertainty = cold_maps(left_batch, right_batch, counts, two_pass, self.padded_forward(forward))
+        if size != (height, width):
+            disparity = resize_disparity(disparity, height, width)
+            uncertainty = F.interpolate(uncertainty, size=(height, width), mode="bilinear", align_corners=False)
+        if not raw_uncertainty:
+            uncertainty = self.served_uncertainty(uncertainty, disparity, original_left)
+        return disparity[:, 0], uncertainty[:, 0]
+
+    @torch.inference_mode()
+    def large_disparity_percentile(
+        self, left: Tensor, right: Tensor, counts: StageCounts | None = None, forward: Forward | None = None
+    ) -> Tensor:
+        """(B,): the 99th percentile of each pair's disparity (px at H x W) in a quick pass at
+        quarter resolution of the (B, 3, H, W) batch, what ``two_pass="auto"`` decides by.
+        counts: the iterations (default the model's); forward: as ``forward_padded``'s
+        (default this predictor's backend)."""
+        return large_disparity_percentile(
+            left, right, self.config.iters if counts is None else counts, self.padded_forward(forward or self.openvino)
+        )
+
+    def padded_forward(self, forward: Forward | None) -> PaddedForward:
+        """``forward_padded`` through `forward` (default ``self.forward``), as the two-pass rule calls it."""
+        return lambda left, right, iters, init: self.forward_padded(left, right, iters, init, forward)
+
+    def served_uncertainty(self, raw: Tensor, disparity: Tensor, left: Tensor) -> Tensor:
+        """The uncertainty as served, (B, 1, H, W), from the paper's U `raw` (B, 1, H, W), the
+        `disparity` (B, 1, H, W) and the `left` image (B, 3, H, W) it answers: P(|error| >
+        threshold_px) through the weights' calibration where they carry one, else U itself."""
+        return raw if self.calibration is None else self.calibration.apply(raw, disparity, left)
+
+    def forward_padded(
+        self,
+        left: Tensor,
+        right: Tensor,
+        iters: StageCounts,
+        init: Tensor | None,
+        forward: Forward | None = None,
+    ) -> tuple[Tensor, Tensor]:
+        """Pad (B,3,H,W) inputs to multiples of 32, run `forward` (default ``self.forward``),
+        crop back. Returns disparity (clipped at 0) and uncertainty, each (B, 1, H, W)."""
+        padding = Padding.to_multiple(*left.shape[-2:])
+        disparity, uncertainty = (forward or self.forward)(
+            padding.pad(left),
+            padding.pad(right),
+            None if init is None else padding.pad(init),
+            iters,
+            self.precision == "bf16",
+        )
+        return padding.crop(disparity).clamp(min=0.0), padding.crop(uncertainty)
+
+    def forward(self, left: Tensor, right: Tensor, init: Tensor | None, iters: StageCounts, bf16: bool) -> Maps:
+        """The torch backend (``inference.torch_backend``): the network, eagerly, on padded
+        (B, 3, H, W) images in [0, 255] (H, W multiples of 32) and an optional (B, 1, H, W) warm
+        start (px), under bf16 autocast when `bf16`: disparity and uncertainty, float32
+        (B, 1, H, W). The function ``self.graphs`` captures."""
+        return eager_forward(self.network, self.device, left, right, init, iters, bf16)
