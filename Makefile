@@ -52,11 +52,11 @@ test: lint
 test-fast: setup-test
 	$(PY) -m pytest -q -m "not slow"
 
-# The prepared GPU check (bench/gpu_check.py; README, "Development"): for a GPU machine with torch
+# The prepared GPU check (bench/gpu_check/; README, "Development"): for a GPU machine with torch
 # preinstalled and no package index, so it runs that machine's python3 from the tree, not the venv
 # (its stages import the project through a link tree, tools/package_tree.py).
 GPU_PYTHON ?= python3
 GPU_OUT ?= $(or $(OUT),gpu-check)
 .PHONY: gpu
 gpu:
-	$(GPU_PYTHON) bench/gpu_check.py --out $(GPU_OUT)
+	$(GPU_PYTHON) bench/gpu_check --out $(GPU_OUT)

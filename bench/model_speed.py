@@ -35,6 +35,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from timing import timed_calls  # bench/'s sibling script
 from torch.utils.flop_counter import FlopCounterMode
 
 from crestereo_pp.evaluation.sgbm import sgbm_disparity
@@ -48,11 +49,7 @@ def matmul_gflops(n: int = 2048, runs: int = 10) -> float:
     """Median fp32 GFLOP/s of an n x n x n matmul with all intra-op threads."""
     a, b = torch.randn(n, n), torch.randn(n, n)
     torch.mm(a, b)
-    times = []
-    for _ in range(runs):
-        start = time.perf_counter()
-        torch.mm(a, b)
-        times.append(time.perf_counter() - start)
+    times = timed_calls(lambda: torch.mm(a, b), runs)
     return 2 * n**3 / statistics.median(times) / 1e9
 
 
@@ -82,11 +79,7 @@ def measure(
         predictor.predict(left, right, two_pass=False)  # the warm-up, which compiles the shape
         gflop = None
     first_call_s = time.perf_counter() - start
-    times = []
-    for _ in range(runs):
-        start = time.perf_counter()
-        predictor.predict(left, right, two_pass=False)
-        times.append(time.perf_counter() - start)
+    times = timed_calls(lambda: predictor.predict(left, right, two_pass=False), runs)
     result = {
         "times_s": times,
         "gflop": gflop,
@@ -107,11 +100,7 @@ def sgbm_seconds(height: int, width: int, runs: int) -> float:
     rng = np.random.default_rng(0)
     left = rng.integers(0, 256, (height, width, 3), dtype=np.uint8)
     right = np.ascontiguousarray(np.roll(left, -8, axis=1))
-    times = []
-    for _ in range(runs + 1):
-        start = time.perf_counter()
-        sgbm_disparity(left, right, float(min(192, width // 4)))
-        times.append(time.perf_counter() - start)
+    times = timed_calls(lambda: sgbm_disparity(left, right, float(min(192, width // 4))), runs + 1)
     return statistics.median(times[1:])
 
 

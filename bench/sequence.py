@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from gpu_check import dev_pairs  # bench/'s sibling script
+from gpu_check.pairs import dev_pairs  # bench/'s sibling package
 
 from crestereo_pp.inference import InferenceOptions, StereoPredictor, load_model
 from crestereo_pp.inference.scaling import shrink

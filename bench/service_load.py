@@ -25,10 +25,11 @@ import os
 import statistics
 import tempfile
 import time
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import cv2
 import httpx
@@ -81,6 +82,19 @@ def server_settings(backend: str, max_batch_size: int, threads: int) -> dict[str
     }
 
 
+Answer = TypeVar("Answer")
+
+
+def concurrently(send: Callable[[int], Answer], concurrency: int, requests: int) -> tuple[float, list[Answer]]:
+    """`send(0)`, ..., `send(requests - 1)` from `concurrency` threads at once (the load of this
+    benchmark, of ray_load.py's and of the GPU check's service stage): the burst's wall seconds and
+    the answers, in order."""
+    started = time.perf_counter()
+    with ThreadPoolExecutor(concurrency) as pool:
+        answers = list(pool.map(send, range(requests)))
+    return time.perf_counter() - started, answers
+
+
 def run_cell(
     base_url: str, files: dict[str, Any], concurrency: int, requests: int
 ) -> tuple[float, list[float], list[int], set[str]]:
@@ -96,10 +110,7 @@ def run_cell(
             headers = response.headers
             return (time.perf_counter() - started) * 1000, int(headers["x-batch-size"]), headers.get("x-replica")
 
-        started = time.perf_counter()
-        with ThreadPoolExecutor(concurrency) as pool:
-            results = list(pool.map(one, range(requests)))
-        seconds = time.perf_counter() - started
+        seconds, results = concurrently(one, concurrency, requests)
     replicas = {replica for *_, replica in results if replica is not None}
     return seconds, [latency for latency, *_ in results], [batch for _, batch, _ in results], replicas
 

@@ -2,7 +2,7 @@
 
     python bench/train_speed.py [--steps 12] [--rows today workers ...] [--profile ROW]
 
-(On a GPU, bench/gpu_check.py's probe stage times `probe_rows` with the same `measure`.)
+(On a GPU, bench/gpu_check's probe stage times `probe_rows` with the same `measure`.)
 
 Every row runs in a fresh child process (its own OpenMP state): it builds the real
 `training.trainer.Trainer` from the shipped lite weights and times --steps optimiser steps after
@@ -77,7 +77,7 @@ GPU_RECIPE: dict[str, Any] = dict(
     warmup_fraction=0.0,
     num_workers=0,
 )
-"""The GPU training step (bench/gpu_check.py's training stage) on top of the weights' own recipe:
+"""The GPU training step (bench/gpu_check's training stage) on top of the weights' own recipe:
 384x512 crops, batch 16, lr 2e-4, scenes made on the device in the training process."""
 
 

@@ -1,4 +1,4 @@
-"""The prepared GPU check (bench/gpu_check.py) runs every stage end to end in its CPU smoke mode:
+"""The prepared GPU check (bench/gpu_check/) runs every stage end to end in its CPU smoke mode:
 what a GPU machine will run, at tiny sizes, so that its first run there is not its first run."""
 
 import argparse
@@ -18,28 +18,25 @@ STAGES = ("environment", "tests", "bench", "service", "probe", "train")
 
 
 @pytest.fixture
-def gpu_check(monkeypatch):
-    spec = importlib.util.spec_from_file_location("gpu_check", REPO / "bench/gpu_check.py")
-    module = importlib.util.module_from_spec(spec)
-    monkeypatch.setitem(sys.modules, "gpu_check", module)  # its dataclasses look their module up
-    monkeypatch.syspath_prepend(str(REPO / "bench"))  # it imports its sibling scripts, as run from bench/
-    spec.loader.exec_module(module)
-    return module
+def bench_path(monkeypatch):
+    """bench/ on the path: the package gpu_check and the sibling scripts it imports, as its stages run."""
+    monkeypatch.syspath_prepend(str(REPO / "bench"))
 
 
-def test_without_fastapi_the_service_stage_is_skipped_saying_so(gpu_check, monkeypatch):
+def test_without_fastapi_the_service_stage_is_skipped_saying_so(bench_path, monkeypatch):
+    from gpu_check.plans import GPU
+    from gpu_check.stages.service import service_stage
+
     real_find_spec = importlib.util.find_spec
-    monkeypatch.setattr(
-        gpu_check.importlib.util, "find_spec", lambda name: None if name == "fastapi" else real_find_spec(name)
-    )
-    result = gpu_check.service_stage(gpu_check.GPU, 0.0, None, None)
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name: None if name == "fastapi" else real_find_spec(name))
+    result = service_stage(GPU, 0.0, None, None)
     assert (result.status, result.detail) == ("skipped", "skipped: fastapi not installed (carry wheels: --wheels)")
 
 
 def test_the_cpu_smoke_run_passes_every_stage_and_keeps_to_the_output_limits(tmp_path):
     out = tmp_path / "out"
     completed = subprocess.run(
-        [sys.executable, "bench/gpu_check.py", "--cpu-smoke", "--adopt", "--out", str(out)],
+        [sys.executable, "bench/gpu_check", "--cpu-smoke", "--adopt", "--out", str(out)],
         cwd=REPO,
         capture_output=True,
         text=True,
@@ -90,25 +87,30 @@ def test_the_cpu_smoke_run_passes_every_stage_and_keeps_to_the_output_limits(tmp
     assert len(checkpoint["training"]["runs"]) == len(shipped["training"]["runs"]) + 1
 
 
-def test_the_training_run_is_sized_to_end_its_decay_and_average_within_the_time_left(gpu_check):
+def test_the_training_run_is_sized_to_end_its_decay_and_average_within_the_time_left(bench_path):
+    from gpu_check.plans import CPU_SMOKE, GPU
+    from gpu_check.stages.train import size_run
+
     # 5 steps/s for 400 s: 90 % of 2,000 steps, the last 40 % of them decaying, 4 validations
-    size = gpu_check.size_run(5.0, 400.0, gpu_check.GPU, ema_decay=0.999)
+    size = size_run(5.0, 400.0, GPU, ema_decay=0.999)
     assert (size.steps, size.decay_steps, size.checkpoint_every) == (1800, 720, 450)
     assert size.ema_decay == pytest.approx(1 - 4 / 1800)  # the average's horizon: a quarter of the run
-    long_run = gpu_check.size_run(50.0, 400.0, gpu_check.GPU, ema_decay=0.999)
+    long_run = size_run(50.0, 400.0, GPU, ema_decay=0.999)
     assert long_run.steps == 18000 and long_run.ema_decay == 0.999  # never longer than the recipe's
-    assert gpu_check.size_run(5.0, 400.0, gpu_check.GPU, ema_decay=0.0).ema_decay == 0.0  # off stays off
-    capped = gpu_check.size_run(5.0, 400.0, gpu_check.CPU_SMOKE, ema_decay=0.999)
-    assert capped.steps == gpu_check.CPU_SMOKE.train_steps
+    assert size_run(5.0, 400.0, GPU, ema_decay=0.0).ema_decay == 0.0  # off stays off
+    capped = size_run(5.0, 400.0, CPU_SMOKE, ema_decay=0.999)
+    assert capped.steps == CPU_SMOKE.train_steps
 
 
-def test_stages_are_chosen_by_name_and_run_in_their_fixed_order(gpu_check):
-    assert gpu_check.stage_list("train,environment") == ("environment", "train")
+def test_stages_are_chosen_by_name_and_run_in_their_fixed_order(bench_path):
+    from gpu_check.orchestrator import stage_list
+
+    assert stage_list("train,environment") == ("environment", "train")
     with pytest.raises(argparse.ArgumentTypeError, match="stages are environment, tests"):
-        gpu_check.stage_list("environment,warp")
+        stage_list("environment,warp")
 
 
-def test_the_throughput_probe_scales_the_batch_and_the_lr_by_its_square_root_then_tries_the_options(gpu_check):
+def test_the_throughput_probe_scales_the_batch_and_the_lr_by_its_square_root_then_tries_the_options(bench_path):
     from train_speed import probe_rows
 
     rows = probe_rows(16, 2e-4, (1, 2, 4, 8), options=True, compiled=True)
@@ -138,18 +140,24 @@ def test_the_throughput_probe_scales_the_batch_and_the_lr_by_its_square_root_the
     ]
 
 
-def test_training_settings_are_given_as_json_values_or_plain_text(gpu_check):
-    args = gpu_check.parse_arguments(["--train-set", "batch_size=64", "--train-set", "schedule=constant"])
+def test_training_settings_are_given_as_json_values_or_plain_text(bench_path):
+    from gpu_check.orchestrator import parse_arguments
+
+    args = parse_arguments(["--train-set", "batch_size=64", "--train-set", "schedule=constant"])
     assert args.train_set == [("batch_size", 64), ("schedule", "constant")]
-    assert gpu_check.parse_arguments(["--train-set", "train_iters=[2,4,8]"]).train_set == [("train_iters", [2, 4, 8])]
+    assert parse_arguments(["--train-set", "train_iters=[2,4,8]"]).train_set == [("train_iters", [2, 4, 8])]
     with pytest.raises(SystemExit):
-        gpu_check.parse_arguments(["--train-set", "batch_size"])
+        parse_arguments(["--train-set", "batch_size"])
 
 
-def test_the_training_recipe_is_the_campaigns_data_with_each_models_own_iterations(gpu_check):
-    args = gpu_check.parse_arguments(["--train-set", "batch_size=64"])
-    full = gpu_check.recipe_of("full", gpu_check.GPU, args)
-    lite = gpu_check.recipe_of("lite", gpu_check.GPU, args)
+def test_the_training_recipe_is_the_campaigns_data_with_each_models_own_iterations(bench_path):
+    from gpu_check.orchestrator import parse_arguments
+    from gpu_check.plans import GPU
+    from gpu_check.recipe import recipe_of
+
+    args = parse_arguments(["--train-set", "batch_size=64"])
+    full = recipe_of("full", GPU, args)
+    lite = recipe_of("lite", GPU, args)
     shipped = read_weights(REPO / "model/weights/lite.pt")["train_config"]
     assert (full.model, lite.model) == ("full", "lite")
     assert full.train_iters is None and lite.train_iters is None  # each network's own counts
@@ -157,7 +165,9 @@ def test_the_training_recipe_is_the_campaigns_data_with_each_models_own_iteratio
     assert (full.crop_height, full.crop_width, full.batch_size, full.device) == (384, 512, 64, "cuda")
 
 
-def test_adoption_takes_the_row_that_trains_the_most_pairs_in_the_time_left(gpu_check):
+def test_adoption_takes_the_row_that_trains_the_most_pairs_in_the_time_left(bench_path):
+    from gpu_check.stages.train import adopted_row
+
     rows = [
         {"model": "lite", "row": "batch16", "pairs_per_s": 40.0, "first_step_s": 2.0},
         {"model": "lite", "row": "batch64", "pairs_per_s": 120.0, "first_step_s": 3.0},
@@ -165,6 +175,6 @@ def test_adoption_takes_the_row_that_trains_the_most_pairs_in_the_time_left(gpu_
         {"model": "lite", "row": "batch128", "skipped": "OutOfMemoryError: CUDA out of memory"},
         {"model": "full", "row": "batch16", "pairs_per_s": 500.0, "first_step_s": 1.0},
     ]
-    assert gpu_check.adopted_row(rows, "lite", 300.0)["row"] == "batch64"  # 120 x 297 > 200 x 150
-    assert gpu_check.adopted_row(rows, "lite", 600.0)["row"] == "compile"  # 200 x 450 > 120 x 597
-    assert gpu_check.adopted_row(rows[3:4], "lite", 600.0) is None
+    assert adopted_row(rows, "lite", 300.0)["row"] == "batch64"  # 120 x 297 > 200 x 150
+    assert adopted_row(rows, "lite", 600.0)["row"] == "compile"  # 200 x 450 > 120 x 597
+    assert adopted_row(rows[3:4], "lite", 600.0) is None

@@ -1,6 +1,6 @@
 """Every path that takes a device, end to end on CUDA: predictor, training (bf16, fused AdamW) with
 its checkpoint exported and loaded on the CPU, calibration and evaluation. Skipped without CUDA;
-bench/gpu_check.py runs them on a GPU machine."""
+bench/gpu_check runs them on a GPU machine."""
 
 import warnings
 

@@ -1,5 +1,5 @@
 """The fast-step options of TrainConfig (fused AdamW, torch.compile): their plumbing on the CPU.
-Their speed is a CUDA matter (bench/gpu_check.py measures it)."""
+Their speed is a CUDA matter (bench/gpu_check measures it)."""
 
 import pytest
 import torch

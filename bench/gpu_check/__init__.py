@@ -1,0 +1,47 @@
+"""The prepared GPU check: one command for a GPU machine lent for minutes, where nothing can be
+debugged. Stages, each in its own process and each guarded (a failure or a timeout is recorded
+and the next stage runs), within one time budget:
+
+    environment  torch, the device, nvidia-smi
+    tests        the CUDA tests (tests/gpu, the CUDA test of stereo_data)
+    bench        inference table: lite and full at 384x1248, batch 1 and 8, fp32 and
+                 bf16, eager and CUDA-graph replay (StereoPredictor.predict_batch, as the service
+                 runs it); then bf16 against fp32 and graph against eager on the dev pairs
+    service      `python -m crestereo_pp.service` on loopback with CRESTEREO_DEVICE=cuda: a real pair over HTTP,
+                 concurrent requests (batches), both models; skipped when fastapi is missing
+    probe        training throughput, lite and full: pairs/s and peak memory of the training step at
+                 batch 1x-8x the recipe's, plain AdamW, channels-last, torch.compile and CUDA graphs
+                 (bench/train_speed.py's `measure` and `probe_rows`), at most two minutes
+    train        --model (lite) from --weights (its shipped file) for the minutes left: a short
+                 probe run measures the step rate, then one run sized to end its flat-decay schedule
+                 (and its weight average's horizon) within the time left; a checkpoint with an
+                 optimiser state is resumed, a weights-only file starts a fresh optimiser
+
+    python3 bench/gpu_check --out DIR [--minutes 9] [--stages S,...] [--data DIR] [--wheels DIR]
+                            [--model lite|full] [--weights FILE] [--train-set KEY=VALUE ...]
+                            [--train-compile] [--adopt]
+    python3 bench/gpu_check --cpu-smoke --out DIR    # the same stages on the CPU, tiny
+
+DIR (or $GPU_CHECK_OUT, else $OUT) receives at most 8 files, each under 16 MiB: gpu_check.log
+(every stage's output), summary.md (stage results and tables), bench.json (the benchmark's
+numbers) and the training run's checkpoint.pt, log.csv, loss_curve.png (validation.csv with dev
+pairs). --data: the real dev pairs (NAME/{left.png,right.png,disp.pfm}); by default $STEREO_DEV,
+shared/data/stereo-dev in the checkout or beside it, else procedural scenes stand in. --wheels: a
+folder of wheels (fastapi, uvicorn, ...) installed with pip --no-index for the service stage; by
+default .whl/ in the checkout when present. Needs only the standard library in this process; the
+stages need torch, numpy, OpenCV, httpx and the project. Exit status 0 when no stage failed.
+
+The package (run from the tree, never installed; `__main__.py` says how it finds its imports):
+
+    orchestrator  the options, the stages in turn, child mode (--stage); standard library only
+    runner        a stage's process: its log, its time limit, its result
+    wheels        the carried wheels, installed for the service stage
+    report        summary.md
+    plans         GPU and CPU_SMOKE: what each stage does and how long it may take
+    pairs, recipe the dev pairs (or scenes) the stages compute; the weights and step they train
+    stages/       one module per stage, importing torch and the project only when it runs
+
+The stages measure with the benchmarks' own code: inference timing with timing.py's
+`timed_calls` (as model_speed.py), the service's concurrent requests with service_load.py's
+`concurrently`, the training step with train_speed.py's `measure` and `probe_rows`.
+"""

@@ -1,0 +1,120 @@
+"""The report: summary.md (each stage's status and detail, the benchmark's and the probe's tables, the
+service's and the training's numbers, the output files against their limits), rewritten after
+every stage."""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+import platform
+from pathlib import Path
+from typing import Any
+
+from .plans import MAX_FILE_BYTES, MAX_FILES, Plan, StageResult
+
+BF16_TOLERANCE_PX = 0.05
+"""bf16 is usable where its disparities are within this mean distance of fp32's (issue 11)."""
+
+
+def write_summary(out: Path, plan: Plan, data: Path | None, results: dict[str, StageResult]) -> None:
+    environment = results.get("environment", StageResult("skipped")).data
+    lines = [
+        f"# GPU check: {plan.label}",
+        "",
+        f"{dt.datetime.now(dt.UTC).isoformat(timespec='seconds')}, budget {plan.minutes:g} min; "
+        f"device: {environment.get('device', '?')}; torch {environment.get('torch', '?')}; "
+        f"Python {platform.python_version()}; dev pairs: {data or 'none (procedural scenes)'}",
+        "",
+        "| stage | status | seconds | detail |",
+        "|---|---|---|---|",
+    ]
+    lines += [
+        f"| {name} | {r.status} | {r.seconds:.0f} | {r.detail.replace('|', '/')} |" for name, r in results.items()
+    ]
+    if "bench" in results:
+        lines += ["", *bench_tables(results["bench"].data)]
+    if "service" in results and results["service"].data:
+        lines += ["", "## Service", "", "```", json.dumps(results["service"].data, indent=1), "```"]
+    if "probe" in results and results["probe"].data:
+        lines += ["", *probe_table(results["probe"].data)]
+    if "train" in results and results["train"].data:
+        lines += ["", "## Training", "", "```", json.dumps(results["train"].data, indent=1), "```"]
+    lines += ["", *output_files_report(out)]
+    (out / "summary.md").write_text("\n".join(lines) + "\n")
+
+
+def bench_tables(data: dict[str, Any]) -> list[str]:
+    """Markdown: the speed table (one row per model, size, batch, precision, graphs) and the
+    accuracy table (one row per model)."""
+    lines = [
+        f"## Inference ({data.get('device', '?')})",
+        "",
+        "`StereoPredictor.predict_batch` end to end (uint8 arrays in, numpy maps out, as the service "
+        f"calls it), median of the timed calls after {data.get('warmup_calls')} untimed ones; iterations "
+        f"{data.get('iters') or 'of each model'}; procedural scenes.",
+        "",
+        "| model | size | batch | precision | CUDA graph | ms / batch | ms / pair | pairs / s | peak MiB | replays |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for row in data.get("rows", []):
+        graphs = "yes" if row["graphs"] else "no"
+        head = f"| {row['model']} | {row['size']} | {row['batch']} | {row['precision']} | {graphs} |"
+        if "skipped" in row:
+            lines.append(f"{head} {row['skipped']} | | | | |")
+        else:
+            lines.append(
+                f"{head} {row['ms_per_batch']:.2f} | {row['ms_per_pair']:.2f} | {row['pairs_per_s']:.1f} | "
+                f"{row['peak_mib'] if row['peak_mib'] is not None else '-'} | {row['replays']} |"
+            )
+    lines += [
+        "",
+        f"bf16 against fp32 (eager) and graph replay against eager (fp32), per pair, mean over pairs; "
+        f"bf16 is usable where the mean |difference| is within {BF16_TOLERANCE_PX} px.",
+        "",
+        "| model | pairs | source | mean abs bf16 - fp32 px | within tolerance | max abs graph - eager px "
+        "| EPE fp32 | EPE bf16 |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for row in data.get("accuracy", []):
+        graph = "-" if row["graph_max_abs_px"] is None else f"{row['graph_max_abs_px']:.4f}"
+        lines.append(
+            f"| {row['model']} | {row['pairs']} | {row['source']} | {row['bf16_mean_abs_px']:.4f} | "
+            f"{'yes' if row['bf16_mean_abs_px'] <= BF16_TOLERANCE_PX else 'NO'} | {graph} | "
+            f"{row['epe_fp32']:.3f} | {row['epe_bf16']:.3f} |"
+        )
+    return lines
+
+
+def probe_table(data: dict[str, Any]) -> list[str]:
+    """Markdown: one row per model and setting; `vs recipe` is pairs/s against the model's first row."""
+    lines = [
+        f"## Training throughput ({data.get('device', '?')})",
+        "",
+        "Median seconds per optimiser step after two untimed steps (the batch made on the device included; "
+        "`data ms` of it); the first step's seconds show compilation; lr scaled by the square root of the "
+        "batch ratio.",
+        "",
+        "| model | row | setting | pairs / s | vs recipe | step ms | data ms | first step s | peak GiB |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    recipe: dict[str, float] = {}
+    for row in data.get("rows", []):
+        head = f"| {row['model']} | {row['row']} | {row['setting']} |"
+        if "skipped" in row:
+            lines.append(f"{head} {row['skipped'].replace('|', '/')} | | | | | |")
+            continue
+        base = recipe.setdefault(row["model"], row["pairs_per_s"])
+        peak = "-" if row["peak_gib"] is None else f"{row['peak_gib']:.1f}"
+        lines.append(
+            f"{head} {row['pairs_per_s']:.1f} | {row['pairs_per_s'] / base:.2f}x | {1000 * row['step_s']:.0f} | "
+            f"{1000 * row['data_s']:.0f} | {row['first_step_s']:.1f} | {peak} |"
+        )
+    return lines
+
+
+def output_files_report(out: Path) -> list[str]:
+    files = sorted(p for p in out.iterdir() if p.is_file())
+    verdict = "within" if len(files) <= MAX_FILES and all(p.stat().st_size < MAX_FILE_BYTES for p in files) else "OVER"
+    lines = [f"## Output files: {len(files)} ({verdict} the limit of {MAX_FILES} files under 16 MiB each)", ""]
+    lines += [f"- {p.name}: {p.stat().st_size / 2**20:.2f} MiB" for p in files]
+    return lines

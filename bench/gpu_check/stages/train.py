@@ -1,0 +1,173 @@
+"""The train stage: --model from its weights for the minutes left, in one run sized by a short
+probe run's step rate to end its flat-decay schedule in time."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import tempfile
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+from ..plans import MAX_FILE_BYTES, Plan, StageResult
+from ..recipe import recipe_of, weights_for
+
+
+@dataclass(frozen=True)
+class RunSize:
+    """The training run that fits the time left: `steps` more steps, flat-decay over the last
+    `decay_steps` of them, a validation and checkpoint every `checkpoint_every`, and the weight
+    average's decay `ema_decay` (its horizon, 1 / (1 - decay) steps, a quarter of the run at most)."""
+
+    steps: int
+    decay_steps: int
+    checkpoint_every: int
+    ema_decay: float
+
+
+def size_run(steps_per_second: float, seconds: float, plan: Plan, ema_decay: float) -> RunSize:
+    """Size the run to `seconds` at the probe's `steps_per_second` (10 % kept for the validations
+    along the way), at most plan.train_steps; `ema_decay` is the recipe's, shortened for short runs."""
+    steps = max(1, min(plan.train_steps, int(0.9 * steps_per_second * seconds)))
+    return RunSize(
+        steps=steps,
+        decay_steps=max(1, round(plan.decay_fraction * steps)),
+        checkpoint_every=max(1, steps // 4),
+        ema_decay=0.0 if ema_decay == 0 else min(ema_decay, max(0.9, 1.0 - 4.0 / steps)),
+    )
+
+
+def median_rate(rows: list[dict[str, str]]) -> float:
+    """The median pairs/s of a training log's rows (its windows), the first (warm-up, autotuning)
+    left out where there are more."""
+    rates = [float(row["pairs_per_second"]) for row in rows]
+    return statistics.median(rates[1:] or rates)
+
+
+def adopted_row(rows: list[dict[str, Any]], model: str, seconds: float) -> dict[str, Any] | None:
+    """The probe row that trains `model` on the most pairs in `seconds`: pairs/s times the seconds
+    left after its first step (compilation); None without a measured row."""
+    measured = [row for row in rows if row["model"] == model and "skipped" not in row]
+    if not measured:
+        return None
+    return max(measured, key=lambda row: row["pairs_per_s"] * max(0.0, seconds - row["first_step_s"]))
+
+
+def train_stage(plan: Plan, deadline: float, args: argparse.Namespace, save: Callable[..., None]) -> StageResult:
+    """Train --model from `weights_for` (resumed where the file holds an optimiser state) into --out:
+    a probe run's step rate sizes the run (`size_run`); with --adopt, the probe stage's best row
+    (`adopted_row`) sets the step. Its numbers: steps, pairs/s, losses, peak memory, dev curve."""
+    import torch
+
+    from crestereo_pp.model.weights import network_from_weights, read_weights, weights_of, write_weights
+    from crestereo_pp.training.config import TrainConfig
+    from crestereo_pp.training.records import read_csv
+    from crestereo_pp.training.trainer import STABLE_NAME, train, validate
+
+    shipped = weights_for(args.model, args)
+    saved = read_weights(shipped)
+    if saved.get("model_name") != args.model:
+        return StageResult("failed", f"{shipped} holds {saved.get('model_name')!r} weights, not {args.model!r}")
+    resumable = "optimizer" in saved  # else a weights-only file: a fresh optimiser from step 0
+    source = {"resume": shipped} if resumable else {"init_weights": shipped}
+    first_step = int(saved["step"]) if resumable else 0
+    recipe = recipe_of(args.model, plan, args)
+    adopted = None
+    if args.adopt and args.probe_result is not None and args.probe_result.is_file():
+        probe_rows_seen = json.loads(args.probe_result.read_text())["data"].get("rows", [])
+        adopted = adopted_row(probe_rows_seen, args.model, deadline - time.monotonic())
+        if adopted is not None:
+            recipe = replace(recipe, **adopted["overrides"])
+            print(f"adopted the probe's row {adopted['row']}: {adopted['setting']}", flush=True)
+
+    def rate_run(config: TrainConfig) -> float:
+        """Train plan.probe_steps steps into a scratch folder; the step rate after the first window."""
+        folder = Path(tempfile.mkdtemp(prefix="probe-"))
+        log_every = max(1, plan.probe_steps // 4)
+        trial = replace(
+            config,
+            out_dir=str(folder),
+            max_steps=first_step + plan.probe_steps,
+            schedule_steps=first_step + plan.probe_steps + 1,
+            decay_steps=1,
+            max_minutes=1.5,
+            log_every=log_every,
+            checkpoint_every=10**9,
+            val_data=None,
+        )
+        train(trial, **source, progress=False)
+        return median_rate(read_csv(folder / "log.csv")) / config.batch_size
+
+    start = time.monotonic()
+    try:
+        steps_per_second = rate_run(recipe)
+    except Exception as error:  # a lent GPU is minutes long: retry once in the plainest setting, not never
+        print(f"probe failed ({type(error).__name__}: {error}); again in fp32 with plain AdamW", flush=True)
+        recipe = replace(recipe, precision="fp32", fused_adamw="off")
+        steps_per_second = rate_run(recipe)
+    probe_seconds = time.monotonic() - start
+    seconds = deadline - time.monotonic() - plan.train_tail_seconds
+    size = size_run(steps_per_second, seconds, plan, recipe.ema_decay)
+    last_step = first_step + size.steps
+    config = replace(
+        recipe,
+        out_dir=str(args.out),
+        max_steps=last_step,
+        schedule_steps=last_step,
+        decay_steps=size.decay_steps,
+        checkpoint_every=size.checkpoint_every,
+        ema_decay=size.ema_decay,
+        max_minutes=max(0.05, seconds / 60.0),
+        val_data=str(args.data) if args.data is not None else None,
+    )
+    print(
+        f"probe: {steps_per_second:.2f} steps/s in {probe_seconds:.0f} s; training {args.model} from {shipped} "
+        f"(step {first_step}) for {size.steps} steps, at most {seconds / 60.0:.2f} min: {json.dumps(config.to_dict())}",
+        flush=True,
+    )
+    start_dev = None
+    if config.val_data is not None:  # the starting point, as the run's validations measure it
+        start_dev = validate(network_from_weights(saved, args.model).to(plan.device), config, torch.device(plan.device))
+    result = train(config, **source, progress=False)
+    rows = read_csv(args.out / "log.csv")
+    compacted = []
+    for path in (result.checkpoint, args.out / STABLE_NAME):
+        if path.is_file() and path.stat().st_size >= MAX_FILE_BYTES:  # full's training state does not fit
+            write_weights(weights_of(read_weights(path), half=True), path)
+            compacted.append(path.name)
+    data: dict[str, Any] = dict(
+        model=args.model,
+        weights=str(shipped),
+        adopted=None if adopted is None else adopted["row"],
+        resumed=resumable,
+        steps=result.step - first_step,
+        planned_steps=size.steps,
+        probe_steps_per_s=round(steps_per_second, 2),
+        pairs_per_s_median=round(median_rate(rows), 1),
+        batch_size=config.batch_size,
+        crop=f"{config.crop_height}x{config.crop_width}",
+        lr=config.lr,
+        decay_steps=size.decay_steps,
+        ema_decay=size.ema_decay,
+        compile=config.compile,
+        bf16=config.precision == "bf16" or (config.precision == "auto" and plan.device == "cuda"),
+        final_loss=float(rows[-1]["loss"]),
+        final_train_epe=float(rows[-1]["train_epe"]),
+        peak_gib=round(torch.cuda.max_memory_allocated() / 2**30, 1) if plan.device == "cuda" else None,
+        checkpoint_mib=round(result.checkpoint.stat().st_size / 2**20, 1),
+        stable_step=read_weights(args.out / STABLE_NAME)["step"] if (args.out / STABLE_NAME).is_file() else None,
+        weights_only_fp16=compacted,
+    )
+    if start_dev is not None:
+        data["start_dev"] = {k: round(v, 3) for k, v in start_dev.items() if k in ("epe", "bad1", "bad2")}
+    validation = read_csv(args.out / "validation.csv")
+    if validation:
+        data["dev"] = [
+            {k: float(v) for k, v in row.items() if k in ("step", "epe", "bad1", "bad2")} for row in validation
+        ]
+    print(json.dumps(data))
+    return StageResult("passed", f"{data['steps']} steps, {data['pairs_per_s_median']} pairs/s", data=data)
