@@ -2,12 +2,12 @@
 
 The network is exported once per iteration counts and start (cold, or warm from a given
 disparity) with symbolic batch, height and width (``inference.openvino_export``), and the graph
-is saved to a disk cache (OpenVINO IR, keyed by the
-weights' hash and the library versions). Each padded input shape then gets its own compiled
-model (a static shape runs about 10 % faster than the symbolic one), kept in a bounded in-memory
-cache; OpenVINO's own ``CACHE_DIR`` keeps the compiled blobs, so a restart neither exports nor
-compiles again. Precision is OpenVINO's inference precision hint: ``f32``, or ``bf16`` where the
-CPU computes bf16 natively (AVX512-BF16, AMX).
+is saved to a disk cache (OpenVINO IR, keyed by the weights' hash and the library versions). Each
+padded input shape then gets its own compiled model (a static shape runs about 10 % faster than
+the symbolic one), kept in a bounded in-memory cache; OpenVINO's own ``CACHE_DIR`` keeps the
+compiled blobs, so a restart neither exports nor compiles again. Precision is OpenVINO's
+inference precision hint: ``f32``, or ``bf16`` where the CPU computes bf16 natively
+(AVX512-BF16, AMX).
 
 A graph is exported only when asked for (``prepare``; ``crestereo-pp prepare`` from the shell),
 never by a call: a call whose graph is neither in memory nor in the disk cache runs on torch in
