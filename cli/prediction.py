@@ -23,7 +23,7 @@ from crestereo_pp.stereo_data.formats import (
     write_uncertainty,
 )
 from crestereo_pp.stereo_data.output_maps import OutputOptions, PredictionOutputs
-from crestereo_pp.stereo_data.pointcloud import Calibration, DepthRange
+from crestereo_pp.stereo_data.pointcloud import DepthRange, FocalBaseline
 from crestereo_pp.stereo_data.rig import Rectifier, read_rig
 from crestereo_pp.stereo_data.visualize import disparity_picture
 
@@ -205,15 +205,15 @@ def plan(args: argparse.Namespace) -> Job:
     single = is_single_pair(args.left, args.right)
     targets = outputs(args)
     check_outputs(targets, single, args.mkdir)
-    calibration = (
-        rectifier.depth_calibration
+    focal_baseline = (
+        rectifier.focal_baseline
         if rectifier is not None
         else None
         if args.focal_px is None
-        else Calibration(args.focal_px, args.baseline_m, args.cx, args.cy)
+        else FocalBaseline(args.focal_px, args.baseline_m, args.cx, args.cy)
     )
     options = OutputOptions(
-        calibration=calibration,
+        focal_baseline=focal_baseline,
         limits=DepthRange(args.min_disparity, args.max_depth_m),
         rectifier=rectifier,
         original=args.frame == "original",
@@ -262,12 +262,12 @@ def predict_and_write(job: Job, stream: FrameStream, images: PairImages) -> None
             print(f"wrote {output.what} {path}")
 
 
-def describe_camera(calibration: Calibration) -> str:
+def describe_camera(camera: FocalBaseline) -> str:
     """The line that says which rectified camera a calibration gave (depth = focal x baseline / disparity)."""
-    assert calibration.cx is not None and calibration.cy is not None  # a rig always has its principal point
+    assert camera.cx is not None and camera.cy is not None  # a rig always has its principal point
     return (
-        f"rectified camera: focal length {calibration.focal_px:.2f} px, baseline {calibration.baseline_m:.4f} m, "
-        f"principal point ({calibration.cx:.2f}, {calibration.cy:.2f}) px"
+        f"rectified camera: focal length {camera.focal_px:.2f} px, baseline {camera.baseline_m:.4f} m, "
+        f"principal point ({camera.cx:.2f}, {camera.cy:.2f}) px"
     )
 
 
@@ -276,7 +276,7 @@ def prepare(args: argparse.Namespace) -> Job:
     its depth comes from is printed first."""
     job = plan(args)
     if job.outputs.rectifier is not None:
-        print(describe_camera(job.outputs.rectifier.depth_calibration))
+        print(describe_camera(job.outputs.rectifier.focal_baseline))
     return job
 
 

@@ -9,7 +9,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .pointcloud import IMAGE_FRAME, METRIC_FRAME, Calibration, DepthRange, encode_ply, metric_depth, point_cloud
+from .pointcloud import IMAGE_FRAME, METRIC_FRAME, DepthRange, FocalBaseline, encode_ply, metric_depth, point_cloud
 from .rig import Rectifier
 from .visualize import scale_range
 
@@ -29,14 +29,14 @@ class OutputMaps(NamedTuple):
 class OutputOptions:
     """How a prediction becomes its outputs.
 
-    calibration: the (rectified) left camera: depth and metric points (None: neither); limits:
+    focal_baseline: the (rectified) left camera: depth and metric points (None: neither); limits:
     the disparities and depths kept (`DepthRange`); rectifier and original: a raw pair's rectifier,
     and whether the maps go back into its original left image's pixels; color_min, color_max: the
     ends of the disparity colour scale (None: the map's robust range); max_uncertainty: points
     above it are dropped from the point cloud.
     """
 
-    calibration: Calibration | None
+    focal_baseline: FocalBaseline | None
     limits: DepthRange
     rectifier: Rectifier | None = None
     original: bool = False
@@ -71,16 +71,16 @@ class PredictionOutputs:
         points (`stereo_data.pointcloud`)."""
         options = self.options
         points, colors = point_cloud(
-            self.disparity, self.left, self.uncertainty, options.calibration, options.max_uncertainty, options.limits
+            self.disparity, self.left, self.uncertainty, options.focal_baseline, options.max_uncertainty, options.limits
         )
-        return encode_ply(points, colors, IMAGE_FRAME if options.calibration is None else METRIC_FRAME)
+        return encode_ply(points, colors, IMAGE_FRAME if options.focal_baseline is None else METRIC_FRAME)
 
 
 def _output_maps(disparity: np.ndarray, uncertainty: np.ndarray, options: OutputOptions) -> OutputMaps:
     """The maps of a prediction, with depth where the camera is known; with a rectifier and
     `original`, in the original left image's pixels (+inf disparity and depth, uncertainty 1, where
     a pixel has no rectified counterpart; depth along that camera's own axis)."""
-    depth = None if options.calibration is None else metric_depth(disparity, options.calibration, options.limits)
+    depth = None if options.focal_baseline is None else metric_depth(disparity, options.focal_baseline, options.limits)
     rectifier = options.rectifier
     if rectifier is None or not options.original:
         return OutputMaps(disparity, uncertainty, depth)

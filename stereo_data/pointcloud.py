@@ -1,7 +1,7 @@
 """Metric depth and point clouds from a disparity map; point clouds written as binary PLY.
 
-With a calibration (focal length f in px, baseline B in m, principal point (cx, cy) in px) the
-points are metric, in the left camera's frame (x right, y down, z forward, metres):
+With a focal length and baseline (`FocalBaseline`: focal length f in px, baseline B in m, principal
+point (cx, cy) in px) the points are metric, in the left camera's frame (x right, y down, z forward, metres):
 Z = f B / d, X = (u - cx) Z / f, Y = (v - cy) Z / f. Without one they are image-space points
 (u px, v px, d px). Disparities at or below a minimum (`MIN_DISPARITY` px by default: depth there
 is beyond what the matching can resolve, out to infinity at 0), metric points beyond a maximum
@@ -21,9 +21,9 @@ error (about 2 px) exceeds the disparity, and Z = f B / d runs off to kilometres
 
 
 @dataclass(frozen=True)
-class Calibration:
-    """Rectified stereo rig: focal length (px), baseline (m), principal point (px; None = the
-    image centre)."""
+class FocalBaseline:
+    """What turns disparity into depth: a rectified stereo camera's focal length (px), baseline (m)
+    and principal point (px; None = the image centre)."""
 
     focal_px: float
     baseline_m: float
@@ -46,11 +46,12 @@ class DepthRange:
             raise ValueError(f"max_depth_m must be positive, got {self.max_depth_m}")
 
 
-def metric_depth(disparity: np.ndarray, calibration: Calibration, limits: DepthRange = DepthRange()) -> np.ndarray:
-    """Depth Z = f B / d in metres, float32 HxW; +inf where the pixel gives no depth (disparity
-    not finite or at most `limits.min_disparity`, or Z beyond `limits.max_depth_m`)."""
+def metric_depth(disparity: np.ndarray, focal_baseline: FocalBaseline, limits: DepthRange = DepthRange()) -> np.ndarray:
+    """Depth Z = f B / d in metres, float32 HxW, of a disparity map (float HxW, px); +inf where the
+    pixel gives no depth (disparity not finite or at most `limits.min_disparity`, or Z beyond
+    `limits.max_depth_m`)."""
     with np.errstate(divide="ignore", invalid="ignore"):
-        depth = np.float32(calibration.focal_px * calibration.baseline_m) / disparity
+        depth = np.float32(focal_baseline.focal_px * focal_baseline.baseline_m) / disparity
     keep = np.isfinite(disparity) & (disparity > limits.min_disparity)
     if limits.max_depth_m is not None:
         keep &= depth <= limits.max_depth_m
@@ -61,7 +62,7 @@ def point_cloud(
     disparity: np.ndarray,
     left: np.ndarray,
     uncertainty: np.ndarray | None = None,
-    calibration: Calibration | None = None,
+    focal_baseline: FocalBaseline | None = None,
     max_uncertainty: float | None = None,
     limits: DepthRange = DepthRange(),
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -74,20 +75,21 @@ def point_cloud(
     height, width = disparity.shape
     if left.shape[:2] != (height, width):
         raise ValueError(f"left image {left.shape[:2]} and disparity {disparity.shape} differ in size")
-    depth = None if calibration is None else metric_depth(disparity, calibration, limits)
+    depth = None if focal_baseline is None else metric_depth(disparity, focal_baseline, limits)
     keep = np.isfinite(disparity) & (disparity > limits.min_disparity) if depth is None else np.isfinite(depth)
     if max_uncertainty is not None:
         if uncertainty is None:
             raise ValueError("max_uncertainty needs the uncertainty map")
         keep &= uncertainty <= max_uncertainty
     v, u = np.nonzero(keep)
-    if calibration is None or depth is None:
+    if focal_baseline is None or depth is None:
         points = np.stack([u, v, disparity[keep].astype(np.float64)], axis=1)
     else:
-        cx = (width - 1) / 2 if calibration.cx is None else calibration.cx
-        cy = (height - 1) / 2 if calibration.cy is None else calibration.cy
+        cx = (width - 1) / 2 if focal_baseline.cx is None else focal_baseline.cx
+        cy = (height - 1) / 2 if focal_baseline.cy is None else focal_baseline.cy
         z = depth[keep].astype(np.float64)
-        points = np.stack([(u - cx) * z / calibration.focal_px, (v - cy) * z / calibration.focal_px, z], axis=1)
+        focal = focal_baseline.focal_px
+        points = np.stack([(u - cx) * z / focal, (v - cy) * z / focal, z], axis=1)
     return points.astype(np.float32), np.ascontiguousarray(left[keep][:, :3]).astype(np.uint8)
 
 

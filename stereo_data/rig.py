@@ -4,7 +4,7 @@
     rectifier = Rectifier(rig)                        # maps computed once for the rig's image size
     left_r, right_r = rectifier.rectify(left, right)  # rectified pair: matches lie on the same row
     disparity, uncertainty = predictor.predict(left_r, right_r)
-    depth_rig = rectifier.depth_calibration           # focal length, baseline, principal point (metres)
+    focal_baseline = rectifier.focal_baseline         # focal length, baseline, principal point (metres)
     disparity_original = rectifier.to_original(disparity)  # in the original left image's pixels
     depth_original = rectifier.to_original_depth(depth)    # metres along the original camera's axis
 
@@ -31,7 +31,7 @@ import cv2
 import numpy as np
 
 from .calibration_files import RigError, Value, parse_entries
-from .pointcloud import Calibration
+from .pointcloud import FocalBaseline
 
 __all__ = [
     "MAX_FOCAL_BASELINE",
@@ -170,10 +170,10 @@ class Rectifier:
         self._inside = (back_x >= -0.5) & (back_x <= width - 0.5) & (back_y >= -0.5) & (back_y <= height - 0.5)
 
     @property
-    def depth_calibration(self) -> Calibration:
+    def focal_baseline(self) -> FocalBaseline:
         """Focal length, baseline and principal point of the rectified left camera."""
         p1 = self.rig.p1
-        return Calibration(self.rig.focal_px, self.rig.baseline, float(p1[0, 2]), float(p1[1, 2]))
+        return FocalBaseline(self.rig.focal_px, self.rig.baseline, float(p1[0, 2]), float(p1[1, 2]))
 
     def rectify(self, left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The pair (HxW or HxWxC images of the rig's size) rectified, bilinearly; pixels with no

@@ -40,7 +40,7 @@ def response_body(
     result: the request's maps (float32 HxW: disparity in px of the left image the network saw,
     uncertainty in [0, 1]) and timings; left: that left image, uint8 HxWx3 RGB (colours of the point
     cloud); weights: the weights' identity (`service.batching.runtime.weights_identity`); size: the
-    input images' size; rectifier: a raw pair's (it gives the depth calibration, and with
+    input images' size; rectifier: a raw pair's (it gives the focal length and baseline, and with
     `frame=original` the maps are resampled into the original left image's pixels).
     """
     outputs = PredictionOutputs(
@@ -48,7 +48,7 @@ def response_body(
         result.output.uncertainty,
         left,
         OutputOptions(
-            calibration=options.calibration if rectifier is None else rectifier.depth_calibration,
+            focal_baseline=options.focal_baseline if rectifier is None else rectifier.focal_baseline,
             limits=DepthRange(options.min_disparity, options.max_depth_m),
             rectifier=rectifier,
             original=options.frame is Frame.original,
@@ -96,11 +96,9 @@ def response_body(
 
 def rectified_camera(rectifier: Rectifier) -> RectifiedCamera:
     """The rectified left camera of a raw pair's rig."""
-    calibration = rectifier.depth_calibration
-    assert calibration.cx is not None and calibration.cy is not None  # a rig always has its principal point
-    return RectifiedCamera(
-        focal_px=calibration.focal_px, baseline_m=calibration.baseline_m, cx_px=calibration.cx, cy_px=calibration.cy
-    )
+    camera = rectifier.focal_baseline
+    assert camera.cx is not None and camera.cy is not None  # a rig always has its principal point
+    return RectifiedCamera(focal_px=camera.focal_px, baseline_m=camera.baseline_m, cx_px=camera.cx, cy_px=camera.cy)
 
 
 def encode_array(values: np.ndarray) -> EncodedArray:

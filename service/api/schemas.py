@@ -11,7 +11,7 @@ from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, field_validator,
 from crestereo_pp.inference.options import InferenceOptions, TwoPass, parse_iterations
 from crestereo_pp.inference.scaling import scaled_size
 from crestereo_pp.model.config import ModelName
-from crestereo_pp.stereo_data.pointcloud import MIN_DISPARITY, Calibration
+from crestereo_pp.stereo_data.pointcloud import MIN_DISPARITY, FocalBaseline
 from crestereo_pp.stereo_data.rig import MAX_FOCAL_BASELINE
 
 
@@ -143,11 +143,11 @@ class DisparityOptions(BaseModel):
         return value
 
     @property
-    def calibration(self) -> Calibration | None:
-        """The rig of `focal_px`, `baseline_m`, `cx_px`, `cy_px`; None without one."""
+    def focal_baseline(self) -> FocalBaseline | None:
+        """The camera of `focal_px`, `baseline_m`, `cx_px`, `cy_px`; None without one."""
         if self.focal_px is None or self.baseline_m is None:
             return None
-        return Calibration(self.focal_px, self.baseline_m, self.cx_px, self.cy_px)
+        return FocalBaseline(self.focal_px, self.baseline_m, self.cx_px, self.cy_px)
 
     @property
     def inference(self) -> InferenceOptions:

@@ -9,8 +9,8 @@ from plyfile import PlyData
 from crestereo_pp.stereo_data.pointcloud import (
     IMAGE_FRAME,
     METRIC_FRAME,
-    Calibration,
     DepthRange,
+    FocalBaseline,
     encode_ply,
     metric_depth,
     point_cloud,
@@ -20,7 +20,7 @@ from crestereo_pp.stereo_data.pointcloud import (
 def test_metric_points_follow_the_pinhole_model_and_keep_their_colors():
     disparity = np.array([[10.0, 20.0], [0.0, 40.0]], np.float32)  # one pixel without disparity
     left = np.arange(12, dtype=np.uint8).reshape(2, 2, 3)
-    points, colors = point_cloud(disparity, left, calibration=Calibration(100.0, 0.5, cx=0.0, cy=0.0))
+    points, colors = point_cloud(disparity, left, focal_baseline=FocalBaseline(100.0, 0.5, cx=0.0, cy=0.0))
     z = 100.0 * 0.5 / np.array([10.0, 20.0, 40.0])
     expected = np.stack([np.array([0, 1, 1]) * z / 100.0, np.array([0, 0, 1]) * z / 100.0, z], axis=1)
     np.testing.assert_allclose(points, expected, rtol=1e-6)
@@ -49,7 +49,7 @@ def test_the_ply_is_binary_and_reads_back_with_plyfile():
 
 def test_depth_is_focal_times_baseline_over_disparity_within_its_range():
     disparity = np.array([[10.0, 0.0, -1.0, 0.8, 2.0, np.nan]], np.float32)
-    rig = Calibration(700.0, 0.5)
+    rig = FocalBaseline(700.0, 0.5)
     assert metric_depth(disparity, rig).tolist() == [[35.0, np.inf, np.inf, np.inf, 175.0, np.inf]]
     # 0.8 px passes a 0.5 px floor but lies at 437.5 m, beyond 100 m; 2 px lies at 175 m
     assert metric_depth(disparity, rig, DepthRange(0.5, 100.0)).tolist() == [[35.0] + [np.inf] * 5]
@@ -58,10 +58,10 @@ def test_depth_is_focal_times_baseline_over_disparity_within_its_range():
 def test_points_at_vanishing_disparity_or_beyond_the_depth_limit_are_left_out():
     disparity = np.array([[0.01, 0.5, 2.0, 50.0]], np.float32)  # 0.01 px is 35 km away on this rig
     left = np.zeros((1, 4, 3), np.uint8)
-    rig = Calibration(700.0, 0.5)
-    points, _ = point_cloud(disparity, left, calibration=rig)
+    rig = FocalBaseline(700.0, 0.5)
+    points, _ = point_cloud(disparity, left, focal_baseline=rig)
     assert points[:, 2].tolist() == [175.0, 7.0]  # the default drops disparities at or below 1 px
-    points, _ = point_cloud(disparity, left, calibration=rig, limits=DepthRange(0.0, 100.0))
+    points, _ = point_cloud(disparity, left, focal_baseline=rig, limits=DepthRange(0.0, 100.0))
     assert points[:, 2].tolist() == [7.0]
     points, _ = point_cloud(disparity, left, limits=DepthRange(0.0, 100.0))  # image space: no depth limit
     assert len(points) == 4

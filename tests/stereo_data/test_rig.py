@@ -84,11 +84,11 @@ def test_under_an_identity_calibration_the_original_frame_is_the_rectified_one_t
     np.testing.assert_allclose(rectifier.to_original_depth(maps), maps, atol=1e-3)
 
 
-def test_the_rectified_camera_gives_the_metric_depth_calibration(tmp_path):
+def test_the_rectified_camera_gives_the_metric_depth_focal_length_and_baseline(tmp_path):
     rectifier = Rectifier(read_rig(opencv_file(tmp_path / "stereo.yaml")))
-    calibration = rectifier.depth_calibration
-    assert calibration.baseline_m == pytest.approx(0.12, abs=1e-3) and 380 < calibration.focal_px < 440
-    assert 0 < calibration.cx < WIDTH and 0 < calibration.cy < HEIGHT
+    camera = rectifier.focal_baseline
+    assert camera.baseline_m == pytest.approx(0.12, abs=1e-3) and 380 < camera.focal_px < 440
+    assert 0 < camera.cx < WIDTH and 0 < camera.cy < HEIGHT
 
 
 ROS_LEFT = """image_width: 320
