@@ -48,7 +48,7 @@ class StereoPredictor:
     P(|error| > calibration.threshold_px) as the uncertainty, else the paper's raw U.
     training: the weights file's cumulative training record, as stored there ("total_steps",
     "total_pairs", "total_minutes", "runs" with each run's validation), or None.
-    precision: "fp32", or "bf16" (see ``Precision``; the maps stay float32; bench/gpu_check.py
+    precision: "fp32", or "bf16" (see ``Precision``; the maps stay float32; bench/gpu_check
     and the model card measure how far they move); may be changed at any time.
     backend: "torch", or "openvino" to run every forward through ``openvino`` (an
     ``OpenVINOForward``: its graphs are cached under the weights' hash in ``cache_dir``, by
