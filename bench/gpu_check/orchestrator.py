@@ -1,6 +1,6 @@
 """The orchestrating process: standard library only, so that a CUDA error cannot reach it. It parses
 the options, lays out the project as a link tree (tools/package_tree.py), installs the carried
-wheels, runs each stage in turn (`tests` as pytest, the others as `python -m gpu_check --stage
+wheels, runs each stage in turn (`tests` as pytest, the others as `python -P -m gpu_check --stage
 NAME`, each a child process with bench/ and the link tree on its PYTHONPATH) and rewrites the
 summary after each. In a child (`--stage`) it runs that one stage."""
 
@@ -92,7 +92,7 @@ def run_stages(
             result = run_tests(plan, seconds, environments[stage], log)
         else:
             result_file = scratch / f"{stage}.json"
-            command = [sys.executable, "-m", "gpu_check", "--stage", stage, "--out", str(out)]
+            command = [sys.executable, "-P", "-m", "gpu_check", "--stage", stage, "--out", str(out)]
             command += ["--seconds", f"{seconds:.0f}", "--result", str(result_file)]
             command += ["--cpu-smoke"] * args.cpu_smoke + ["--train-compile"] * args.train_compile
             command += ["--model", args.model] + (["--weights", str(args.weights)] if args.weights else [])
