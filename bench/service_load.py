@@ -4,7 +4,7 @@
                                  [--backends torch openvino] [--batching on off] [--max-batch-size 8]
                                  [--threads 0]
 
-Starts `uvicorn service.app:create_app --factory` on a free loopback port once per backend and
+Starts `python -m crestereo_pp.service` on a free loopback port once per backend and
 batching setting, lite model only: batching on (`CRESTEREO_MAX_BATCH_SIZE=--max-batch-size`) or
 off (`=1`), `CRESTEREO_BACKEND` the backend, otherwise the service's defaults (`--threads` sets
 `CRESTEREO_THREADS`; 0 = the CPU quota). On OpenVINO it first waits until `GET /models` says the

@@ -42,7 +42,7 @@ def build_parser(argv: Sequence[str]) -> argparse.ArgumentParser:
     for name, (module, summary) in COMMANDS.items():
         command = commands.add_parser(name, help=summary)
         if name == named:
-            import_module(f"cli.{module}").add_arguments(command)
+            import_module(f"crestereo_pp.cli.{module}").add_arguments(command)
     return parser
 
 

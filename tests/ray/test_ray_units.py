@@ -4,6 +4,8 @@ lost replica, and the flags that only apply with --ray."""
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -111,3 +113,15 @@ def test_the_application_builder_refuses_unknown_arguments():
 
     with pytest.raises(ValueError, match="unknown arguments \\['replica'\\]"):
         app({"replica": "2"})
+
+
+def test_predict_on_ray_joins_its_cluster_without_importing_the_web_app():
+    script = (
+        "import sys\n"
+        "import crestereo_pp.cli.ray_predict\n"
+        "web = ('fastapi', 'starlette', 'crestereo_pp.service.api')\n"
+        "loaded = [name for name in web if name in sys.modules]\n"
+        "assert not loaded, loaded\n"
+    )
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
