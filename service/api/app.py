@@ -32,7 +32,7 @@ def create_app(
     """Build the app; its lifespan loads the models once and runs the inference thread that computes the batches.
 
     settings: defaults to `Settings.from_env()` (the `CRESTEREO_*` variables).
-    loader: `model.load_model`, or a wrapper of it (tests inject faults through it).
+    loader: `inference.load_model`, or a wrapper of it (tests inject faults through it).
     load_before_serving: the lifespan's startup returns only once the models are loaded (and
         fails where they cannot be), for a host that routes to an instance only after its startup
         (a Ray Serve replica); by default the app starts at once and answers 503 `loading` meanwhile.

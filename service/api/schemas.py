@@ -151,7 +151,7 @@ class DisparityOptions(BaseModel):
 
     @property
     def inference(self) -> InferenceOptions:
-        """The options that say how the pair is computed (`model.InferenceOptions`)."""
+        """The options that say how the pair is computed (`inference.InferenceOptions`)."""
         return InferenceOptions(parse_iterations(self.iters), self.two_pass, self.scale, self.raw_uncertainty)
 
     def scale_problem(self, height: int, width: int) -> str | None:

@@ -25,7 +25,7 @@ from crestereo_pp.service.uploads.sandbox import DecoderLimits, DecoderPool
 
 logger = logging.getLogger(__name__)
 
-ModelLoader = Callable[..., Predictor]  # called as model.load_model is: loader(name, weights=..., device=..., ...)
+ModelLoader = Callable[..., Predictor]  # called as inference.load_model is: loader(name, weights=..., device=..., ...)
 
 
 StereoBatcher = Batcher[StereoKey, StereoPair, StereoMaps]

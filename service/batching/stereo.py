@@ -17,7 +17,7 @@ from crestereo_pp.model import ModelConfig, padded_size
 
 
 class Predictor(Protocol):
-    """What the service needs from `model.load_model(...)` (a `model.StereoPredictor`)."""
+    """What the service needs from `inference.load_model(...)` (an `inference.StereoPredictor`)."""
 
     name: str
     weights_sha256: str | None

@@ -93,17 +93,37 @@ def test_behind_ray_the_routes_errors_and_page_are_the_services_and_threads_are_
     assert missing_right.headers.get_list("x-request-id") == [missing_right.headers["x-request-id"]]
 
 
+def cpu_seconds(pid: int) -> float:
+    """User and system CPU time of process `pid` so far (from /proc/PID/stat)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def wait_until_computing(pid: int, timeout_s: float = 60.0) -> None:
+    """Return once process `pid` uses at least half a CPU over 0.3 s (a replica computing a batch)."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        before = cpu_seconds(pid)
+        time.sleep(0.3)
+        if cpu_seconds(pid) - before >= 0.15:
+            return
+        assert time.monotonic() < deadline, f"replica {pid} never started computing"
+
+
 def test_a_replica_killed_under_load_answers_each_request_with_its_maps_or_refuses_it_503_and_is_replaced(
     ray_service,
 ):
     service, _ = ray_service
     crops = real_crops(4)
     victim = replica_processes()[0]
-    with ThreadPoolExecutor(8) as pool:
-        pending = [pool.submit(post_pair, service.base_url, *crops[i % 4]) for i in range(8)]
-        time.sleep(2)
+    with ThreadPoolExecutor(16) as pool:
+        pending = [pool.submit(post_pair, service.base_url, *crops[i % 4]) for i in range(16)]
+        wait_until_computing(victim)  # so that requests are in flight on it when it dies
         os.kill(victim, signal.SIGKILL)
         answers = [future.result() for future in pending]
+    lost = [answer for answer in answers if answer.status_code != 200]
+    assert lost, "no request was in flight on the killed replica"
+    assert any(answer.status_code == 200 for answer in answers), "the other replica answered nothing"
     predictor = quiet_load_model("lite", backend="torch")
     expected = [predictor.predict(*(cv2.cvtColor(image, cv2.COLOR_BGR2RGB) for image in crop)) for crop in crops]
     for index, answer in enumerate(answers):
