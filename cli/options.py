@@ -7,7 +7,6 @@ functions that load a model, once the arguments are parsed.
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -141,8 +140,9 @@ def load_predictor(args: argparse.Namespace) -> StereoPredictor:
     return predictor
 
 
-def asked_for_openvino(backend: str) -> bool:
+def asked_for_openvino(backend: BackendChoice) -> bool:
     """Whether the user named OpenVINO: --backend openvino, or --backend auto with
-    $CRESTEREO_BACKEND=openvino (rather than auto choosing it)."""
-    named = backend if backend != "auto" else os.environ.get("CRESTEREO_BACKEND", "").strip().lower()
-    return named == "openvino"
+    $CRESTEREO_BACKEND=openvino (rather than auto choosing it; `requested_backend`)."""
+    from crestereo_pp.inference.backend_choice import requested_backend
+
+    return requested_backend(backend) == "openvino"

@@ -23,14 +23,22 @@ BackendChoice = Literal["auto", "torch", "openvino"]
 PrecisionChoice = Literal["auto", "fp32", "bf16"]
 
 
+def requested_backend(backend: BackendChoice) -> BackendChoice:
+    """The backend asked for: ``backend``, or for ``auto`` ``$CRESTEREO_BACKEND`` where set (the one
+    place it is read; lower-cased, unchecked: ``resolve_backend`` refuses an unknown name)."""
+    if backend != "auto":
+        return backend
+    return os.environ.get("CRESTEREO_BACKEND", "auto").strip().lower() or "auto"  # type: ignore[return-value]
+
+
 def resolve_backend(backend: BackendChoice, device: torch.device) -> Backend:
-    """``auto``: ``$CRESTEREO_BACKEND`` where set, else OpenVINO on a CPU where it is installed,
-    else torch. ValueError where OpenVINO is asked for and cannot run (another device, or not
-    installed), or for an unknown name."""
+    """``auto``: ``$CRESTEREO_BACKEND`` where set (``requested_backend``), else OpenVINO on a CPU
+    where it is installed, else torch. ValueError where OpenVINO is asked for and cannot run
+    (another device, or not installed), or for an unknown name. The one place a predictor's
+    backend is chosen (``load_model``)."""
+    backend = requested_backend(backend)
     if backend == "auto":
-        backend = os.environ.get("CRESTEREO_BACKEND", "auto").strip().lower() or "auto"  # type: ignore[assignment]
-        if backend == "auto":
-            return "openvino" if device.type == "cpu" and openvino_available() else "torch"
+        return "openvino" if device.type == "cpu" and openvino_available() else "torch"
     if backend not in ("torch", "openvino"):
         raise ValueError(f"unknown backend {backend!r}; choose auto, torch or openvino")
     if backend == "openvino":

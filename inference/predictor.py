@@ -25,7 +25,7 @@ from crestereo_pp.model.network import CREStereoPP, finest_stage_only
 from crestereo_pp.model.upsample import resize_disparity
 from crestereo_pp.model.weights import is_trained
 
-from .backend_choice import Backend, Precision, resolve_backend
+from .backend_choice import Backend, Precision
 from .batching import PaddedBatch, batch_two_pass, size_groups
 from .cuda_graphs import GraphedForward
 from .forward import Forward, Maps
@@ -50,7 +50,8 @@ class StereoPredictor:
     "total_pairs", "total_minutes", "runs" with each run's validation), or None.
     precision: "fp32", or "bf16" (see ``Precision``; the maps stay float32; bench/gpu_check
     and the model card measure how far they move); may be changed at any time.
-    backend: "torch", or "openvino" to run every forward through ``openvino`` (an
+    backend: as ``inference.backend_choice.resolve_backend`` picked it (``load_model``): "torch",
+    or "openvino" to run every forward through ``openvino`` (an
     ``OpenVINOForward``: its graphs are cached under the weights' hash in ``cache_dir``, by
     default ``$CRESTEREO_CACHE_DIR`` or ``~/.cache/crestereo-pp``; calls whose graph is not in
     the cache run on torch, and only ``prepare`` exports one).
@@ -79,7 +80,7 @@ class StereoPredictor:
         self.weights_sha256 = weights_sha256
         self.calibration = calibration
         self.training = training
-        self.backend: Backend = resolve_backend(backend, self.device)
+        self.backend: Backend = backend
         self.precision: Precision = precision
         self.graphs = GraphedForward(self.forward) if cuda_graphs and self.device.type == "cuda" else None
         self.openvino = (
