@@ -73,17 +73,12 @@ def add_model_options(parser: argparse.ArgumentParser) -> None:
 
 
 def inference_options(args: argparse.Namespace) -> InferenceOptions:
-    """--iters, --two-pass, --scale (and --raw-uncertainty where the command has it) as one value;
-    a usage error where they are invalid."""
-    from crestereo_pp.inference import InferenceOptions, parse_iterations, parse_two_pass
+    """--iters, --two-pass, --scale (and --raw-uncertainty where the command has it) as one value,
+    read by `InferenceOptions` as the service reads its query; a usage error where they are invalid."""
+    from crestereo_pp.inference import InferenceOptions
 
     try:
-        return InferenceOptions(
-            parse_iterations(args.iters),
-            parse_two_pass(args.two_pass),
-            args.scale,
-            getattr(args, "raw_uncertainty", False),
-        )
+        return InferenceOptions(args.iters, args.two_pass, args.scale, getattr(args, "raw_uncertainty", False))
     except ValueError as error:
         raise SystemExit(f"crestereo-pp: {error}") from None
 

@@ -17,6 +17,10 @@ Iterations = int | StageCounts | None
 """What a caller asks for: None, the model's counts; an int, the finest (1/4) stage's; or the
 three `StageCounts`. `StereoPredictor.iterations` resolves it to `StageCounts`."""
 
+IterationsGiven = str | int | Sequence[int] | None
+"""Iterations as a caller gives them: text ("4", "1,2,4"), one count, a sequence of counts, or
+None; ``parse_iterations`` reads them as ``Iterations``."""
+
 TwoPass = bool | Literal["auto"]
 """Whether a cold pair is computed in two passes (a half-resolution pass, then refinement at full
 resolution from it): True, False, or "auto": two passes only where a quick quarter-resolution pass
@@ -26,10 +30,17 @@ TWO_PASS_CHOICES = ("auto", "on", "off")
 """``TwoPass`` as the command line and other text spell it (``parse_two_pass``)."""
 
 MAX_ITERATIONS = 99
-"""Most ARM iterations per stage that a caller may ask for."""
+"""Most ARM iterations per stage that a caller may ask for (the 1..MAX_ITERATIONS rule is
+``parse_iterations``'s; ``ITERATIONS_PATTERN`` spells it for text). A run of nines, so that a
+count's text is "a digit 1-9, then up to len(str(MAX_ITERATIONS)) - 1 digits"."""
+
+_COUNT_PATTERN = "[1-9]" + "[0-9]?" * (len(str(MAX_ITERATIONS)) - 1)
+ITERATIONS_PATTERN = f"^{_COUNT_PATTERN}(,{_COUNT_PATTERN},{_COUNT_PATTERN})?$"
+"""The text ``parse_iterations`` reads, as a regular expression: one count or three
+comma-separated ones, each 1..MAX_ITERATIONS (the HTTP query's ``iters`` pattern)."""
 
 
-def parse_iterations(value: str | int | Sequence[int] | None) -> Iterations:
+def parse_iterations(value: IterationsGiven) -> Iterations:
     """Iteration counts as given anywhere ("4", "1,2,4", 4, [1, 2, 4], (1, 2, 4), or None for the
     model's) as ``Iterations``: one count or three, each 1..MAX_ITERATIONS; ValueError otherwise."""
     if value is None:
@@ -63,11 +74,15 @@ def parse_two_pass(value: str | bool) -> TwoPass:
     return spelled
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, init=False)
 class InferenceOptions:
-    """The options of one prediction (``StereoPredictor.predict`` and ``predict_batch``).
+    """The options of one prediction (``StereoPredictor.predict`` and ``predict_batch``), read once
+    where a request comes in: the constructor is the one reader of what the HTTP query, the
+    command line and Python callers give (``parse_iterations``, ``parse_two_pass``, the scale's
+    range), so the value that travels is checked and normalised.
 
-    iters: see ``Iterations`` (given in any form ``parse_iterations`` reads).
+    iters: see ``Iterations`` (given in any form ``parse_iterations`` reads); the predictor
+        resolves it against its model's counts (``StereoPredictor.iterations``).
     two_pass: a half-resolution pass first, then refinement at full resolution from it: always
         (True), never (False), or where the pair has large disparities ("auto"; see ``TwoPass``).
     scale: in (0, 1]: the network sees the pair resized by this factor; maps come at input size.
@@ -75,16 +90,24 @@ class InferenceOptions:
     Hashable: requests with equal options (and shapes) may share a batch.
     """
 
-    iters: Iterations = None
-    two_pass: TwoPass = "auto"
-    scale: float = 1.0
-    raw_uncertainty: bool = False
+    iters: Iterations
+    two_pass: TwoPass
+    scale: float
+    raw_uncertainty: bool
 
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "iters", parse_iterations(self.iters))
-        object.__setattr__(self, "two_pass", parse_two_pass(self.two_pass))
-        if not 0.0 < self.scale <= 1.0:
-            raise ValueError(f"scale must be in (0, 1], got {self.scale}")
+    def __init__(
+        self,
+        iters: IterationsGiven = None,
+        two_pass: str | bool = "auto",
+        scale: float = 1.0,
+        raw_uncertainty: bool = False,
+    ) -> None:
+        object.__setattr__(self, "iters", parse_iterations(iters))
+        object.__setattr__(self, "two_pass", parse_two_pass(two_pass))
+        if not 0.0 < scale <= 1.0:
+            raise ValueError(f"scale must be in (0, 1], got {scale}")
+        object.__setattr__(self, "scale", scale)
+        object.__setattr__(self, "raw_uncertainty", raw_uncertainty)
 
     def keywords(self) -> dict[str, Any]:
         """The options as ``predict`` / ``predict_batch`` keywords."""

@@ -3,13 +3,12 @@ disparity (``WarmStart``, the rules; ``FrameStream``, a predictor's pairs comput
 
 from __future__ import annotations
 
-from dataclasses import replace
 from typing import Protocol
 
 import numpy as np
 from torch import Tensor
 
-from .options import InferenceOptions, Iterations, TwoPass, parse_iterations
+from .options import InferenceOptions, IterationsGiven, TwoPass
 from .prediction import Prediction
 
 
@@ -31,9 +30,13 @@ class WarmStart:
     stability (tests/inference/test_warm_start.py).
     """
 
-    def __init__(self, options: InferenceOptions, warm_iters: Iterations = None) -> None:
+    def __init__(self, options: InferenceOptions, warm_iters: IterationsGiven = None) -> None:
         self.options = options
-        self.warm_iters = parse_iterations(warm_iters)
+        """A cold frame's options."""
+        self.warm_options = InferenceOptions(
+            options.iters if warm_iters is None else warm_iters, False, options.scale, options.raw_uncertainty
+        )
+        """A warm frame's options, read once for the whole stream (ValueError where `warm_iters` is invalid)."""
         self._previous: np.ndarray | None = None
 
     def next(self, height: int, width: int) -> tuple[InferenceOptions, np.ndarray | None]:
@@ -41,8 +44,7 @@ class WarmStart:
         previous = self._previous
         if previous is None or previous.shape != (height, width):
             return self.options, None
-        iters = self.options.iters if self.warm_iters is None else self.warm_iters
-        return replace(self.options, iters=iters, two_pass=False), previous
+        return self.warm_options, previous
 
     def record(self, disparity: np.ndarray) -> None:
         """The disparity the frame just computed had (the next one starts from it)."""
@@ -61,7 +63,7 @@ class PairPredictor(Protocol):
         left: np.ndarray,
         right: np.ndarray | Tensor,
         *,
-        iters: Iterations = None,
+        iters: IterationsGiven = None,
         init_disparity: np.ndarray | Tensor | None = None,
         two_pass: TwoPass = "auto",
         scale: float = 1.0,
@@ -73,7 +75,7 @@ class FrameStream:
     """Consecutive pairs of one camera computed one at a time, each warm-started from its
     predecessor (the rules, and why every stage runs, are ``WarmStart``'s)."""
 
-    def __init__(self, predictor: PairPredictor, options: InferenceOptions, warm_iters: Iterations = None) -> None:
+    def __init__(self, predictor: PairPredictor, options: InferenceOptions, warm_iters: IterationsGiven = None) -> None:
         self.predictor = predictor
         self.warm_start = WarmStart(options, warm_iters)
 

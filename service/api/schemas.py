@@ -8,7 +8,7 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, field_validator, model_validator
 
-from crestereo_pp.inference.options import InferenceOptions, TwoPass, parse_iterations
+from crestereo_pp.inference.options import ITERATIONS_PATTERN, InferenceOptions, TwoPass
 from crestereo_pp.inference.scaling import scaled_size
 from crestereo_pp.model.config import ModelName
 from crestereo_pp.stereo_data.pointcloud import MIN_DISPARITY, FocalBaseline
@@ -66,7 +66,7 @@ class DisparityOptions(BaseModel):
     )
     iters: str | None = Field(
         None,
-        pattern=r"^[1-9][0-9]?(,[1-9][0-9]?,[1-9][0-9]?)?$",
+        pattern=ITERATIONS_PATTERN,
         examples=["4", "1,2,4"],
         description="ARM iterations: `N` at 1/4 resolution, or `N16,N8,N4` for the three stages "
         "(1-99 each); fewer is faster and coarser [the model's: lite 2,4,6, full 2,4,8].",
@@ -151,8 +151,9 @@ class DisparityOptions(BaseModel):
 
     @property
     def inference(self) -> InferenceOptions:
-        """The options that say how the pair is computed (`inference.InferenceOptions`)."""
-        return InferenceOptions(parse_iterations(self.iters), self.two_pass, self.scale, self.raw_uncertainty)
+        """The options that say how the pair is computed (`inference.InferenceOptions`, which parses
+        `iters`): read once per request, where the pipeline keys it (`answer_pair`), or once per stream."""
+        return InferenceOptions(self.iters, self.two_pass, self.scale, self.raw_uncertainty)
 
     def scale_problem(self, height: int, width: int) -> str | None:
         """What is wrong with `scale` for a pair of this size (None: nothing)."""

@@ -27,7 +27,7 @@ from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 from pydantic import ValidationError
 from starlette.websockets import WebSocketState
 
-from crestereo_pp.inference import WarmStart, parse_iterations
+from crestereo_pp.inference import WarmStart
 from crestereo_pp.service.api.dependencies import bearer_accepted
 from crestereo_pp.service.api.errors import ApiError, batching_answer
 from crestereo_pp.service.api.pipeline import answer_pair
@@ -88,7 +88,7 @@ def _options(websocket: WebSocket) -> tuple[DisparityOptions, WarmStart]:
     warm_iters = query.pop("warm_iters", None)
     try:
         options = DisparityOptions.model_validate(query)
-        warm = parse_iterations(warm_iters)
+        frames = WarmStart(options.inference, warm_iters)  # the stream's options, read once
     except ValidationError as error:
         first = error.errors()[0]
         where = ".".join(map(str, first["loc"]))
@@ -98,7 +98,7 @@ def _options(websocket: WebSocket) -> tuple[DisparityOptions, WarmStart]:
     problem = options.calibration_problem(calibrated=False)
     if problem is not None:
         raise _Closing(POLICY_VIOLATION, "invalid_request", f"{problem}; a stream's pairs are rectified")
-    return options, WarmStart(options.inference, warm)
+    return options, frames
 
 
 async def _serve(
