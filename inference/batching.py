@@ -1,5 +1,5 @@
-"""Pairs of mixed sizes in one batch (``StereoPredictor.predict_batch``): each replicate-padded at
-the bottom and right to one shape, a multiple of INPUT_MULTIPLE, exactly as ``predict`` pads a
+"""Pairs of mixed sizes in one batch (``StereoPredictor.predict_pairs``, behind ``predict_batch``):
+each replicate-padded at the bottom and right to one shape, a multiple of INPUT_MULTIPLE, exactly as ``predict`` pads a
 single pair, so each result equals ``predict`` on its pair alone up to float rounding; or, with
 ``two_pass="auto"``, one batch per size."""
 

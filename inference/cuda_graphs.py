@@ -2,7 +2,8 @@
 
 A pass of the network is hundreds of small kernels (the authors' Lite code took 54.6 ms per pass
 at 384x1248 on an H100, 17.5 ms of it in kernels: the rest is launching them), so
-``StereoPredictor.predict_batch`` on a CUDA device runs its forward through ``GraphedForward``:
+``StereoPredictor.predict_pairs`` (``predict_batch``, the service's batches) on a CUDA device
+runs its forward through ``GraphedForward``:
 the first call of a key runs eagerly, the next one captures a graph (static input buffers,
 warm-up on a side stream, capture) and every later call copies its inputs into the static
 buffers, replays the graph with one launch and copies the outputs out: no host allocation, no

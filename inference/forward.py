@@ -1,6 +1,6 @@
 """What every backend computes: a ``Forward``, the network on padded images, and the maps it gives.
 
-The torch eager forward (``inference.torch_backend``), its CUDA-graph replay
+The torch eager forward (``StereoPredictor.forward``), its CUDA-graph replay
 (``inference.cuda_graphs``) and the OpenVINO forward (``inference.openvino_backend``) are called
 alike, so that the predictor runs any of them.
 """

@@ -12,6 +12,7 @@ and the served uncertainty's calibration (``inference.uncertainty_calibration``)
 from __future__ import annotations
 
 from collections.abc import Iterable, Iterator, Sequence
+from functools import partial
 from pathlib import Path
 from typing import Any, overload
 
@@ -30,12 +31,12 @@ from .batching import PaddedBatch, batch_two_pass, size_groups
 from .cuda_graphs import GraphedForward
 from .forward import Forward, Maps
 from .openvino_backend import OpenVINOForward
-from .options import InferenceOptions, Iterations, StageCounts, TwoPass, parse_iterations
+from .options import InferenceOptions, Iterations, IterationsGiven, StageCounts, TwoPass
 from .padding import Padding
 from .prediction import Prediction, TensorPrediction, as_image_batch, to_host
 from .scaling import scaled_size, shrink
-from .torch_backend import eager_forward
-from .two_pass import PaddedForward, cold_maps, large_disparity_percentile
+from .torch_backend import autocast_bf16
+from .two_pass import cold_maps, large_disparity_percentile
 from .uncertainty_calibration import UncertaintyCalibration
 from .warm_start import FrameStream
 
@@ -56,8 +57,8 @@ class StereoPredictor:
     default ``$CRESTEREO_CACHE_DIR`` or ``~/.cache/crestereo-pp``; calls whose graph is not in
     the cache run on torch, and only ``prepare`` exports one).
     graphs: on a CUDA device with ``cuda_graphs``, the CUDA-graph replay
-    (``inference.cuda_graphs``) that ``predict_batch`` runs its forward through, one graph per
-    padded shape; else None.
+    (``inference.cuda_graphs``) that ``predict_pairs`` (so ``predict_batch``) runs its forward
+    through, one graph per padded shape; else None.
     """
 
     def __init__(
@@ -132,13 +133,14 @@ class StereoPredictor:
         return [(counts, True), (finest_stage_only(counts), True)] if warm_start else [(counts, False)]
 
     def iterations(self, iters: Iterations) -> StageCounts:
-        """The counts per stage (1/16, 1/8, 1/4) that ``iters`` (see ``parse_iterations``) means here."""
-        parsed = parse_iterations(iters)
-        if parsed is None:
+        """The counts per stage (1/16, 1/8, 1/4) that ``iters`` (already read, as
+        ``InferenceOptions`` reads it) means for this model: None, the model's; one count, the
+        finest stage's. The one place they are resolved; nothing here parses them again."""
+        if iters is None:
             return self.config.iters
-        if isinstance(parsed, int):
-            return (*self.config.iters[:2], parsed)
-        return parsed
+        if isinstance(iters, int):
+            return (*self.config.iters[:2], iters)
+        return iters
 
     @overload
     def predict(
@@ -146,7 +148,7 @@ class StereoPredictor:
         left: np.ndarray,
         right: np.ndarray | Tensor,
         *,
-        iters: Iterations = None,
+        iters: IterationsGiven = None,
         init_disparity: np.ndarray | Tensor | None = None,
         two_pass: TwoPass = "auto",
         scale: float = 1.0,
@@ -159,7 +161,7 @@ class StereoPredictor:
         left: Tensor,
         right: np.ndarray | Tensor,
         *,
-        iters: Iterations = None,
+        iters: IterationsGiven = None,
         init_disparity: np.ndarray | Tensor | None = None,
         two_pass: TwoPass = "auto",
         scale: float = 1.0,
@@ -172,7 +174,7 @@ class StereoPredictor:
         left: np.ndarray | Tensor,
         right: np.ndarray | Tensor,
         *,
-        iters: Iterations = None,
+        iters: IterationsGiven = None,
         init_disparity: np.ndarray | Tensor | None = None,
         two_pass: TwoPass = "auto",
         scale: float = 1.0,
@@ -180,6 +182,7 @@ class StereoPredictor:
     ) -> Prediction | TensorPrediction:
         """Disparity and uncertainty of a rectified pair of any size (see ``as_image_batch``).
 
+        iters, two_pass, scale, raw_uncertainty: read once, here, as ``InferenceOptions`` (see there).
         init_disparity: warm start (e.g. the previous video frame's result), HxW array or
             (B, H, W) tensor, positive pixels: every stage runs (``iters``), the coarsest
             starting from it instead of from zero (see ``FrameStream``).
@@ -196,35 +199,50 @@ class StereoPredictor:
         A ``left`` array gives a ``Prediction`` (numpy arrays, copied from the device once); a
         ``left`` tensor a ``TensorPrediction`` (tensors on the predictor's device).
         """
+        options = InferenceOptions(iters, two_pass, scale, raw_uncertainty)
         disparity, uncertainty = self.predict_tensors(
             as_image_batch(left, self.device),
             as_image_batch(right, self.device),
-            iters=iters,
+            self.iterations(options.iters),
+            options.two_pass,
+            options.scale,
             init_disparity=init_disparity,
-            two_pass=two_pass,
-            scale=scale,
-            raw_uncertainty=raw_uncertainty,
+            raw_uncertainty=options.raw_uncertainty,
             graphed=False,
         )
         if isinstance(left, np.ndarray):
             return Prediction(*to_host(disparity[0], uncertainty[0]))
         return TensorPrediction(disparity, uncertainty)
 
-    @torch.inference_mode()
     def predict_batch(
         self,
         lefts: Sequence[np.ndarray],
         rights: Sequence[np.ndarray],
         *,
-        iters: Iterations = None,
+        iters: IterationsGiven = None,
         two_pass: TwoPass = "auto",
         scale: float = 1.0,
         raw_uncertainty: bool = False,
         init_disparities: Sequence[np.ndarray] | None = None,
     ) -> list[Prediction]:
-        """Several pairs (arrays, as ``predict`` takes them) in one forward pass; the maps come
-        back as numpy HxW arrays, copied from the device once for the whole batch. On CUDA the
-        forward is replayed from a CUDA graph of the padded shape (``self.graphs``).
+        """Several pairs (arrays, as ``predict`` takes them) in one forward pass: ``predict_pairs``
+        with the options read once, here, as ``InferenceOptions``."""
+        return self.predict_pairs(
+            lefts, rights, InferenceOptions(iters, two_pass, scale, raw_uncertainty), init_disparities
+        )
+
+    @torch.inference_mode()
+    def predict_pairs(
+        self,
+        lefts: Sequence[np.ndarray],
+        rights: Sequence[np.ndarray],
+        options: InferenceOptions,
+        init_disparities: Sequence[np.ndarray] | None = None,
+    ) -> list[Prediction]:
+        """Several pairs (arrays, as ``predict`` takes them) in one forward pass with ``options``
+        (as they travel from a request: the service's batches); the maps come back as numpy HxW
+        arrays, copied from the device once for the whole batch. On CUDA the forward is replayed
+        from a CUDA graph of the padded shape (``self.graphs``).
         ``init_disparities``: a warm start per pair (HxW px of its size), as ``predict``'s.
 
         Pairs of different sizes are replicate-padded at the bottom and right to one shape, a
@@ -239,17 +257,11 @@ class StereoPredictor:
                 f"need as many right images as left ones (at least one), got {len(lefts)} and {len(rights)}"
             )
         sizes = [image.shape[:2] for image in lefts]
-        batch_pass = batch_two_pass(sizes, two_pass, init_disparities is not None, scale)
+        batch_pass = batch_two_pass(sizes, options.two_pass, init_disparities is not None, options.scale)
         if batch_pass is None:
             results: dict[int, Prediction] = {}
             for group in size_groups(sizes):
-                predictions = self.predict_batch(
-                    [lefts[i] for i in group],
-                    [rights[i] for i in group],
-                    iters=iters,
-                    two_pass=two_pass,
-                    raw_uncertainty=raw_uncertainty,
-                )
+                predictions = self.predict_pairs([lefts[i] for i in group], [rights[i] for i in group], options)
                 results.update(zip(group, predictions, strict=True))
             return [results[i] for i in range(len(lefts))]
         batch = PaddedBatch.of(sizes)
@@ -265,20 +277,22 @@ class StereoPredictor:
         disparity_batch, uncertainty_batch = self.predict_tensors(
             left_batch,
             batch.stack([as_image_batch(image, self.device) for image in rights]),
-            iters=iters,
+            self.iterations(options.iters),
+            batch_pass,
+            options.scale,
             init_disparity=init,
-            two_pass=batch_pass,
-            scale=scale,
-            raw_uncertainty=raw_uncertainty or batch.mixed,
+            raw_uncertainty=options.raw_uncertainty or batch.mixed,
             graphed=True,
         )
-        if batch.mixed and not raw_uncertainty:  # served from each pair's own maps, borders as ``predict`` sees them
+        if (
+            batch.mixed and not options.raw_uncertainty
+        ):  # served from each pair's own maps, borders as ``predict`` sees them
             uncertainty_batch = batch.served_per_pair(
                 uncertainty_batch, disparity_batch, left_batch, self.served_uncertainty
             )
         return batch.predictions(disparity_batch, uncertainty_batch)
 
-    def stream(self, options: InferenceOptions | None = None, warm_iters: Iterations = None) -> FrameStream:
+    def stream(self, options: InferenceOptions | None = None, warm_iters: IterationsGiven = None) -> FrameStream:
         """A video's pairs one at a time, each warm-started from the previous one (``FrameStream``)."""
         return FrameStream(self, options or InferenceOptions(), warm_iters)
 
@@ -286,7 +300,7 @@ class StereoPredictor:
         self,
         pairs: Iterable[tuple[np.ndarray, np.ndarray]],
         options: InferenceOptions | None = None,
-        warm_iters: Iterations = None,
+        warm_iters: IterationsGiven = None,
     ) -> Iterator[Prediction]:
         """The maps of consecutive pairs of one camera (a video), lazily, in order: the first cold
         with ``options``, each next one warm-started from its predecessor's disparity with
@@ -300,21 +314,21 @@ class StereoPredictor:
         self,
         left_batch: Tensor,
         right_batch: Tensor,
-        *,
-        iters: Iterations,
-        init_disparity: np.ndarray | Tensor | None,
+        iters: StageCounts,
         two_pass: TwoPass,
         scale: float,
+        *,
+        init_disparity: np.ndarray | Tensor | None,
         raw_uncertainty: bool,
         graphed: bool,
     ) -> tuple[Tensor, Tensor]:
-        """``predict`` on (B, 3, H, W) float images on the device: disparity and uncertainty,
+        """``predict`` on (B, 3, H, W) float images on the device, with the iterations resolved
+        (``iterations``) and handed as they are to the backend: disparity and uncertainty,
         float32 (B, H, W) on the device. graphed: run the forward through ``self.graphs``
         (where there are graphs)."""
         if left_batch.shape != right_batch.shape:
             raise ValueError(f"left and right differ in size: {tuple(left_batch.shape)} vs {tuple(right_batch.shape)}")
-        forward = self.openvino or (self.graphs if graphed and self.graphs is not None else self.forward)
-        counts = self.iterations(iters)
+        forward = partial(self.forward_padded, backend=self.openvino or (self.graphs if graphed else None))
         height, width = left_batch.shape[-2:]
         size = scaled_size(height, width, scale)
         original_left = left_batch
@@ -324,9 +338,9 @@ class StereoPredictor:
             init = torch.as_tensor(init_disparity, dtype=torch.float32, device=self.device)
             init = init.reshape(left_batch.shape[0], 1, height, width)
             init = init if size == (height, width) else resize_disparity(init, *size)
-            disparity, uncertainty = self.forward_padded(left_batch, right_batch, counts, init, forward)
+            disparity, uncertainty = forward(left_batch, right_batch, iters, init)
         else:
-            disparity, uncertainty = cold_maps(left_batch, right_batch, counts, two_pass, self.padded_forward(forward))
+            disparity, uncertainty = cold_maps(left_batch, right_batch, iters, two_pass, forward)
         if size != (height, width):
             disparity = resize_disparity(disparity, height, width)
             uncertainty = F.interpolate(uncertainty, size=(height, width), mode="bilinear", align_corners=False)
@@ -340,15 +354,14 @@ class StereoPredictor:
     ) -> Tensor:
         """(B,): the 99th percentile of each pair's disparity (px at H x W) in a quick pass at
         quarter resolution of the (B, 3, H, W) batch, what ``two_pass="auto"`` decides by.
-        counts: the iterations (default the model's); forward: as ``forward_padded``'s
-        (default this predictor's backend)."""
+        counts: the iterations (default the model's); forward: the backend, as ``forward_padded``'s
+        (default this predictor's)."""
         return large_disparity_percentile(
-            left, right, self.config.iters if counts is None else counts, self.padded_forward(forward or self.openvino)
+            left,
+            right,
+            self.config.iters if counts is None else counts,
+            partial(self.forward_padded, backend=forward or self.openvino),
         )
-
-    def padded_forward(self, forward: Forward | None) -> PaddedForward:
-        """``forward_padded`` through `forward` (default ``self.forward``), as the two-pass rule calls it."""
-        return lambda left, right, iters, init: self.forward_padded(left, right, iters, init, forward)
 
     def served_uncertainty(self, raw: Tensor, disparity: Tensor, left: Tensor) -> Tensor:
         """The uncertainty as served, (B, 1, H, W), from the paper's U `raw` (B, 1, H, W), the
@@ -362,12 +375,14 @@ class StereoPredictor:
         right: Tensor,
         iters: StageCounts,
         init: Tensor | None,
-        forward: Forward | None = None,
+        backend: Forward | None = None,
     ) -> tuple[Tensor, Tensor]:
-        """Pad (B,3,H,W) inputs to multiples of 32, run `forward` (default ``self.forward``),
-        crop back. Returns disparity (clipped at 0) and uncertainty, each (B, 1, H, W)."""
+        """Pad (B,3,H,W) inputs to multiples of 32, run `backend` (``self.graphs`` or
+        ``self.openvino``; default ``self.forward``, torch eager), crop back. Returns disparity
+        (clipped at 0) and uncertainty, each (B, 1, H, W). With its backend bound, the
+        ``PaddedForward`` the two-pass rule calls."""
         padding = Padding.to_multiple(*left.shape[-2:])
-        disparity, uncertainty = (forward or self.forward)(
+        disparity, uncertainty = (backend or self.forward)(
             padding.pad(left),
             padding.pad(right),
             None if init is None else padding.pad(init),
@@ -377,8 +392,10 @@ class StereoPredictor:
         return padding.crop(disparity).clamp(min=0.0), padding.crop(uncertainty)
 
     def forward(self, left: Tensor, right: Tensor, init: Tensor | None, iters: StageCounts, bf16: bool) -> Maps:
-        """The torch backend (``inference.torch_backend``): the network, eagerly, on padded
-        (B, 3, H, W) images in [0, 255] (H, W multiples of 32) and an optional (B, 1, H, W) warm
-        start (px), under bf16 autocast when `bf16`: disparity and uncertainty, float32
-        (B, 1, H, W). The function ``self.graphs`` captures."""
-        return eager_forward(self.network, self.device, left, right, init, iters, bf16)
+        """The torch backend: the network, eagerly, on padded (B, 3, H, W) images in [0, 255]
+        (H, W multiples of 32) and an optional (B, 1, H, W) warm start (px), under bf16 autocast
+        when `bf16` (``inference.torch_backend``): disparity and uncertainty, float32
+        (B, 1, H, W). The function ``self.graphs`` captures and ``self.openvino`` falls back to."""
+        with autocast_bf16(self.device, bf16, cache=False):
+            out = self.network(left, right, iters=iters, init_disparity=init)
+        return out.disparity.float(), out.uncertainty.float()

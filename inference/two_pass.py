@@ -32,7 +32,7 @@ on pairs whose true disparity is 4-16 px (and would send them to two passes)."""
 PaddedForward = Callable[[Tensor, Tensor, StageCounts, Tensor | None], Maps]
 """forward(left, right, iters, init): the maps, each (B, 1, H, W), of (B, 3, H, W) images of any
 size with an optional (B, 1, H, W) start disparity (px); ``StereoPredictor.forward_padded`` with
-its backend chosen."""
+its backend bound."""
 
 
 def two_pass_possible(height: int, width: int) -> bool:
@@ -52,35 +52,36 @@ def half_resolution_start(left: Tensor, right: Tensor, coarse: Callable[[Tensor,
     return resize_disparity(coarse(shrink(left, half_size), shrink(right, half_size)), height, width)
 
 
-def large_disparity_percentile(left: Tensor, right: Tensor, counts: StageCounts, forward: PaddedForward) -> Tensor:
+def large_disparity_percentile(left: Tensor, right: Tensor, iters: StageCounts, forward: PaddedForward) -> Tensor:
     """(B,): the 99th percentile of each pair's disparity (px at H x W) in a quick pass of
-    `forward` with `counts` at quarter resolution of the (B, 3, H, W) batch, what
+    `forward` with `iters` at quarter resolution of the (B, 3, H, W) batch, what
     ``two_pass="auto"`` decides by."""
     height, width = left.shape[-2:]
     quarter = (max(1, height // 4), max(1, width // 4))
-    coarse, _ = forward(shrink(left, quarter), shrink(right, quarter), counts, None)
+    coarse, _ = forward(shrink(left, quarter), shrink(right, quarter), iters, None)
     return torch.quantile(coarse.flatten(1), 0.99, dim=1) * (width / quarter[1])
 
 
-def cold_maps(left: Tensor, right: Tensor, counts: StageCounts, two_pass: TwoPass, forward: PaddedForward) -> Maps:
+def cold_maps(left: Tensor, right: Tensor, iters: StageCounts, two_pass: TwoPass, forward: PaddedForward) -> Maps:
     """The maps of (B, 3, H, W) pairs without a warm start, each (B, 1, H, W), computed by
-    `forward`: one pass, two passes (the second refining at 1/4 only from a half-resolution one),
-    or, with "auto", two passes for the pairs whose ``large_disparity_percentile`` is above
-    LARGE_DISPARITY_PX and one for the others (one for all where ``two_pass_possible`` says the
-    pairs are too small)."""
-    if two_pass == "auto" and not two_pass_possible(*left.shape[-2:]):
-        return cold_maps(left, right, counts, False, forward)
+    `forward` with `iters`: one pass, two passes (the second refining at 1/4 only from a
+    half-resolution one), or, with "auto", two passes for the pairs whose
+    ``large_disparity_percentile`` is above LARGE_DISPARITY_PX and one for the others (one for all
+    where ``two_pass_possible`` says the pairs are too small). The one place "auto" is decided."""
     if two_pass == "auto":
-        needs = large_disparity_percentile(left, right, counts, forward) > LARGE_DISPARITY_PX
-        if bool(needs.all()) or not bool(needs.any()):
-            return cold_maps(left, right, counts, bool(needs.all()), forward)
-        disparity, uncertainty = torch.empty_like(left[:, :1]), torch.empty_like(left[:, :1])
-        for group, two in ((needs, True), (~needs, False)):
-            disparity[group], uncertainty[group] = cold_maps(left[group], right[group], counts, two, forward)
-        return disparity, uncertainty
+        if not two_pass_possible(*left.shape[-2:]):
+            two_pass = False
+        else:
+            needs = large_disparity_percentile(left, right, iters, forward) > LARGE_DISPARITY_PX
+            if not bool(needs.all()) and bool(needs.any()):
+                disparity, uncertainty = torch.empty_like(left[:, :1]), torch.empty_like(left[:, :1])
+                for group, two in ((needs, True), (~needs, False)):
+                    disparity[group], uncertainty[group] = cold_maps(left[group], right[group], iters, two, forward)
+                return disparity, uncertainty
+            two_pass = bool(needs.all())
     if not two_pass:
-        return forward(left, right, counts, None)
+        return forward(left, right, iters, None)
     init = half_resolution_start(
-        left, right, lambda small_left, small_right: forward(small_left, small_right, counts, None)[0]
+        left, right, lambda small_left, small_right: forward(small_left, small_right, iters, None)[0]
     )
-    return forward(left, right, finest_stage_only(counts), init)
+    return forward(left, right, finest_stage_only(iters), init)

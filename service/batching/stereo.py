@@ -39,22 +39,21 @@ class Predictor(Protocol):
 
     def ready(self, iters: Iterations = None, *, warm_start: bool = False) -> bool: ...
 
-    def predict_batch(
+    def predict_pairs(
         self,
         lefts: Sequence[np.ndarray],
         rights: Sequence[np.ndarray],
-        *,
-        iters: Iterations = None,
-        two_pass: TwoPass = "auto",
-        scale: float = 1.0,
-        raw_uncertainty: bool = False,
+        options: InferenceOptions,
         init_disparities: Sequence[np.ndarray] | None = None,
     ) -> list[Prediction]: ...
 
 
 @dataclass(frozen=True)
 class StereoKey:
-    """Requests with equal keys may share a batch."""
+    """Requests with equal keys may share a batch.
+
+    options: the request's, as read where it came in (`DisparityOptions.inference`), handed
+    unchanged to `StereoPredictor.predict_pairs`."""
 
     model: str
     options: InferenceOptions
@@ -140,14 +139,11 @@ class StereoBatches:
         return key.pixels * cost
 
     def compute(self, key: StereoKey, pairs: Sequence[StereoPair]) -> list[StereoMaps]:
-        """Run one batch on the calling (inference) thread: `StereoPredictor.predict_batch`, which pads
+        """Run one batch on the calling (inference) thread: `StereoPredictor.predict_pairs`, which pads
         every pair (and warm start) to the batch shape the way the network pads one and returns
         host arrays."""
         inits = [pair.init for pair in pairs if pair.init is not None] if key.warm_start else None
-        predictions = self.predictors[key.model].predict_batch(
-            [pair.left for pair in pairs],
-            [pair.right for pair in pairs],
-            init_disparities=inits,
-            **key.options.keywords(),
+        predictions = self.predictors[key.model].predict_pairs(
+            [pair.left for pair in pairs], [pair.right for pair in pairs], key.options, inits
         )
         return [StereoMaps(p.disparity, p.uncertainty) for p in predictions]

@@ -87,7 +87,7 @@ def lite_settings(**overrides: Any) -> Settings:
 
 
 class GatedPredictor:
-    """The real predictor, except that `predict_batch` first waits for `gate` (lets a test hold
+    """The real predictor, except that `predict_pairs` first waits for `gate` (lets a test hold
     the worker busy while requests queue) and raises for an all-black left batch (fault
     injection)."""
 
@@ -100,12 +100,12 @@ class GatedPredictor:
     def __getattr__(self, name: str) -> Any:
         return getattr(self._inner, name)
 
-    def predict_batch(self, lefts: Any, rights: Any, **kwargs: Any) -> Any:
+    def predict_pairs(self, lefts: Any, rights: Any, *args: Any, **kwargs: Any) -> Any:
         self.calls.append(len(lefts))
         assert self.gate.wait(timeout=60)
         if max(float(left.max()) for left in lefts) == 0:
             raise RuntimeError("injected fault: all-black left image")
-        return self._inner.predict_batch(lefts, rights, **kwargs)
+        return self._inner.predict_pairs(lefts, rights, *args, **kwargs)
 
 
 @dataclass

@@ -332,13 +332,13 @@ async def test_the_worker_runs_torch_with_the_configured_threads():
     process_threads = torch.get_num_threads()  # the app sets them process-wide: restore after
     async with serve_asgi(lite_settings(threads=1)) as h:
         seen: list[int] = []
-        inner_predict_batch = h.predictors["lite"]._inner.predict_batch  # what the worker computes with
+        inner_predict_pairs = h.predictors["lite"]._inner.predict_pairs  # what the worker computes with
 
-        def recording_predict_batch(*args: Any, **kwargs: Any) -> Any:
+        def recording_predict_pairs(*args: Any, **kwargs: Any) -> Any:
             seen.append(torch.get_num_threads())
-            return inner_predict_batch(*args, **kwargs)
+            return inner_predict_pairs(*args, **kwargs)
 
-        h.predictors["lite"]._inner.predict_batch = recording_predict_batch
+        h.predictors["lite"]._inner.predict_pairs = recording_predict_pairs
         response = await h.client.post("/disparity", files=pair_files(*stereo_pair()))
         health = (await h.client.get("/health")).json()
     torch.set_num_threads(process_threads)
