@@ -4,10 +4,10 @@ The network is exported once per iteration counts and start (cold, or warm from 
 disparity) with symbolic batch, height and width (``inference.openvino_export``), and the graph
 is saved to a disk cache (OpenVINO IR, keyed by the weights' hash and the library versions). Each
 padded input shape then gets its own compiled model (a static shape runs about 10 % faster than
-the symbolic one), kept in a bounded in-memory cache; OpenVINO's own ``CACHE_DIR`` keeps the
-compiled blobs, so a restart neither exports nor compiles again. Precision is OpenVINO's
-inference precision hint: ``f32``, or ``bf16`` where the CPU computes bf16 natively
-(AVX512-BF16, AMX).
+the symbolic one), kept in an in-memory cache bounded by shapes and by their estimated memory
+(``compiled_bytes``); OpenVINO's own ``CACHE_DIR`` keeps the compiled blobs, so a restart neither
+exports nor compiles again. Precision is OpenVINO's inference precision hint: ``f32``, or ``bf16``
+where the CPU computes bf16 natively (AVX512-BF16, AMX).
 
 A graph is exported only when asked for (``prepare``; ``crestereo-pp prepare`` from the shell),
 never by a call: a call whose graph is neither in memory nor in the disk cache runs on torch in
@@ -36,7 +36,6 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from .cuda_graphs import put_bounded
 from .forward import Forward, Maps
 from .openvino_export import EXPORT_VERSION, GraphKind, export_in_child, remove_graph
 from .options import StageCounts
@@ -44,6 +43,21 @@ from .options import StageCounts
 logger = logging.getLogger(__name__)
 
 BF16_CPU_FLAGS = ("amx_bf16", "avx512_bf16")
+
+COMPILED_BASE_BYTES = 16 << 20
+COMPILED_BYTES_PER_ITERATION = 7 << 20
+COMPILED_BYTES_PER_PIXEL = 400
+"""The estimate of what one compiled shape holds (``compiled_bytes``), fitted from above to lite's
+in-use malloc bytes after its first call: the code and constants of the unrolled graph, which grow
+with the iterations it unrolls (1,1,1: 31-32 MiB, 0,0,6: 48 MiB, 2,4,6: 87-93 MiB at 1x64x96), plus
+its buffers, which grow with the input pixels (batch x height x width: 317 bytes a pixel in bf16,
+378 in fp32; 2,4,6 at 1x384x1248 in bf16: 240-259 MiB)."""
+
+MAX_COMPILED_BYTES = 768 << 20
+"""Default bound of the compiled shapes kept per model, by their estimated memory: a 1248x384
+camera's shapes with one pass (quick pass and pass, 395 MiB estimated) or two (quick, half and
+refining passes, 500 MiB) fit. Under a mix of many sizes the former bound, 8 shapes, held 0.9-1.2
+GiB, and 8 large ones (4 MP each) would have held about 12 GiB."""
 
 _EXPORT_LOCK = threading.Lock()
 """One export at a time in a process: each keeps every core busy for minutes."""
@@ -74,6 +88,13 @@ def default_cache_dir() -> Path:
     return (Path(xdg) if xdg else Path.home() / ".cache") / "crestereo-pp"
 
 
+def compiled_bytes(kind: GraphKind, shape: tuple[int, ...]) -> int:
+    """Estimated memory of `kind`'s graph compiled for input `shape` (B, C, H, W), its infer request included."""
+    batch, _, height, width = shape
+    unrolled = COMPILED_BASE_BYTES + COMPILED_BYTES_PER_ITERATION * sum(kind.iters)
+    return unrolled + COMPILED_BYTES_PER_PIXEL * batch * height * width
+
+
 @dataclass(frozen=True)
 class _Compiled:
     """A model compiled for one input shape and precision, with the one request that runs it."""
@@ -90,7 +111,9 @@ class OpenVINOForward:
     not ready (neither in memory nor in the disk cache; ``prepare`` exports it).
     cache_key: names these weights in the disk cache (their hash); None keeps graphs in memory
     only. cache_dir: the cache's root (``default_cache_dir()``); graphs and blobs go to its
-    ``openvino/`` folder. max_shapes: compiled shapes kept in memory (least recently used dropped first).
+    ``openvino/`` folder. max_shapes, max_bytes: compiled shapes kept in memory, at most that many and
+    that much estimated memory (``compiled_bytes``) together; the least recently used are dropped
+    before another is compiled, and one shape larger than `max_bytes` is kept alone.
     Thread-safe: calls may come from several threads; one export runs at a time, in a child
     process that a daemon thread waits for.
     """
@@ -103,6 +126,7 @@ class OpenVINOForward:
         cache_key: str | None,
         cache_dir: Path | None = None,
         max_shapes: int = 8,
+        max_bytes: int = MAX_COMPILED_BYTES,
     ) -> None:
         import openvino as ov
 
@@ -111,6 +135,7 @@ class OpenVINOForward:
         self.network = network
         self.fallback = fallback
         self.max_shapes = max_shapes
+        self.max_bytes = max_bytes
         directory = (cache_dir or default_cache_dir()) / "openvino"
         self.graph_dir = None if cache_key is None else directory / f"{cache_key}-v{EXPORT_VERSION}"
         if self.graph_dir is not None and self.graph_dir.is_dir():
@@ -241,6 +266,7 @@ class OpenVINOForward:
             if key in self.compiled:
                 self.compiled.move_to_end(key)
                 return self.compiled[key]
+            self._make_room(compiled_bytes(kind, shape))  # before compiling: the cache and the new one fit the bound
             static = graph.clone()
             batch, _, height, width = shape
             images, init = [batch, 3, height, width], [batch, 1, height, width]
@@ -256,8 +282,22 @@ class OpenVINOForward:
             )
             compiled = _Compiled(model, model.create_infer_request(), threading.Lock())
             self.compiles += 1
-            put_bounded(self.compiled, key, compiled, self.max_shapes)
+            self.compiled[key] = compiled
             return compiled
+
+    @property
+    def compiled_bytes(self) -> int:
+        """Estimated memory of the compiled shapes kept (``compiled_bytes``)."""
+        return sum(compiled_bytes(kind, shape) for kind, shape, _ in self.compiled)
+
+    def _make_room(self, nbytes: int) -> None:
+        """Drop compiled shapes, least recently used first, until one more of `nbytes` fits both
+        bounds (all of them where it alone is over `max_bytes`). Call with the lock held; a call
+        computing on a dropped shape keeps it until it returns."""
+        while self.compiled and (
+            len(self.compiled) >= self.max_shapes or self.compiled_bytes + nbytes > self.max_bytes
+        ):
+            self.compiled.popitem(last=False)
 
 
 def _described(kind: GraphKind) -> str:

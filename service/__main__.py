@@ -10,6 +10,7 @@ says what each bounds and what uvicorn cannot bound.
 from __future__ import annotations
 
 import argparse
+import ctypes
 import logging
 import math
 import os
@@ -49,6 +50,13 @@ SERVER_LIMITS: ServerLimits = {
     # then bounds what a client must send, byte for byte.
     "ws_per_message_deflate": False,
 }
+MALLOC_ARENAS = 2
+"""glibc malloc arenas of the server process (glibc's default: 8 per core). Each thread that
+allocates (the inference thread, OpenVINO's and the response threads) gets an arena of its own up to that
+limit, and what one frees stays in it for that arena's next allocations: under a mix of image sizes
+16 arenas held 550-800 MiB free (and growing) beside about 1 GiB in use."""
+M_ARENA_MAX = -8  # mallopt's parameter number (malloc.h)
+
 SHUTDOWN_MARGIN_S = 5
 """After SIGTERM the service's drain (CRESTEREO_DRAIN_TIMEOUT_S) answers every admitted request;
 uvicorn cancels whatever still runs this long after it (a client that never reads its answer)."""
@@ -67,6 +75,7 @@ def main(argv: list[str] | None = None) -> None:
 def serve(host: str, port: int) -> None:
     """Serve the app under uvicorn on host:port until SIGTERM or SIGINT (then drain)."""
     settings = Settings.from_env()
+    limit_malloc_arenas()
     shutdown_s = math.ceil(settings.drain_timeout_s) + SHUTDOWN_MARGIN_S
     uvicorn.run(
         "crestereo_pp.service.api.app:create_app",
@@ -92,6 +101,19 @@ def serve(host: str, port: int) -> None:
     if any_busy():
         logging.shutdown()
         os._exit(0)
+
+
+def limit_malloc_arenas(arenas: int = MALLOC_ARENAS) -> bool:
+    """Cap glibc's malloc arenas in this process at `arenas` (mallopt M_ARENA_MAX), before the
+    server starts its threads, unless MALLOC_ARENA_MAX is set (glibc read that at startup: it wins).
+    Returns whether the cap was set (False off glibc)."""
+    if "MALLOC_ARENA_MAX" in os.environ:
+        return False
+    try:
+        mallopt = ctypes.CDLL(None).mallopt
+    except (OSError, AttributeError):  # not glibc
+        return False
+    return bool(mallopt(M_ARENA_MAX, arenas))
 
 
 if __name__ == "__main__":

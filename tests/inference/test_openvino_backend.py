@@ -6,6 +6,7 @@ The graphs here run one iteration per stage: an export costs CPU time in proport
 iterations it unrolls, and the equality of the maps does not depend on their number.
 """
 
+import ctypes
 import logging
 import os
 import re
@@ -24,7 +25,8 @@ import torch
 from crestereo_pp.cli.main import main
 from crestereo_pp.inference import load_model
 from crestereo_pp.inference.backend_choice import resolve_backend, resolve_precision
-from crestereo_pp.inference.openvino_backend import native_bf16
+from crestereo_pp.inference.openvino_backend import MAX_COMPILED_BYTES, compiled_bytes, native_bf16
+from crestereo_pp.inference.openvino_export import GraphKind
 from shared_data import STEREO_DEV
 
 REPO = Path(__file__).resolve().parents[2]
@@ -253,6 +255,44 @@ def test_compiled_shapes_are_kept_up_to_a_bound_least_recently_used_first(first_
         predictor.predict(left[:height, :128], right[:height, :128], iters=ITERS, two_pass=False)
     assert len(backend.compiled) == 2
     assert [key[1][2] for key in backend.compiled] == [96, 128]
+
+
+def test_compiled_shapes_are_kept_within_their_estimated_memory_and_the_estimate_is_not_below_it(first_call, tsukuba):
+    predictor, *_ = first_call
+    backend = predictor.openvino
+    kind, left, right = GraphKind(ITERS, False), *tsukuba
+    shapes = [(1, 3, height, 128) for height in (64, 96, 128)]
+    backend.compiled.clear()
+    backend.max_shapes, backend.max_bytes = 8, compiled_bytes(kind, shapes[1]) + compiled_bytes(kind, shapes[2])
+    try:
+        in_use = [malloc_in_use()]
+        for _, _, height, width in shapes:
+            predictor.predict(left[:height, :width], right[:height, :width], iters=ITERS, two_pass=False)
+            in_use.append(malloc_in_use())
+        # room is made before compiling: the first shape went for the third, and the bound held throughout
+        assert [shape for _, shape, _ in backend.compiled] == shapes[1:]
+        assert backend.compiled_bytes <= backend.max_bytes
+        # what the first two shapes really took (nothing was dropped yet) is within their estimates
+        for shape, before, after in zip(shapes[:2], in_use, in_use[1:], strict=False):
+            assert 0 < after - before <= compiled_bytes(kind, shape), (shape, after - before)
+        backend.max_bytes = 1  # a shape over the whole bound is kept, alone
+        predictor.predict(left[:64, :128], right[:64, :128], iters=ITERS, two_pass=False)
+        assert [shape for _, shape, _ in backend.compiled] == shapes[:1]
+    finally:
+        backend.max_shapes, backend.max_bytes = 8, MAX_COMPILED_BYTES
+
+
+def malloc_in_use() -> int:
+    """Bytes glibc's malloc has handed out and not had back (mallinfo2: arenas and mmapped chunks)."""
+    fields = ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks", "fsmblks", "uordblks", "fordblks", "keepcost")
+
+    class MallInfo2(ctypes.Structure):
+        _fields_ = [(name, ctypes.c_size_t) for name in fields]
+
+    mallinfo2 = ctypes.CDLL(None).mallinfo2
+    mallinfo2.restype = MallInfo2
+    info = mallinfo2()
+    return int(info.uordblks + info.hblkhd)
 
 
 def test_bf16_moves_the_maps_a_little_and_runs_only_where_asked(first_call, tsukuba):

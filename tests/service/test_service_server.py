@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import base64
 import json
+import random
 import signal
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -209,3 +210,30 @@ def test_a_load_of_hundreds_of_requests_is_all_answered_and_memory_settles(defau
             assert response.json()["error"]["code"] == "queue_full"
     (_, warm), (_, middle), (_, final) = rounds
     assert final - middle < 32, f"resident memory grew: {warm:.0f} -> {middle:.0f} -> {final:.0f} MiB"
+
+
+def test_memory_settles_under_a_stream_of_new_image_sizes(tmp_path):
+    """Each new image size has torch's convolutions build new oneDNN primitives (the suite serves on
+    torch, as `full` and uncompiled iterations do), and a mix of sizes spreads the allocations of
+    many threads over glibc's arenas. With the defaults the server applies itself (a small primitive
+    cache, two malloc arenas), memory settles after the first sizes instead of following each new one."""
+    sizes = [(height, width) for height in range(64, 321, 32) for width in range(96, 417, 64)]  # 54 padded shapes
+    random.Random(0).shuffle(sizes)
+    with run_uvicorn(tmp_path) as server:
+
+        def resident_mib() -> float:
+            return metric_total(metrics(server), "process_resident_memory_bytes") / 2**20
+
+        def post(size: tuple[int, int]) -> httpx.Response:
+            files = pair_files(*stereo_pair(*size, seed=size[0] * 1000 + size[1]))
+            return client.post("/disparity", params={"iters": "1,1,2", "format": "npz"}, files=files)
+
+        with httpx.Client(base_url=server.base_url, timeout=120) as client, ThreadPoolExecutor(4) as pool:
+            assert post((32, 32)).status_code == 200
+            resident = [resident_mib()]
+            for chunk in (sizes[:18], sizes[18:36], sizes[36:]):
+                assert {response.status_code for response in pool.map(post, chunk)} == {200}
+                resident.append(resident_mib())
+    # 54 sizes took it 99-156 MiB above where one small pair left it; without those defaults, 375-442 MiB
+    growth = resident[-1] - resident[0]
+    assert growth < 256, "resident memory followed the new sizes: " + " -> ".join(f"{r:.0f}" for r in resident)
