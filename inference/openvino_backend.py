@@ -286,7 +286,7 @@ class OpenVINOForward:
             return compiled
 
     @property
-    def compiled_bytes(self) -> int:
+    def kept_bytes(self) -> int:
         """Estimated memory of the compiled shapes kept (``compiled_bytes``)."""
         return sum(compiled_bytes(kind, shape) for kind, shape, _ in self.compiled)
 
@@ -295,7 +295,7 @@ class OpenVINOForward:
         bounds (all of them where it alone is over `max_bytes`). Call with the lock held; a call
         computing on a dropped shape keeps it until it returns."""
         while self.compiled and (
-            len(self.compiled) >= self.max_shapes or self.compiled_bytes + nbytes > self.max_bytes
+            len(self.compiled) >= self.max_shapes or self.kept_bytes + nbytes > self.max_bytes
         ):
             self.compiled.popitem(last=False)
 
