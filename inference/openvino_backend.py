@@ -294,9 +294,7 @@ class OpenVINOForward:
         """Drop compiled shapes, least recently used first, until one more of `nbytes` fits both
         bounds (all of them where it alone is over `max_bytes`). Call with the lock held; a call
         computing on a dropped shape keeps it until it returns."""
-        while self.compiled and (
-            len(self.compiled) >= self.max_shapes or self.kept_bytes + nbytes > self.max_bytes
-        ):
+        while self.compiled and (len(self.compiled) >= self.max_shapes or self.kept_bytes + nbytes > self.max_bytes):
             self.compiled.popitem(last=False)
 
 
