@@ -18,7 +18,7 @@ from .options import (
     parse_iterations,
     parse_two_pass,
 )
-from .prediction import Prediction, TensorPrediction
+from .prediction import Prediction, TensorPrediction, on_host
 from .predictor import StereoPredictor
 from .warm_start import FrameStream, WarmStart
 
@@ -34,6 +34,7 @@ __all__ = [
     "TwoPass",
     "WarmStart",
     "load_model",
+    "on_host",
     "parse_iterations",
     "parse_two_pass",
 ]

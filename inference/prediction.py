@@ -4,6 +4,7 @@ maps from the device to the host."""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import NamedTuple
 
 import numpy as np
@@ -51,8 +52,31 @@ def as_image_batch(image: np.ndarray | Tensor, device: torch.device) -> Tensor:
     return batch.expand(-1, 3, -1, -1) if batch.shape[1] == 1 else batch
 
 
-def to_host(disparity: Tensor, uncertainty: Tensor) -> tuple[np.ndarray, np.ndarray]:
-    """Two maps of one shape (float32 tensors on any device) as numpy arrays, in one copy to the
-    host: the only device-to-host transfer of a prediction."""
-    both = torch.stack((disparity, uncertainty)).cpu().numpy()
-    return both[0], both[1]
+def image_size(image: np.ndarray | Tensor) -> tuple[int, int]:
+    """(height, width) of an image as ``as_image_batch`` takes it: an HxW[xC] array or a
+    (B, C, H, W) tensor."""
+    if isinstance(image, np.ndarray):
+        if image.ndim not in (2, 3):
+            raise ValueError(f"expected an HxW, HxWx1, HxWx3 or HxWx4 image, got shape {image.shape}")
+        return image.shape[0], image.shape[1]
+    if isinstance(image, Tensor):
+        return image.shape[-2], image.shape[-1]
+    raise TypeError(f"expected a numpy array or a torch tensor, got {type(image).__name__}")
+
+
+def on_host(predictions: Sequence[TensorPrediction]) -> list[Prediction]:
+    """Maps of single pairs ((1, H, W) tensors on any device, ``predict_pairs``') as numpy HxW
+    arrays, copied to the host in one transfer for all of them: the only device-to-host transfer
+    of a prediction."""
+    if any(p.disparity.shape[0] != 1 or p.uncertainty.shape != p.disparity.shape for p in predictions):
+        raise ValueError("on_host takes the maps of single pairs, (1, H, W) each")
+    flat = torch.cat([torch.cat((p.disparity.flatten(), p.uncertainty.flatten())) for p in predictions])
+    values = flat.cpu().numpy()
+    results, start = [], 0
+    for p in predictions:
+        height, width = p.disparity.shape[-2:]
+        size = height * width
+        maps = values[start : start + 2 * size].reshape(2, height, width)
+        results.append(Prediction(maps[0], maps[1]))
+        start += 2 * size
+    return results

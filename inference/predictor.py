@@ -27,13 +27,13 @@ from crestereo_pp.model.upsample import resize_disparity
 from crestereo_pp.model.weights import is_trained
 
 from .backend_choice import Backend, Precision
-from .batching import PaddedBatch, batch_two_pass, size_groups
+from .batching import PaddedBatch, batch_groups
 from .cuda_graphs import GraphedForward
 from .forward import Forward, Maps
 from .openvino_backend import OpenVINOForward
 from .options import InferenceOptions, Iterations, IterationsGiven, StageCounts, TwoPass
 from .padding import Padding
-from .prediction import Prediction, TensorPrediction, as_image_batch, to_host
+from .prediction import Prediction, TensorPrediction, as_image_batch, image_size, on_host
 from .scaling import scaled_size, shrink
 from .torch_backend import autocast_bf16
 from .two_pass import cold_maps, large_disparity_percentile
@@ -200,19 +200,15 @@ class StereoPredictor:
         ``left`` tensor a ``TensorPrediction`` (tensors on the predictor's device).
         """
         options = InferenceOptions(iters, two_pass, scale, raw_uncertainty)
-        disparity, uncertainty = self.predict_tensors(
-            as_image_batch(left, self.device),
-            as_image_batch(right, self.device),
-            self.iterations(options.iters),
-            options.two_pass,
-            options.scale,
-            init_disparity=init_disparity,
-            raw_uncertainty=options.raw_uncertainty,
-            graphed=False,
-        )
+        left_batch, right_batch = as_image_batch(left, self.device), as_image_batch(right, self.device)
+        inits = None
+        if init_disparity is not None:  # (B, H, W) or H x W: one per pair of the batch
+            init = torch.as_tensor(init_disparity, dtype=torch.float32, device=self.device)
+            inits = one_per_pair(init.reshape(left_batch.shape[0], *left_batch.shape[-2:]))
+        maps = self.predict_pairs(one_per_pair(left_batch), one_per_pair(right_batch), options, inits, graphed=False)
         if isinstance(left, np.ndarray):
-            return Prediction(*to_host(disparity[0], uncertainty[0]))
-        return TensorPrediction(disparity, uncertainty)
+            return on_host(maps)[0]
+        return TensorPrediction(torch.cat([m.disparity for m in maps]), torch.cat([m.uncertainty for m in maps]))
 
     def predict_batch(
         self,
@@ -226,71 +222,77 @@ class StereoPredictor:
         init_disparities: Sequence[np.ndarray] | None = None,
     ) -> list[Prediction]:
         """Several pairs (arrays, as ``predict`` takes them) in one forward pass: ``predict_pairs``
-        with the options read once, here, as ``InferenceOptions``."""
-        return self.predict_pairs(
-            lefts, rights, InferenceOptions(iters, two_pass, scale, raw_uncertainty), init_disparities
-        )
+        with the options read once, here, as ``InferenceOptions``, its maps copied to the host."""
+        options = InferenceOptions(iters, two_pass, scale, raw_uncertainty)
+        return on_host(self.predict_pairs(lefts, rights, options, init_disparities))
 
     @torch.inference_mode()
     def predict_pairs(
         self,
-        lefts: Sequence[np.ndarray],
-        rights: Sequence[np.ndarray],
+        lefts: Sequence[np.ndarray | Tensor],
+        rights: Sequence[np.ndarray | Tensor],
         options: InferenceOptions,
-        init_disparities: Sequence[np.ndarray] | None = None,
-    ) -> list[Prediction]:
-        """Several pairs (arrays, as ``predict`` takes them) in one forward pass with ``options``
-        (as they travel from a request: the service's batches); the maps come back as numpy HxW
-        arrays, copied from the device once for the whole batch. On CUDA the forward is replayed
-        from a CUDA graph of the padded shape (``self.graphs``).
-        ``init_disparities``: a warm start per pair (HxW px of its size), as ``predict``'s.
+        init_disparities: Sequence[np.ndarray | Tensor] | None = None,
+        *,
+        graphed: bool = True,
+    ) -> list[TensorPrediction]:
+        """The maps of several pairs with ``options`` (as they travel from a request: the
+        service's batches), in as few forward passes as they allow: each pair's disparity and
+        uncertainty, (1, h, w) on the device (``on_host`` copies them to the host at once).
+        Every call of the network with a request's options runs through here.
+
+        lefts, rights: one image per pair, an array (as ``predict`` takes it) or a (1, 3|1, h, w)
+        tensor. init_disparities: a warm start per pair (h x w px of its size), as ``predict``'s.
+        graphed: on CUDA, replay the forward from a CUDA graph of the padded shape (``self.graphs``).
 
         Pairs of different sizes are replicate-padded at the bottom and right to one shape, a
-        multiple of INPUT_MULTIPLE, exactly as ``predict`` pads a single pair, so each result
-        equals ``predict`` on its pair alone up to float rounding. With ``two_pass=True`` or a
-        ``scale`` the resized passes would see the padding: all pairs must then have one size;
-        with ``two_pass="auto"`` (and no warm starts) pairs of different sizes run as one batch per size,
-        unless none of them is large enough for two passes (``two_pass_possible``).
+        multiple of INPUT_MULTIPLE, exactly as a single pair is padded, so each result equals
+        the pair computed alone up to float rounding. With ``two_pass=True`` or a ``scale`` the
+        resized passes would see the padding: all pairs must then have one size; with
+        ``two_pass="auto"`` (and no warm starts) pairs of different sizes run as one batch per
+        size, unless none of them is large enough for two passes (``batch_groups``).
         """
+        sizes = [image_size(image) for image in lefts]
         if not lefts or len(lefts) != len(rights):
             raise ValueError(
                 f"need as many right images as left ones (at least one), got {len(lefts)} and {len(rights)}"
             )
-        sizes = [image.shape[:2] for image in lefts]
-        batch_pass = batch_two_pass(sizes, options.two_pass, init_disparities is not None, options.scale)
-        if batch_pass is None:
-            results: dict[int, Prediction] = {}
-            for group in size_groups(sizes):
-                predictions = self.predict_pairs([lefts[i] for i in group], [rights[i] for i in group], options)
-                results.update(zip(group, predictions, strict=True))
-            return [results[i] for i in range(len(lefts))]
-        batch = PaddedBatch.of(sizes)
-        init: Tensor | None = None
-        if init_disparities is not None:
-            if len(init_disparities) != len(lefts):
-                raise ValueError(f"need one warm start per pair, got {len(init_disparities)} for {len(lefts)}")
-            init = batch.stack(
-                [torch.as_tensor(d, dtype=torch.float32, device=self.device)[None, None] for d in init_disparities]
-            )[:, 0]
-
-        left_batch = batch.stack([as_image_batch(image, self.device) for image in lefts])
-        disparity_batch, uncertainty_batch = self.predict_tensors(
-            left_batch,
-            batch.stack([as_image_batch(image, self.device) for image in rights]),
-            self.iterations(options.iters),
-            batch_pass,
-            options.scale,
-            init_disparity=init,
-            raw_uncertainty=options.raw_uncertainty or batch.mixed,
-            graphed=True,
-        )
-        if (
-            batch.mixed and not options.raw_uncertainty
-        ):  # served from each pair's own maps, borders as ``predict`` sees them
-            uncertainty_batch = batch.served_per_pair(
-                uncertainty_batch, disparity_batch, left_batch, self.served_uncertainty
-            )
-        return batch.predictions(disparity_batch, uncertainty_batch)
+        right_sizes = [image_size(image) for image in rights]
+        if right_sizes != sizes:
+            raise ValueError(f"left and right differ in size: {sizes} vs {right_sizes}")
+        if init_disparities is not None and len(init_disparities) != len(lefts):
+            raise ValueError(f"need one warm start per pair, got {len(init_disparities)} for {len(lefts)}")
+        iters = self.iterations(options.iters)
+        forward = partial(self.forward_padded, backend=self.openvino or (self.graphs if graphed else None))
+        results: dict[int, TensorPrediction] = {}
+        for group, two_pass in batch_groups(sizes, options.two_pass, init_disparities is not None, options.scale):
+            batch = PaddedBatch.of([sizes[i] for i in group])
+            left = original_left = batch.stack([as_image_batch(lefts[i], self.device) for i in group])
+            right = batch.stack([as_image_batch(rights[i], self.device) for i in group])
+            height, width = left.shape[-2:]
+            size = scaled_size(height, width, options.scale)
+            if size != (height, width):
+                left, right = shrink(left, size), shrink(right, size)
+            if init_disparities is None:
+                disparity, uncertainty = cold_maps(left, right, iters, two_pass, forward)
+            else:
+                init = batch.stack(
+                    [
+                        torch.as_tensor(init_disparities[i], dtype=torch.float32, device=self.device).reshape(
+                            1, 1, *sizes[i]
+                        )
+                        for i in group
+                    ]
+                )
+                init = init if size == (height, width) else resize_disparity(init, *size)
+                disparity, uncertainty = forward(left, right, iters, init)
+            if size != (height, width):
+                disparity = resize_disparity(disparity, height, width)
+                uncertainty = F.interpolate(uncertainty, size=(height, width), mode="bilinear", align_corners=False)
+            if not options.raw_uncertainty:
+                uncertainty = batch.served(uncertainty, disparity, original_left, self.served_uncertainty)
+            results.update(zip(group, batch.maps(disparity[:, 0], uncertainty[:, 0]), strict=True))
+        return [results[i] for i in range(len(lefts))]
 
     def stream(self, options: InferenceOptions | None = None, warm_iters: IterationsGiven = None) -> FrameStream:
         """A video's pairs one at a time, each warm-started from the previous one (``FrameStream``)."""
@@ -309,44 +311,6 @@ class StereoPredictor:
         frames = self.stream(options, warm_iters)
         for left, right in pairs:
             yield frames.predict(left, right)
-
-    def predict_tensors(
-        self,
-        left_batch: Tensor,
-        right_batch: Tensor,
-        iters: StageCounts,
-        two_pass: TwoPass,
-        scale: float,
-        *,
-        init_disparity: np.ndarray | Tensor | None,
-        raw_uncertainty: bool,
-        graphed: bool,
-    ) -> tuple[Tensor, Tensor]:
-        """``predict`` on (B, 3, H, W) float images on the device, with the iterations resolved
-        (``iterations``) and handed as they are to the backend: disparity and uncertainty,
-        float32 (B, H, W) on the device. graphed: run the forward through ``self.graphs``
-        (where there are graphs)."""
-        if left_batch.shape != right_batch.shape:
-            raise ValueError(f"left and right differ in size: {tuple(left_batch.shape)} vs {tuple(right_batch.shape)}")
-        forward = partial(self.forward_padded, backend=self.openvino or (self.graphs if graphed else None))
-        height, width = left_batch.shape[-2:]
-        size = scaled_size(height, width, scale)
-        original_left = left_batch
-        if size != (height, width):
-            left_batch, right_batch = (shrink(image, size) for image in (left_batch, right_batch))
-        if init_disparity is not None:
-            init = torch.as_tensor(init_disparity, dtype=torch.float32, device=self.device)
-            init = init.reshape(left_batch.shape[0], 1, height, width)
-            init = init if size == (height, width) else resize_disparity(init, *size)
-            disparity, uncertainty = forward(left_batch, right_batch, iters, init)
-        else:
-            disparity, uncertainty = cold_maps(left_batch, right_batch, iters, two_pass, forward)
-        if size != (height, width):
-            disparity = resize_disparity(disparity, height, width)
-            uncertainty = F.interpolate(uncertainty, size=(height, width), mode="bilinear", align_corners=False)
-        if not raw_uncertainty:
-            uncertainty = self.served_uncertainty(uncertainty, disparity, original_left)
-        return disparity[:, 0], uncertainty[:, 0]
 
     @torch.inference_mode()
     def large_disparity_percentile(
@@ -399,3 +363,8 @@ class StereoPredictor:
         with autocast_bf16(self.device, bf16, cache=False):
             out = self.network(left, right, iters=iters, init_disparity=init)
         return out.disparity.float(), out.uncertainty.float()
+
+
+def one_per_pair(batch: Tensor) -> list[Tensor]:
+    """A (B, ...) batch as B tensors (1, ...), views of it: one per pair, as ``predict_pairs`` takes them."""
+    return [batch[i : i + 1] for i in range(batch.shape[0])]

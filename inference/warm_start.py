@@ -40,11 +40,15 @@ class WarmStart:
         self._previous: np.ndarray | None = None
 
     def next(self, height: int, width: int) -> tuple[InferenceOptions, np.ndarray | None]:
-        """The options of the next frame (of this size) and its warm start (float32 HxW px, or None: cold)."""
+        """The options of the next frame (of this size) and its warm start (``start``)."""
+        init = self.start(height, width)
+        return (self.options if init is None else self.warm_options), init
+
+    def start(self, height: int, width: int) -> np.ndarray | None:
+        """The warm start of the next frame (of this size): the previous frame's disparity
+        (float32 HxW px), or None where it is computed cold (with ``options``; else ``warm_options``)."""
         previous = self._previous
-        if previous is None or previous.shape != (height, width):
-            return self.options, None
-        return self.warm_options, previous
+        return None if previous is None or previous.shape != (height, width) else previous
 
     def record(self, disparity: np.ndarray) -> None:
         """The disparity the frame just computed had (the next one starts from it)."""

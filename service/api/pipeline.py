@@ -52,16 +52,23 @@ async def answer_pair(
     stop: resolves with the error to raise once the request is abandoned while its images are
     decoded or its rectifier built; is_disconnected: whether the client has gone (the batcher
     drops such requests); deadline: `time.monotonic()` by which the answer is due; frames: a
-    stream's warm starts (each pair starts from the previous one's disparity), None for a pair on
-    its own. 422 `scale_too_small` before anything is admitted where `options.scale` leaves the
-    network too little of the image; otherwise what admission, decoding and batching raise.
+    stream's warm starts, made from `options.inference` (each pair starts from the previous one's
+    disparity), None for a pair on its own. 422 `scale_too_small` before anything is admitted
+    where `options.scale` leaves the network too little of the image; otherwise what admission,
+    decoding and batching raise.
     """
     header = upload.header
     problem = options.scale_problem(header.height, header.width)
     if problem is not None:
         raise bad_input(422, "scale_too_small", problem)
-    inference, init = (options.inference, None) if frames is None else frames.next(header.height, header.width)
-    key = stereo_key(options.model, inference, header.height, header.width, warm_start=init is not None)
+    init = None if frames is None else frames.start(header.height, header.width)
+    key = stereo_key(
+        options.model,
+        options.inference if frames is None or init is None else frames.warm_options,
+        header.height,
+        header.width,
+        warm_start=init is not None,
+    )
     # Admitted before a raw pair's rectifier is built: building one is work, bounded like decoding.
     async with (
         batcher.admit(options.model, key, deadline=deadline) as admission,
