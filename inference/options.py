@@ -74,6 +74,14 @@ def parse_two_pass(value: str | bool) -> TwoPass:
     return spelled
 
 
+def parse_scale(scale: float) -> float:
+    """``scale`` as given, where it is in (0, 1] (the factor the pair is resized by before the
+    network sees it); ValueError otherwise."""
+    if not 0.0 < scale <= 1.0:
+        raise ValueError(f"scale must be in (0, 1], got {scale}")
+    return scale
+
+
 @dataclass(frozen=True, init=False)
 class InferenceOptions:
     """The options of one prediction (``StereoPredictor.predict`` and ``predict_batch``), read once
@@ -104,9 +112,7 @@ class InferenceOptions:
     ) -> None:
         object.__setattr__(self, "iters", parse_iterations(iters))
         object.__setattr__(self, "two_pass", parse_two_pass(two_pass))
-        if not 0.0 < scale <= 1.0:
-            raise ValueError(f"scale must be in (0, 1], got {scale}")
-        object.__setattr__(self, "scale", scale)
+        object.__setattr__(self, "scale", parse_scale(scale))
         object.__setattr__(self, "raw_uncertainty", raw_uncertainty)
 
     def keywords(self) -> dict[str, Any]:

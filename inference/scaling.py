@@ -6,6 +6,8 @@ from __future__ import annotations
 from torch import Tensor
 from torch.nn import functional as F
 
+from .options import parse_scale
+
 MIN_SCALED_SIDE = 16
 """With ``scale``, the pair the network sees keeps at least this many pixels per side: below it
 the network sees too little to match, and its disparities, multiplied by 1 / scale, come out
@@ -16,9 +18,7 @@ def scaled_size(height: int, width: int, scale: float) -> tuple[int, int]:
     """(height, width) of a ``height`` x ``width`` pair resized by ``scale`` in (0, 1], as
     ``predict(..., scale=...)`` runs it; ValueError where a side would fall below MIN_SCALED_SIDE
     (an image already smaller than that must come at scale 1)."""
-    if not 0.0 < scale <= 1.0:
-        raise ValueError(f"scale must be in (0, 1], got {scale}")
-    size = (round(height * scale), round(width * scale))
+    size = (round(height * parse_scale(scale)), round(width * scale))
     if scale < 1.0 and min(size) < MIN_SCALED_SIDE:
         raise ValueError(
             f"scale {scale:g} would run the {width}x{height} pair at {size[1]}x{size[0]}; "
