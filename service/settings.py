@@ -107,13 +107,16 @@ class Settings(BaseModel):
         "largest bodies, or `max_requests` pairs of 4 MiB.",
     )
     max_streams: int = Field(
-        16, ge=1, description="Most `/disparity/stream` connections open at once; beyond it 1013 `overloaded`."
+        16,
+        ge=1,
+        description="Most `/disparity/stream` connections open at once; beyond it the handshake is refused with "
+        "HTTP 503 `overloaded` and `Retry-After`.",
     )
     max_streams_per_client: int = Field(
         4,
         ge=1,
         description="Most streams open at once from one client address (as uvicorn sees it: behind a proxy, "
-        "let uvicorn read `X-Forwarded-For` with `FORWARDED_ALLOW_IPS`); beyond it 1013 `overloaded`.",
+        "let uvicorn read `X-Forwarded-For` with `FORWARDED_ALLOW_IPS`); beyond it HTTP 503 `overloaded`.",
     )
     stream_idle_timeout_s: float = Field(
         5.0,

@@ -97,15 +97,16 @@ can send the key."""
 OPEN_PREFIX = "/static/"
 
 POLICY_VIOLATION = 1008
-"""WebSocket close code of a refused handshake (uvicorn answers it with HTTP 403)."""
+"""WebSocket close code of a handshake refused where the server sends no HTTP answer (it answers 403)."""
 
 
 class ApiKeyMiddleware:
     """With `CRESTEREO_API_KEY` set, refuses every request to a path that is not open (OPEN_PATHS,
     OPEN_PREFIX) unless it bears the key (`Authorization: Bearer <key>`): 401 `unauthorized` with
     `WWW-Authenticate: Bearer`, before it takes a place or any of the upload budget; a WebSocket
-    handshake is refused with HTTP 403. Closed by default: a route added later needs the key until
-    its path is listed here."""
+    handshake is refused with HTTP 403 `unauthorized` (JSON, the WebSocket denial response: the
+    connection never opens). Closed by default: a route added later needs the key until its path is
+    listed here."""
 
     def __init__(self, app: ASGIApp, settings: Settings) -> None:
         self.app = app
@@ -116,8 +117,11 @@ class ApiKeyMiddleware:
             await self.app(scope, receive, send)
             return
         message = "missing or wrong bearer token"
-        if scope["type"] == "websocket":
-            await send({"type": "websocket.close", "code": POLICY_VIOLATION, "reason": message})
+        if scope["type"] == "websocket":  # 403: what a server answers to a handshake closed unopened
+            if "websocket.http.response" in scope.get("extensions", {}):  # the ASGI denial response (uvicorn)
+                await error_response(403, "unauthorized", message)(scope, receive, send)
+            else:
+                await send({"type": "websocket.close", "code": POLICY_VIOLATION, "reason": message})
             return
         await error_response(401, "unauthorized", message, headers={"WWW-Authenticate": "Bearer"})(scope, receive, send)
 

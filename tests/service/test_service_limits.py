@@ -1,6 +1,7 @@
 """What the server holds at once, each limit against a real uvicorn process on loopback: streams
-(places in all and per client, idle time, image size, uncompressed messages), the bytes of uploads
-(request bodies and stream images under one budget), and the query checks both routes share."""
+(places in all and per client, refused at the handshake; idle time, image size, uncompressed
+messages), the bytes of uploads (request bodies and stream images under one budget), and the query
+checks both routes share."""
 
 from __future__ import annotations
 
@@ -61,27 +62,39 @@ def stalled_upload(base_url: str, declared: int) -> socket.socket:
     return sock
 
 
+def refused_handshake(base_url: str, source: str = "127.0.0.1") -> tuple[int, dict[str, str], dict[str, Any], float]:
+    """A stream refused at its handshake: the HTTP status, headers and JSON error of the answer,
+    and the seconds from connecting to the answer."""
+    started = time.perf_counter()
+    with pytest.raises(InvalidStatus) as refused, open_stream(base_url, source=source):
+        pass
+    seconds = time.perf_counter() - started
+    response = refused.value.response
+    return response.status_code, dict(response.headers), json.loads(response.body)["error"], seconds
+
+
 @pytest.mark.slow
 def test_idle_streams_fill_only_their_own_places_and_the_probes_keep_answering(tmp_path):
     limits = {"max_streams": "3", "max_streams_per_client": "2", "stream_idle_timeout_s": "30"}
     with run_uvicorn(tmp_path, **limits) as server, ExitStack() as streams:
         first, second = (streams.enter_context(open_stream(server.base_url)) for _ in range(2))
-        third_from_one_client = streams.enter_context(open_stream(server.base_url))
+        per_client = refused_handshake(server.base_url)
         other = streams.enter_context(open_stream(server.base_url, source="127.0.0.2"))
-        one_too_many = streams.enter_context(open_stream(server.base_url, source="127.0.0.3"))
+        in_all = refused_handshake(server.base_url, source="127.0.0.3")
         probes = [live_seconds(server.base_url) for _ in range(5)]
         ready = httpx.get(server.base_url + "/health/ready", timeout=5)
         for stream in (first, second, other):
             assert_open(stream)
-        per_client, per_client_code = closing_words(third_from_one_client)
-        in_all, in_all_code = closing_words(one_too_many)
         first.close()
         time.sleep(0.3)
         with open_stream(server.base_url) as again:  # a place comes back once a stream ends
             assert_open(again)
-    assert per_client["code"] == "overloaded" and "from 127.0.0.1" in per_client["message"]
-    assert in_all["code"] == "overloaded" and "3 streams are open" in in_all["message"]
-    assert per_client_code == in_all_code == 1013
+    # Refused before the handshake completes (HTTP 503, the service's JSON error and Retry-After):
+    # the connection never opens, so it holds nothing past the answer.
+    for status, headers, error, seconds in (per_client, in_all):
+        assert status == 503 and headers["retry-after"] == "1" and error["code"] == "overloaded"
+        assert headers["content-type"] == "application/json" and seconds < 1.0
+    assert "from 127.0.0.1" in per_client[2]["message"] and "3 streams are open" in in_all[2]["message"]
     assert ready.status_code == 200 and max(probes) < 1.0, probes
 
 

@@ -84,6 +84,8 @@ def test_a_stream_needs_the_bearer_key_when_the_server_has_one(tmp_path):
             service.stream()
         with StereoClient(server.base_url, api_key="s3cret") as service, service.stream() as stream:
             result = stream.send(left, right)
+    # refused at the handshake, with the service's JSON error (the connection never opens)
     assert refused.value.response.status_code == 403
+    assert json.loads(refused.value.response.body)["error"]["code"] == "unauthorized"
     assert client_refused.value.status == 403
     assert result.disparity.shape == left.shape[:2]

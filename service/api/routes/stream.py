@@ -12,7 +12,9 @@ uses (`service.api.pipeline.answer_pair`).
 
 What a stream may hold is bounded: a place among `max_streams` (`max_streams_per_client` per client
 address), one pair at a time, each image no larger than its model's pixel limit allows and counted
-against the upload budget that request bodies share, and `stream_idle_timeout_s` to send each.
+against the upload budget that request bodies share, and `stream_idle_timeout_s` to send each. A
+stream without a place (or without the bearer key) is refused at the handshake, with an HTTP
+answer: it never opens, so it holds no connection beyond that answer.
 """
 
 from __future__ import annotations
@@ -25,11 +27,12 @@ from contextlib import ExitStack, contextmanager
 
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 from pydantic import ValidationError
+from starlette.responses import Response
 from starlette.websockets import WebSocketState
 
 from crestereo_pp.inference import WarmStart
 from crestereo_pp.service.api.dependencies import bearer_accepted
-from crestereo_pp.service.api.errors import ApiError, batching_answer
+from crestereo_pp.service.api.errors import ApiError, batching_answer, error_response
 from crestereo_pp.service.api.pipeline import answer_pair
 from crestereo_pp.service.api.query import repeated_option
 from crestereo_pp.service.api.schemas import DisparityOptions, OutputFormat
@@ -43,6 +46,8 @@ router = APIRouter()
 
 GOING_AWAY, UNSUPPORTED_DATA, POLICY_VIOLATION, MESSAGE_TOO_BIG, TRY_AGAIN_LATER = 1001, 1003, 1008, 1009, 1013
 """WebSocket close codes (RFC 6455, 7.4.1; 1013 from the IANA registry)."""
+RETRY_AFTER_S = 1
+"""`Retry-After` of a stream refused for want of a place (as of a request refused `overloaded`)."""
 
 
 class _Closing(Exception):
@@ -59,15 +64,18 @@ async def stream_disparity(websocket: WebSocket) -> None:
     runtime: ServiceRuntime = websocket.app.state.runtime
     scheme, _, token = websocket.headers.get("authorization", "").partition(" ")
     if not bearer_accepted(runtime.settings, token if scheme.lower() == "bearer" else None):
-        await websocket.close(code=POLICY_VIOLATION, reason="missing or wrong bearer token")  # HTTP 403
+        # As ApiKeyMiddleware, which refuses it first: kept here should the route move out from under it.
+        await _refuse(websocket, error_response(403, "unauthorized", "missing or wrong bearer token"))
         return
     streams: StreamSlots = websocket.app.state.streams
     uploads: ByteBudget = websocket.app.state.uploads
     with streams.place(websocket.client.host if websocket.client else "") as refusal:
+        if refusal is not None:  # refused before the handshake: the connection ends with this answer
+            runtime.metrics.reject("overloaded")
+            await _refuse(websocket, error_response(503, "overloaded", refusal, {"Retry-After": str(RETRY_AFTER_S)}))
+            return
         await websocket.accept()
         try:
-            if refusal is not None:
-                raise _Closing(TRY_AGAIN_LATER, "overloaded", refusal)
             options, warm_start = _options(websocket)
             await _serve(websocket, runtime, uploads, options, warm_start)
         except _Closing as closing:
@@ -76,6 +84,15 @@ async def stream_disparity(websocket: WebSocket) -> None:
             await websocket.close(code=closing.code, reason=closing.reason[:120])
         except WebSocketDisconnect:
             return
+
+
+async def _refuse(websocket: WebSocket, answer: Response) -> None:
+    """Refuse the handshake with the HTTP `answer`, where the server sends one (the ASGI WebSocket
+    denial response: uvicorn does); else close it unopened (the server answers 403)."""
+    if "websocket.http.response" in websocket.scope.get("extensions", {}):
+        await websocket.send_denial_response(answer)
+    else:
+        await websocket.close(code=POLICY_VIOLATION, reason=bytes(answer.body).decode()[:120])
 
 
 def _options(websocket: WebSocket) -> tuple[DisparityOptions, WarmStart]:
