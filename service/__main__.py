@@ -14,6 +14,7 @@ import ctypes
 import logging
 import math
 import os
+import sys
 from typing import TypedDict
 
 import uvicorn
@@ -35,21 +36,26 @@ class ServerLimits(TypedDict):
 SERVER_LIMITS: ServerLimits = {
     # Open connections (idle and slow ones included) before uvicorn answers 503 (text) itself:
     # far above what the app serves at once (CRESTEREO_MAX_REQUESTS, JSON 503 `overloaded`
-    # beyond it; CRESTEREO_MAX_STREAMS WebSockets, refused and closed at once beyond it), so that
-    # idle connections cannot lock the probes out; far below the file descriptors a process has.
-    # Beyond it, connection floods are a reverse proxy's job.
-    "limit_concurrency": 1000,
+    # beyond it; CRESTEREO_MAX_STREAMS WebSockets, refused at the handshake with JSON 503 beyond
+    # it), so that a thousand idle connections leave room for the probes. Each needs a file
+    # descriptor: serve() raises the soft RLIMIT_NOFILE to fit (FILE_DESCRIPTORS_BESIDE
+    # connections). Beyond it, connection floods are a reverse proxy's job.
+    "limit_concurrency": 2048,
     # Seconds an idle keep-alive connection is held open.
     "timeout_keep_alive": 5,
     # Bytes of an unparsed request head before uvicorn answers 400 (text) itself: up to this, the
-    # head reaches the app, which answers 431 (JSON) over 16 KiB. Worst case in memory:
-    # limit_concurrency x 1 MiB = 1 GiB, only with 1000 connections each sending a 1 MiB head.
-    "h11_max_incomplete_event_size": 1024 * 1024,
+    # head reaches the app, which answers 431 (JSON) over 16 KiB. The trade with limit_concurrency:
+    # in the worst case, every connection sending a head just under it, uvicorn holds
+    # limit_concurrency x 512 KiB = 1 GiB; a larger cap would need fewer connections.
+    "h11_max_incomplete_event_size": 512 * 1024,
     # WebSocket messages uncompressed: with permessage-deflate, a few KiB on the wire could
     # inflate to a whole message of zeros. A message's size (`ws_max_size`, from the settings)
     # then bounds what a client must send, byte for byte.
     "ws_per_message_deflate": False,
 }
+FILE_DESCRIPTORS_BESIDE = 256
+"""File descriptors the server needs besides its connections' (the listening socket, the decoder
+processes' pipes, logs, the models' and libraries' files), for the soft RLIMIT_NOFILE."""
 MALLOC_ARENAS = 2
 """glibc malloc arenas of the server process (glibc's default: 8 per core). Each thread that
 allocates (the inference thread, OpenVINO's and the response threads) gets an arena of its own up to that
@@ -76,6 +82,14 @@ def serve(host: str, port: int) -> None:
     """Serve the app under uvicorn on host:port until SIGTERM or SIGINT (then drain)."""
     settings = Settings.from_env()
     limit_malloc_arenas()
+    needed = SERVER_LIMITS["limit_concurrency"] + FILE_DESCRIPTORS_BESIDE
+    allowed = raise_open_files_limit(needed)
+    if allowed is not None and allowed < needed:
+        logging.getLogger(__name__).warning(
+            "the open files limit (ulimit -n) is below %d: past it, new connections fail before "
+            "uvicorn's limit_concurrency answers 503",
+            needed,
+        )
     shutdown_s = math.ceil(settings.drain_timeout_s) + SHUTDOWN_MARGIN_S
     uvicorn.run(
         "crestereo_pp.service.api.app:create_app",
@@ -101,6 +115,32 @@ def serve(host: str, port: int) -> None:
     if any_busy():
         logging.shutdown()
         os._exit(0)
+
+
+def raise_open_files_limit(needed: int) -> int | None:
+    """Raise this process's soft RLIMIT_NOFILE to `needed` file descriptors where it is lower, as far as
+    the hard limit allows; never fails (nothing changes where it cannot). Returns the soft limit now
+    (sys.maxsize where unlimited), or None where it cannot be read."""
+    try:
+        import resource
+    except ImportError:  # not POSIX
+        return None
+    try:
+        soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    except (OSError, ValueError):
+        return None
+    if soft == resource.RLIM_INFINITY:
+        return sys.maxsize
+    if soft >= needed:
+        return soft
+    target = needed if hard == resource.RLIM_INFINITY else min(needed, hard)
+    if target <= soft:
+        return soft
+    try:
+        resource.setrlimit(resource.RLIMIT_NOFILE, (target, hard))
+    except (OSError, ValueError):
+        return soft
+    return target
 
 
 def limit_malloc_arenas(arenas: int = MALLOC_ARENAS) -> bool:

@@ -20,6 +20,7 @@ import httpx
 import numpy as np
 import pytest
 
+from crestereo_pp.service.__main__ import SERVER_LIMITS
 from crestereo_pp.service.uploads.images import ImageError, read_header
 from service_helpers import REPO, encode, metric_total, read_answer, run_uvicorn, stereo_pair
 
@@ -228,11 +229,28 @@ def test_a_client_gone_mid_upload_counts_as_499_without_a_traceback(default_serv
     assert "Traceback" not in default_server.log() and "ClientDisconnect" not in default_server.log()
 
 
-@pytest.mark.parametrize("size", [20_000, 1_000_000])
+@pytest.mark.parametrize("size", [20_000, 500_000])
 def test_oversized_request_headers_get_a_json_431_and_the_server_stays_up(default_server, size):
     response = httpx.post(default_server.base_url + "/disparity", headers={"X-Big": "a" * size})
     assert response.status_code == 431
     assert response.json()["error"]["code"] == "headers_too_large"
+    assert httpx.get(default_server.base_url + "/health/live").status_code == 200
+
+
+def test_a_request_head_past_uvicorns_limit_gets_its_400_and_the_server_stays_up(default_server):
+    # An unfinished head one byte past h11_max_incomplete_event_size (512 KiB, so that 2048
+    # connections' heads hold at most 1 GiB): uvicorn answers it itself, in text, before the app sees
+    # the request. One byte past, so that it is all read first: the server closes with nothing unread.
+    limit = SERVER_LIMITS["h11_max_incomplete_event_size"]
+    head = b"POST /disparity HTTP/1.1\r\nHost: x\r\nX-Big: "
+    host, port = default_server.base_url.removeprefix("http://").split(":")
+    with socket.create_connection((host, int(port))) as sock:
+        sock.sendall(head + b"a" * (limit + 1 - len(head)))
+        sock.settimeout(10)
+        answer = b""
+        while chunk := sock.recv(65536):
+            answer += chunk
+    assert limit == 512 * 1024 and answer.startswith(b"HTTP/1.1 400") and b"text/plain" in answer
     assert httpx.get(default_server.base_url + "/health/live").status_code == 200
 
 

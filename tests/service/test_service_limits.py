@@ -1,14 +1,19 @@
 """What the server holds at once, each limit against a real uvicorn process on loopback: streams
 (places in all and per client, refused at the handshake; idle time, image size, uncompressed
-messages), the bytes of uploads (request bodies and stream images under one budget), and the query
-checks both routes share."""
+messages), the bytes of uploads (request bodies and stream images under one budget), uvicorn's own
+limits (connections, open files), and the query checks both routes share."""
 
 from __future__ import annotations
 
 import json
+import re
+import resource
 import socket
+import subprocess
+import sys
 import time
 from contextlib import ExitStack
+from pathlib import Path
 from typing import Any
 
 import httpx
@@ -146,6 +151,48 @@ def test_stream_images_are_uncompressed_bounded_by_the_pixel_limit_and_count_aga
     assert too_large_error["code"] == "image_too_large" and too_large_code == 1009
     assert over_budget["code"] == "overloaded" and over_budget_code == 1013
     assert upload.startswith("HTTP/1.1 503") and '"overloaded"' in upload and "retry-after: 1" in upload.lower()
+
+
+@pytest.mark.slow
+def test_idle_connections_past_a_thousand_leave_the_probes_answering_even_from_a_low_open_files_limit(tmp_path):
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if hard != resource.RLIM_INFINITY and hard < 4096:
+        pytest.skip(f"the hard open files limit ({hard}) leaves no room for 1,100 connections on each side")
+    with ExitStack() as stack:
+        resource.setrlimit(resource.RLIMIT_NOFILE, (256, hard))  # the server starts under `ulimit -n 256`
+        try:
+            server = stack.enter_context(run_uvicorn(tmp_path))
+        finally:
+            resource.setrlimit(resource.RLIMIT_NOFILE, (max(soft, 4096), hard))
+        stack.callback(resource.setrlimit, resource.RLIMIT_NOFILE, (soft, hard))
+        limits = Path(f"/proc/{server.process.pid}/limits").read_text()
+        host, port = server.base_url.removeprefix("http://").split(":")
+        for _ in range(1100):  # open and idle, never a byte sent: each holds one of uvicorn's connections
+            stack.enter_context(socket.create_connection((host, int(port))))
+        time.sleep(0.5)
+        probes = [live_seconds(server.base_url) for _ in range(5)]
+    open_files = re.search(r"^Max open files\s+(\d+)", limits, re.MULTILINE)
+    assert open_files is not None and int(open_files.group(1)) >= 2048
+    assert max(probes) < 1.0, probes
+
+
+def test_the_open_files_limit_is_raised_as_far_as_the_hard_limit_allows():
+    code = (
+        "import resource; from crestereo_pp.service.__main__ import raise_open_files_limit as r; "
+        "print(r(100), r(2000), r(9000), *resource.getrlimit(resource.RLIMIT_NOFILE))"
+    )
+    answers = []
+    for limits in ((256, 4096), (256, 256)):
+        run = subprocess.run(
+            [sys.executable, "-c", code],
+            preexec_fn=lambda limits=limits: resource.setrlimit(resource.RLIMIT_NOFILE, limits),
+            capture_output=True,
+            text=True,
+            check=True,
+        )
+        answers.append([int(word) for word in run.stdout.split()])
+    # enough already: unchanged; else raised to what is needed, up to the hard limit; never an error
+    assert answers == [[256, 2000, 4096, 4096, 4096], [256, 256, 256, 256, 256]]
 
 
 @pytest.mark.slow
