@@ -59,6 +59,12 @@ camera's shapes with one pass (quick pass and pass, 395 MiB estimated) or two (q
 refining passes, 500 MiB) fit. Under a mix of many sizes the former bound, 8 shapes, held 0.9-1.2
 GiB, and 8 large ones (4 MP each) would have held about 12 GiB."""
 
+MAX_BLOB_CACHE_BYTES = 512 << 20
+"""Default bound of the disk cache of compiled shapes (OpenVINO's ``CACHE_DIR``, shared by the
+models and weights using one cache root): each image size a server meets adds a blob of 4-30 MB
+(200 MB for a 4 MP pair), so that a client sending many sizes would otherwise fill the disk. Past
+the bound the oldest blobs go before the next compile (a size met again compiles once more)."""
+
 _EXPORT_LOCK = threading.Lock()
 """One export at a time in a process: each keeps every core busy for minutes."""
 
@@ -127,6 +133,7 @@ class OpenVINOForward:
         cache_dir: Path | None = None,
         max_shapes: int = 8,
         max_bytes: int = MAX_COMPILED_BYTES,
+        max_blob_bytes: int = MAX_BLOB_CACHE_BYTES,
     ) -> None:
         import openvino as ov
 
@@ -136,14 +143,16 @@ class OpenVINOForward:
         self.fallback = fallback
         self.max_shapes = max_shapes
         self.max_bytes = max_bytes
+        self.max_blob_bytes = max_blob_bytes
         directory = (cache_dir or default_cache_dir()) / "openvino"
         self.graph_dir = None if cache_key is None else directory / f"{cache_key}-v{EXPORT_VERSION}"
         if self.graph_dir is not None and self.graph_dir.is_dir():
             _remove_abandoned_exports(self.graph_dir)
         self.core = ov.Core()
         compiled_dir = directory / "compiled"
-        if cache_key is not None and _writable(compiled_dir):
-            self.core.set_property({"CACHE_DIR": str(compiled_dir)})
+        self.blob_dir = compiled_dir if cache_key is not None and _writable(compiled_dir) else None
+        if self.blob_dir is not None:
+            self.core.set_property({"CACHE_DIR": str(self.blob_dir)})
         self.graphs: dict[GraphKind, Any] = {}
         self.compiled: OrderedDict[tuple[GraphKind, tuple[int, ...], bool], _Compiled] = OrderedDict()
         self.failed: set[GraphKind] = set()
@@ -267,6 +276,8 @@ class OpenVINOForward:
                 self.compiled.move_to_end(key)
                 return self.compiled[key]
             self._make_room(compiled_bytes(kind, shape))  # before compiling: the cache and the new one fit the bound
+            if self.blob_dir is not None:
+                prune_oldest(self.blob_dir, "*.blob", self.max_blob_bytes)
             static = graph.clone()
             batch, _, height, width = shape
             images, init = [batch, 3, height, width], [batch, 1, height, width]
@@ -300,6 +311,31 @@ class OpenVINOForward:
 
 def _described(kind: GraphKind) -> str:
     return f"iterations {kind.iters} ({'warm' if kind.warm_start else 'cold'} start)"
+
+
+def prune_oldest(folder: Path, pattern: str, max_bytes: int) -> int:
+    """Delete the files of `folder` matching `pattern`, least recently modified first, until they
+    take at most `max_bytes` together; files that another process deletes meanwhile are skipped.
+    Returns the bytes deleted."""
+    files = []
+    for path in folder.glob(pattern):
+        try:
+            stat = path.stat()
+        except FileNotFoundError:
+            continue
+        files.append((stat.st_mtime, stat.st_size, path))
+    files.sort()
+    total = sum(size for _, size, _ in files)
+    deleted = 0
+    for _, size, path in files:
+        if total - deleted <= max_bytes:
+            break
+        try:
+            path.unlink()
+        except FileNotFoundError:
+            pass
+        deleted += size
+    return deleted
 
 
 def _remove_abandoned_exports(folder: Path) -> None:

@@ -25,7 +25,13 @@ import torch
 from crestereo_pp.cli.main import main
 from crestereo_pp.inference import load_model
 from crestereo_pp.inference.backend_choice import resolve_backend, resolve_precision
-from crestereo_pp.inference.openvino_backend import MAX_COMPILED_BYTES, compiled_bytes, native_bf16
+from crestereo_pp.inference.openvino_backend import (
+    MAX_BLOB_CACHE_BYTES,
+    MAX_COMPILED_BYTES,
+    compiled_bytes,
+    native_bf16,
+    prune_oldest,
+)
 from crestereo_pp.inference.openvino_export import GraphKind
 from shared_data import STEREO_DEV
 
@@ -280,6 +286,37 @@ def test_compiled_shapes_are_kept_within_their_estimated_memory_and_the_estimate
         assert [shape for _, shape, _ in backend.compiled] == shapes[:1]
     finally:
         backend.max_shapes, backend.max_bytes = 8, MAX_COMPILED_BYTES
+
+
+def test_the_disk_cache_of_compiled_shapes_keeps_within_its_bound_dropping_the_oldest(first_call, tsukuba):
+    predictor, *_ = first_call
+    backend = predictor.openvino
+    left, right = tsukuba
+    assert backend.blob_dir is not None
+    backend.compiled.clear()
+    backend.max_blob_bytes = 1  # room for no blob but the one being compiled
+    try:
+        for width in (160, 192):  # two shapes this module compiles nowhere else
+            predictor.predict(left[:64, :width], right[:64, :width], iters=ITERS, two_pass=False)
+            blobs = list(backend.blob_dir.glob("*.blob"))
+            assert len(blobs) == 1, blobs  # the others went before the compile; this one is new
+        newest = blobs[0]
+        assert newest.stat().st_size > 0
+    finally:
+        backend.max_blob_bytes = MAX_BLOB_CACHE_BYTES
+
+
+def test_pruning_a_folder_deletes_the_least_recently_modified_files_until_the_rest_fit(tmp_path):
+    for age, name in enumerate(["newest", "middle", "oldest"]):
+        path = tmp_path / f"{name}.blob"
+        path.write_bytes(b"x" * 100)
+        os.utime(path, (1_000_000 - age, 1_000_000 - age))
+    (tmp_path / "other.txt").write_bytes(b"y" * 1000)  # not matched: never counted nor deleted
+    assert prune_oldest(tmp_path, "*.blob", 250) == 100
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["middle.blob", "newest.blob", "other.txt"]
+    assert prune_oldest(tmp_path, "*.blob", 200) == 0
+    assert prune_oldest(tmp_path, "*.blob", 0) == 200
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["other.txt"]
 
 
 def malloc_in_use() -> int:
