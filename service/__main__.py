@@ -21,7 +21,7 @@ import uvicorn
 
 from crestereo_pp.service.batching.daemon_thread import any_busy
 from crestereo_pp.service.settings import Settings
-from crestereo_pp.service.uploads.budgets import largest_image_file
+from crestereo_pp.service.uploads.budgets import largest_stream_image
 
 
 class ServerLimits(TypedDict):
@@ -104,9 +104,13 @@ def serve(host: str, port: int) -> None:
         loop="asyncio",
         # Named too: this one reads no further than one whole message ahead of the app.
         ws="websockets-sansio",
-        # Bytes of one WebSocket message (`/disparity/stream`: one image file) before uvicorn closes
-        # the connection (1009), unread: the largest file an image within the pixel limit makes.
-        ws_max_size=largest_image_file(settings.max_image_pixels, settings.max_body_bytes),
+        # Bytes of one WebSocket message (`/disparity/stream`, the one WebSocket route: one image
+        # file) before uvicorn closes the connection (1009), unread: CRESTEREO_MAX_STREAM_IMAGE_BYTES,
+        # or the largest file an image within the pixel limit makes where smaller. uvicorn reads a
+        # stream's next message whole before the app takes it, outside the streams' byte budget.
+        ws_max_size=largest_stream_image(
+            settings.max_image_pixels, settings.max_body_bytes, settings.max_stream_image_bytes
+        ),
         **SERVER_LIMITS,
     )
     # Only reached where SIGTERM does not end the process (uvicorn re-raises it; PID 1 ignores

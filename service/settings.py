@@ -101,10 +101,28 @@ class Settings(BaseModel):
     max_upload_bytes: int = Field(
         192 * 1024 * 1024,
         ge=1,
-        description="Most bytes of uploads held at once, request bodies and stream images together (a body counts "
-        "from its `Content-Length` before it is read, else as it arrives); beyond it 503 `overloaded` with "
-        "`Retry-After` (a stream: closed with 1013). At least `max_body_bytes`. The default holds six of the "
-        "largest bodies, or `max_requests` pairs of 4 MiB.",
+        description="Most bytes of request bodies held at once (a body counts from its `Content-Length` before it "
+        "is read, else as it arrives); beyond it 503 `overloaded` with `Retry-After`. Stream images have their own "
+        "budget (`max_stream_bytes`). At least `max_body_bytes`. The default holds six of the largest bodies, or "
+        "`max_requests` pairs of 4 MiB.",
+    )
+    max_stream_bytes: int = Field(
+        64 * 1024 * 1024,
+        ge=1,
+        description="Most bytes of stream images held at once, all streams together, apart from the request "
+        "bodies' `max_upload_bytes`: an image counts from its arrival until its pair is answered; a stream whose "
+        "image does not fit is closed with 1013 `overloaded`. At least twice `max_stream_image_bytes`, so that a "
+        "whole pair fits; the default holds four pairs of the largest stream images, or `max_streams` pairs of "
+        "2 MiB.",
+    )
+    max_stream_image_bytes: int = Field(
+        16 * 1024 * 1024,
+        ge=1,
+        description="Largest image file of a stream (one WebSocket message), and never more than the largest file "
+        "of an image within the model's pixel limit (8 bytes a pixel plus 1 MiB, at most `max_body_bytes`): "
+        "uvicorn closes a larger message with 1009 before the app sees it (`ws_max_size`), the stream one over its "
+        "model's limit with 1009 `image_too_large`. Smaller than a request body: uvicorn reads each open stream's "
+        "next message whole, outside `max_stream_bytes`.",
     )
     max_streams: int = Field(
         16,
@@ -189,6 +207,15 @@ class Settings(BaseModel):
     def _budget_holds_a_body(self) -> Settings:
         if self.max_upload_bytes < self.max_body_bytes:
             raise ValueError("max_upload_bytes must be at least max_body_bytes, or the largest bodies are never taken")
+        return self
+
+    @model_validator(mode="after")
+    def _stream_budget_holds_a_pair(self) -> Settings:
+        if self.max_stream_bytes < 2 * self.max_stream_image_bytes:
+            raise ValueError(
+                "max_stream_bytes must be at least twice max_stream_image_bytes, or a pair of the largest stream "
+                "images is never taken"
+            )
         return self
 
     @field_validator("models", mode="before")

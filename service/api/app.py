@@ -63,7 +63,8 @@ def create_app(
     )
     app.state.runtime = runtime
     install_error_handlers(app, runtime.metrics)
-    app.state.uploads = ByteBudget(settings.max_upload_bytes)  # request bodies and stream images together
+    app.state.uploads = ByteBudget(settings.max_upload_bytes)  # request bodies
+    app.state.stream_bytes = ByteBudget(settings.max_stream_bytes, "stream images")  # apart from the bodies'
     app.state.streams = StreamSlots(settings.max_streams, settings.max_streams_per_client)
     app.add_middleware(UploadBudgetMiddleware, budget=app.state.uploads, metrics=runtime.metrics)
     app.add_middleware(RequestSizeLimitMiddleware, max_bytes=settings.max_body_bytes, metrics=runtime.metrics)

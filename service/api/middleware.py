@@ -196,7 +196,7 @@ def declared_length(scope: Scope) -> int | None:
 
 
 class UploadBudgetMiddleware:
-    """Holds each request's body against the upload budget (shared with the streams) until the
+    """Holds each request's body against the upload budget (stream images have their own) until the
     request ends: a body declared by `Content-Length` is counted whole before it is read, and
     refused unread where it does not fit; one without (chunked) is counted as it arrives, and
     refused at the chunk that does not fit. Refused: 503 `overloaded` with `Retry-After`."""

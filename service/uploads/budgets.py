@@ -1,6 +1,6 @@
 """What the server holds at once, beyond the count of requests in progress: the bytes of uploads
-(one budget for request bodies and stream images together) and the open streams (in all, and per
-client address). Both are used on the event loop only, so a check and the take that follows it
+(one budget for request bodies, another for stream images) and the open streams (in all, and per
+client address). All are used on the event loop only, so a check and the take that follows it
 cannot interleave with another's.
 """
 
@@ -22,11 +22,18 @@ def largest_image_file(max_pixels: int, max_body_bytes: int) -> int:
     return min(max_body_bytes, max_pixels * ENCODED_BYTES_PER_PIXEL + IMAGE_METADATA_BYTES)
 
 
-class ByteBudget:
-    """At most `limit` bytes of uploads held at once: `take` before holding, `give_back` after."""
+def largest_stream_image(max_pixels: int, max_body_bytes: int, max_stream_image_bytes: int) -> int:
+    """Most bytes one image file (one WebSocket message) of a stream can take: the largest file of
+    an image of at most `max_pixels` pixels, and never more than `max_stream_image_bytes`."""
+    return min(max_stream_image_bytes, largest_image_file(max_pixels, max_body_bytes))
 
-    def __init__(self, limit: int) -> None:
+
+class ByteBudget:
+    """At most `limit` bytes of `what` held at once: `take` before holding, `give_back` after."""
+
+    def __init__(self, limit: int, what: str = "uploads") -> None:
         self.limit = limit
+        self.what = what
         self.held = 0
 
     def take(self, size: int) -> bool:
@@ -42,7 +49,7 @@ class ByteBudget:
     def refusal(self, size: int) -> str:
         """Why `size` more bytes were refused, for the client."""
         return (
-            f"{self.held} bytes of uploads are held and {size} more would pass the {self.limit} "
+            f"{self.held} bytes of {self.what} are held and {size} more would pass the {self.limit} "
             "this server holds at once; retry shortly"
         )
 

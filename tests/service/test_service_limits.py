@@ -1,7 +1,7 @@
 """What the server holds at once, each limit against a real uvicorn process on loopback: streams
 (places in all and per client, refused at the handshake; idle time, image size, uncompressed
-messages), the bytes of uploads (request bodies and stream images under one budget), uvicorn's own
-limits (connections, open files), and the query checks both routes share."""
+messages), the bytes of uploads (request bodies and stream images, each under a budget of its
+own), uvicorn's own limits (connections, open files), and the query checks both routes share."""
 
 from __future__ import annotations
 
@@ -122,35 +122,52 @@ def test_an_idle_stream_and_a_half_pair_are_closed_within_the_idle_timeout(tmp_p
 
 
 @pytest.mark.slow
-def test_stream_images_are_uncompressed_bounded_by_the_pixel_limit_and_count_against_the_upload_budget(tmp_path):
+def test_stream_images_are_uncompressed_bounded_in_size_and_held_under_a_budget_of_their_own(tmp_path):
     image = b"\0" * 1_100_000  # under the lite limit's largest file (10,000 px x 8 B + 1 MiB); held, unread
-    settings = {"model_max_pixels": "lite=10000", "max_body_bytes": "1500000", "max_upload_bytes": "2500000"}
+    settings = {
+        "model_max_pixels": "lite=10000",
+        "max_body_bytes": "1500000",
+        "max_upload_bytes": "1500000",
+        "max_stream_image_bytes": "1200000",  # uvicorn's ws_max_size: under a body, over the lite limit's file
+        "max_stream_bytes": "2500000",
+    }
     with run_uvicorn(tmp_path, stream_idle_timeout_s="30", **settings) as server, ExitStack() as streams:
-        with open_stream(server.base_url) as too_large:
+        with open_stream(server.base_url) as too_large:  # over what the model's pixel limit allows
             offered_deflate = "permessage-deflate" in too_large.request.headers.get("Sec-WebSocket-Extensions", "")
             took_deflate = too_large.response.headers.get("Sec-WebSocket-Extensions")
-            too_large.send(b"\0" * 1_200_000)
+            too_large.send(b"\0" * 1_150_000)
             too_large_error, too_large_code = closing_words(too_large)
-        holding = [streams.enter_context(open_stream(server.base_url, source=f"127.0.0.{n}")) for n in (1, 2)]
-        for stream in holding:  # two left images wait for their right ones: 2.2 MB of 2.5 held
-            stream.send(image)
-        time.sleep(0.5)
-        with open_stream(server.base_url, source="127.0.0.3") as third:
-            third.send(image)
-            over_budget, over_budget_code = closing_words(third)
-        host, port = server.base_url.removeprefix("http://").split(":")
-        with socket.create_connection((host, int(port))) as sock:  # a request body shares the budget
-            sock.sendall(b"POST /disparity HTTP/1.1\r\nHost: x\r\nContent-Length: 400000\r\n\r\n")
-            upload = read_answer(sock)
+        with open_stream(server.base_url) as over_the_cap:  # over the stream image size: closed unread, unsaid
+            over_the_cap.send(b"\0" * 1_300_000)
+            with pytest.raises(ConnectionClosed):
+                over_the_cap.recv(timeout=10)
+        stalled = stalled_upload(server.base_url, 1_400_000)  # a request body holds 1.4 MB of its 1.5
+        try:
+            time.sleep(0.3)
+            holding = [streams.enter_context(open_stream(server.base_url, source=f"127.0.0.{n}")) for n in (1, 2)]
+            for stream in holding:  # two left images wait for their right ones: 2.2 MB of the streams' 2.5 held
+                stream.send(image)
+            time.sleep(0.5)
+            for stream in holding:
+                assert_open(stream)
+            with open_stream(server.base_url, source="127.0.0.3") as third:
+                third.send(image)
+                over_budget, over_budget_code = closing_words(third)
+        finally:
+            stalled.close()
+        served = httpx.post(server.base_url + "/disparity", files=pair_files(*stereo_pair()), timeout=60)
         holding[0].close()
         time.sleep(0.3)
         with open_stream(server.base_url, source="127.0.0.3") as fits_again:
             fits_again.send(image)
             assert_open(fits_again)
+        log = server.log()
     assert offered_deflate and took_deflate is None
     assert too_large_error["code"] == "image_too_large" and too_large_code == 1009
+    assert over_the_cap.close_code == 1009 and "Traceback" not in log
     assert over_budget["code"] == "overloaded" and over_budget_code == 1013
-    assert upload.startswith("HTTP/1.1 503") and '"overloaded"' in upload and "retry-after: 1" in upload.lower()
+    assert "bytes of stream images are held" in over_budget["message"]
+    assert served.status_code == 200  # request bodies are not held back by the streams' images
 
 
 @pytest.mark.slow
@@ -278,3 +295,9 @@ async def test_a_deadline_header_is_plain_digits_as_numbers_in_the_query_are(val
 def test_an_upload_budget_smaller_than_one_body_stops_the_service_from_starting():
     with pytest.raises(ValidationError, match="max_upload_bytes"):
         Settings.from_env({"CRESTEREO_MAX_BODY_BYTES": "1000", "CRESTEREO_MAX_UPLOAD_BYTES": "999"})
+
+
+def test_a_stream_budget_smaller_than_a_pair_of_the_largest_stream_images_stops_the_service_from_starting():
+    Settings.from_env({"CRESTEREO_MAX_STREAM_BYTES": "1000", "CRESTEREO_MAX_STREAM_IMAGE_BYTES": "500"})
+    with pytest.raises(ValidationError, match="max_stream_bytes"):
+        Settings.from_env({"CRESTEREO_MAX_STREAM_BYTES": "1000", "CRESTEREO_MAX_STREAM_IMAGE_BYTES": "501"})

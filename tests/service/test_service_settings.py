@@ -9,6 +9,7 @@ import pytest
 from pydantic import ValidationError
 
 from crestereo_pp.service.settings import Settings
+from crestereo_pp.service.uploads.budgets import largest_stream_image
 from service_helpers import REPO
 
 
@@ -44,6 +45,20 @@ def test_each_model_has_its_pixel_limit_under_the_global_one():
     assert (custom.pixel_limit("lite"), custom.pixel_limit("full")) == (2_000_000, 3_000_000)
 
 
+def test_streams_have_a_byte_budget_and_an_image_size_of_their_own():
+    default = Settings.from_env({})
+    assert (default.max_stream_bytes, default.max_stream_image_bytes) == (64 << 20, 16 << 20)
+    assert default.max_upload_bytes == 192 << 20  # the request bodies' budget, apart
+    # one message of a stream: the stream image size, or the largest file of the model's pixel limit where smaller
+    largest = [
+        largest_stream_image(default.pixel_limit(model), default.max_body_bytes, default.max_stream_image_bytes)
+        for model in ("lite", "full")
+    ]
+    assert largest == [16 << 20, 9 << 20]  # full: 1,048,576 px x 8 B + 1 MiB
+    custom = Settings.from_env({"CRESTEREO_MAX_STREAM_BYTES": "3000000", "CRESTEREO_MAX_STREAM_IMAGE_BYTES": "1000"})
+    assert (custom.max_stream_bytes, custom.max_stream_image_bytes) == (3_000_000, 1000)
+
+
 @pytest.mark.parametrize(
     "environ",
     [
@@ -54,6 +69,8 @@ def test_each_model_has_its_pixel_limit_under_the_global_one():
         {"CRESTEREO_MODEL_MAX_PIXELS": "full=many"},
         {"CRESTEREO_MODEL_MAX_PIXELS": "huge=5"},
         {"CRESTEREO_PRECISION": "fp16"},
+        {"CRESTEREO_MAX_STREAM_IMAGE_BYTES": "0"},
+        {"CRESTEREO_MAX_STREAM_BYTES": "1000", "CRESTEREO_MAX_STREAM_IMAGE_BYTES": "501"},
     ],
 )
 def test_invalid_settings_stop_the_service_from_starting(environ):

@@ -11,10 +11,11 @@ as to `POST /disparity`: once its image headers pass, a pair goes through the pi
 uses (`service.api.pipeline.answer_pair`).
 
 What a stream may hold is bounded: a place among `max_streams` (`max_streams_per_client` per client
-address), one pair at a time, each image no larger than its model's pixel limit allows and counted
-against the upload budget that request bodies share, and `stream_idle_timeout_s` to send each. A
-stream without a place (or without the bearer key) is refused at the handshake, with an HTTP
-answer: it never opens, so it holds no connection beyond that answer.
+address), one pair at a time, each image no larger than `max_stream_image_bytes` and its model's
+pixel limit allow and counted against the streams' own byte budget (`max_stream_bytes`, apart from
+the request bodies'), and `stream_idle_timeout_s` to send each. A stream without a place (or
+without the bearer key) is refused at the handshake, with an HTTP answer: it never opens, so it
+holds no connection beyond that answer.
 """
 
 from __future__ import annotations
@@ -38,7 +39,7 @@ from crestereo_pp.service.api.query import repeated_option
 from crestereo_pp.service.api.schemas import DisparityOptions, OutputFormat
 from crestereo_pp.service.batching.batcher import BatchingError
 from crestereo_pp.service.batching.runtime import ServiceRuntime
-from crestereo_pp.service.uploads.budgets import ByteBudget, StreamSlots, largest_image_file
+from crestereo_pp.service.uploads.budgets import ByteBudget, StreamSlots, largest_stream_image
 from crestereo_pp.service.uploads.multipart import ImageLimits, Upload, UploadError
 
 logger = logging.getLogger(__name__)
@@ -68,7 +69,7 @@ async def stream_disparity(websocket: WebSocket) -> None:
         await _refuse(websocket, error_response(403, "unauthorized", "missing or wrong bearer token"))
         return
     streams: StreamSlots = websocket.app.state.streams
-    uploads: ByteBudget = websocket.app.state.uploads
+    stream_bytes: ByteBudget = websocket.app.state.stream_bytes
     with streams.place(websocket.client.host if websocket.client else "") as refusal:
         if refusal is not None:  # refused before the handshake: the connection ends with this answer
             runtime.metrics.reject("overloaded")
@@ -77,7 +78,7 @@ async def stream_disparity(websocket: WebSocket) -> None:
         await websocket.accept()
         try:
             options, warm_start = _options(websocket)
-            await _serve(websocket, runtime, uploads, options, warm_start)
+            await _serve(websocket, runtime, stream_bytes, options, warm_start)
         except _Closing as closing:
             if closing.error is not None:
                 await websocket.send_text(json.dumps({"error": {"code": closing.error, "message": closing.reason}}))
@@ -119,20 +120,20 @@ def _options(websocket: WebSocket) -> tuple[DisparityOptions, WarmStart]:
 
 
 async def _serve(
-    websocket: WebSocket, runtime: ServiceRuntime, uploads: ByteBudget, options: DisparityOptions, frames: WarmStart
+    websocket: WebSocket, runtime: ServiceRuntime, budget: ByteBudget, options: DisparityOptions, frames: WarmStart
 ) -> None:
     settings = runtime.settings
     limits = ImageLimits(options.model, settings.pixel_limit(options.model), settings.min_image_side)
-    largest = largest_image_file(limits.max_pixels, settings.max_body_bytes)
+    largest = largest_stream_image(limits.max_pixels, settings.max_body_bytes, settings.max_stream_image_bytes)
     timeout_s = settings.stream_idle_timeout_s
     index = 0
     while True:
-        with ExitStack() as holding:  # the pair's images count against the upload budget until it is answered
+        with ExitStack() as holding:  # the pair's images count against the streams' budget until it is answered
             try:
                 left = await _image(websocket, timeout_s, "left", largest)
             except TimeoutError:
                 raise _Closing(1000, None, f"no frame for {timeout_s:g} s") from None
-            holding.enter_context(_held(uploads, left))
+            holding.enter_context(_held(budget, left))
             try:
                 right = await _image(websocket, timeout_s, "right", largest)
             except TimeoutError:
@@ -141,7 +142,7 @@ async def _serve(
                     "body_timeout",
                     f"the right image did not follow the left one within {timeout_s:g} s",
                 ) from None
-            holding.enter_context(_held(uploads, right))
+            holding.enter_context(_held(budget, right))
             try:
                 await _answer(websocket, runtime, options, frames, limits, left, right)
             except (UploadError, ApiError, BatchingError) as error:
@@ -166,21 +167,22 @@ async def _image(websocket: WebSocket, timeout_s: float, side: str, largest: int
         raise _Closing(
             MESSAGE_TOO_BIG,
             "image_too_large",
-            f"the {side} image file has {len(data)} bytes; one within the model's pixel limit has {largest} at most",
+            f"the {side} image file has {len(data)} bytes; a stream's image file has {largest} at most "
+            "(the model's pixel limit and the server's stream image size)",
         )
     return data
 
 
 @contextmanager
-def _held(uploads: ByteBudget, data: bytes) -> Iterator[None]:
-    """Count `data` against the upload budget during the block; where it does not fit, end the
-    stream (1013 `overloaded`)."""
-    if not uploads.take(len(data)):
-        raise _Closing(TRY_AGAIN_LATER, "overloaded", uploads.refusal(len(data)))
+def _held(budget: ByteBudget, data: bytes) -> Iterator[None]:
+    """Count `data` against the streams' byte budget during the block; where it does not fit, end
+    the stream (1013 `overloaded`)."""
+    if not budget.take(len(data)):
+        raise _Closing(TRY_AGAIN_LATER, "overloaded", budget.refusal(len(data)))
     try:
         yield
     finally:
-        uploads.give_back(len(data))
+        budget.give_back(len(data))
 
 
 async def _answer(
