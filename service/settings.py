@@ -124,6 +124,19 @@ class Settings(BaseModel):
         "model's limit with 1009 `image_too_large`. Smaller than a request body: uvicorn reads each open stream's "
         "next message whole, outside `max_stream_bytes`.",
     )
+    client_error_rate: float = Field(
+        10.0,
+        gt=0,
+        description="Client errors (4xx answers) a second that one client address may have answered at once, "
+        "after a first `client_error_burst`; past it each error answer is held back until the address is "
+        "within its rate again (at most 2 s), so that a client repeating bad requests as fast as it can does not "
+        "take the CPU from good ones. Successful answers are never held back.",
+    )
+    client_error_burst: int = Field(
+        100,
+        ge=1,
+        description="Client errors one client address may have answered at once before `client_error_rate` applies.",
+    )
     max_streams: int = Field(
         16,
         ge=1,

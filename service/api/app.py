@@ -13,6 +13,8 @@ from crestereo_pp.service.api.errors import install_error_handlers
 from crestereo_pp.service.api.logs import configure_logging
 from crestereo_pp.service.api.middleware import (
     ApiKeyMiddleware,
+    ClientErrorPace,
+    ClientErrorPaceMiddleware,
     ConcurrencyLimitMiddleware,
     RequestContextMiddleware,
     RequestSizeLimitMiddleware,
@@ -70,6 +72,11 @@ def create_app(
     app.add_middleware(RequestSizeLimitMiddleware, max_bytes=settings.max_body_bytes, metrics=runtime.metrics)
     app.add_middleware(ConcurrencyLimitMiddleware, max_requests=settings.max_requests, metrics=runtime.metrics)
     app.add_middleware(ApiKeyMiddleware, settings=settings)  # before any limit: a refused request holds nothing
+    app.add_middleware(  # outside the limits: an answer held back holds none of them
+        ClientErrorPaceMiddleware,
+        pace=ClientErrorPace(settings.client_error_rate, settings.client_error_burst),
+        metrics=runtime.metrics,
+    )
     app.add_middleware(RequestContextMiddleware, metrics=runtime.metrics)
     app.include_router(disparity.router)
     app.include_router(stream.router)

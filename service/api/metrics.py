@@ -65,6 +65,12 @@ class Metrics:
         )
         for reason in get_args(RejectReason):
             self.rejected.labels(reason=reason)  # export every reason from the start, at 0
+        self.delayed_errors = Counter(
+            "client_errors_delayed",
+            "4xx answers held back from clients past their error budget (CRESTEREO_CLIENT_ERROR_RATE).",
+            namespace=ns,
+            registry=self.registry,
+        )
 
     def reject(self, reason: RejectReason) -> None:
         self.rejected.labels(reason=reason).inc()

@@ -1,12 +1,15 @@
-"""ASGI middleware: request ids, access log and request metrics; the API key; the request size
-limits; the count of requests and the bytes of their bodies held at once."""
+"""ASGI middleware: request ids, access log and request metrics; the pace of a client's errors;
+the API key; the request size limits; the count of requests and the bytes of their bodies held at
+once."""
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import re
 import time
 import uuid
+from collections import OrderedDict
 
 from fastapi.security.utils import get_authorization_scheme_param
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
@@ -87,6 +90,69 @@ def _client_request_id(scope: Scope) -> str | None:
             candidate = value.decode("latin-1")
             return candidate if _VALID_REQUEST_ID.fullmatch(candidate) else None
     return None
+
+
+MAX_ERROR_DELAY_S = 2.0
+"""Longest a client error's answer is held back (``ClientErrorPace``)."""
+MAX_PACED_CLIENTS = 10_000
+"""Client addresses whose recent errors are remembered (the least recently erring are forgotten)."""
+
+
+class ClientErrorPace:
+    """How fast each client address may have its errors answered: `burst` at once, then `rate` a
+    second (a token bucket per address; a client within it never waits). Past it, an error's answer
+    is held back until the address is within its rate again, at most MAX_ERROR_DELAY_S: a client
+    that repeats bad requests without pause gets `rate` answers a second per connection, however
+    cheap each refusal is."""
+
+    def __init__(self, rate: float, burst: int) -> None:
+        self.rate = rate
+        self.burst = burst
+        self._tokens: OrderedDict[str, tuple[float, float]] = OrderedDict()  # address: (tokens, at)
+
+    def delay(self, client: str, now: float) -> float:
+        """Count one error answered to `client` at `now` (monotonic seconds): the seconds to hold it back."""
+        tokens, at = self._tokens.pop(client, (float(self.burst), now))
+        tokens = min(float(self.burst), tokens + (now - at) * self.rate) - 1.0
+        tokens = max(tokens, -self.rate * MAX_ERROR_DELAY_S)  # a debt never holds an answer longer than that
+        self._tokens[client] = (tokens, now)
+        while len(self._tokens) > MAX_PACED_CLIENTS:
+            self._tokens.popitem(last=False)
+        return max(0.0, -tokens / self.rate)
+
+
+class ClientErrorPaceMiddleware:
+    """Holds back the 4xx answers of a client address past its error budget (``ClientErrorPace``).
+    The answer is held after the request has ended (it holds no place among the requests in
+    progress, nor any of the upload budget): its messages are kept and sent once the delay is over.
+    Every other answer passes at once."""
+
+    def __init__(self, app: ASGIApp, pace: ClientErrorPace, metrics: Metrics) -> None:
+        self.app = app
+        self.pace = pace
+        self.metrics = metrics
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        held: list[Message] = []
+
+        async def send_or_hold(message: Message) -> None:
+            if held or (message["type"] == "http.response.start" and 400 <= message["status"] < 500):
+                held.append(message)
+            else:
+                await send(message)
+
+        await self.app(scope, receive, send_or_hold)
+        if not held:
+            return
+        delay = self.pace.delay(scope["client"][0] if scope.get("client") else "", time.monotonic())
+        if delay > 0:
+            self.metrics.delayed_errors.inc()
+            await asyncio.sleep(delay)
+        for message in held:
+            await send(message)
 
 
 OPEN_PATHS = frozenset({"/health", "/health/live", "/health/ready", "/metrics", "/", "/docs", "/openapi.json"})

@@ -22,7 +22,7 @@ import pytest
 
 from crestereo_pp.service.__main__ import SERVER_LIMITS
 from crestereo_pp.service.uploads.images import ImageError, read_header
-from service_helpers import REPO, encode, metric_total, read_answer, run_uvicorn, stereo_pair
+from service_helpers import REPO, encode, metric_total, pair_files, read_answer, run_uvicorn, stereo_pair
 
 
 def tiff_with_repeated_size_tags(first: int, second: int) -> bytes:
@@ -403,3 +403,40 @@ def test_the_docs_page_runs_only_the_packaged_script_it_names_and_its_hashed_inl
         assert f"'sha256-{digest}'" in policy
     assert "default-src 'none'" in policy and "'unsafe-inline'" not in policy.split("script-src")[1].split(";")[0]
     assert httpx.get(default_server.base_url + "/redoc").status_code == 404
+
+
+def test_a_client_repeating_bad_requests_gets_its_errors_paced_and_good_answers_are_not_held(tmp_path):
+    missing_right = {"left": ("l.png", encode(stereo_pair()[0]), "image/png")}
+    with run_uvicorn(tmp_path, client_error_rate="4", client_error_burst="3", max_requests="1") as server:
+        with httpx.Client(base_url=server.base_url, timeout=30) as client:
+            seconds = []
+            for _ in range(7):
+                started = time.perf_counter()
+                answer = client.post("/disparity", files=missing_right)
+                seconds.append(time.perf_counter() - started)
+                assert answer.status_code == 422 and answer.json()["error"]["code"] == "missing_field"
+            # the burst at once, then about 1 / rate each
+            assert max(seconds[:3]) < 0.2, seconds
+            assert all(0.15 <= s < 0.6 for s in seconds[3:]), seconds
+            assert sum(seconds[3:]) >= 0.75  # four errors past the burst: about one second at 4 a second
+
+            # while this address's next error is held back, it holds no place: with room for one
+            # request in progress, a good pair from the same address is answered at once
+            with ThreadPoolExecutor(1) as pool:
+                held = pool.submit(client.post, "/disparity", files=missing_right)
+                time.sleep(0.05)
+                good = client.post("/disparity", files=pair_files(*stereo_pair()))
+                assert held.result().status_code == 422
+            assert good.status_code == 200, good.text
+            assert client.get("/health/live").status_code == 200
+
+        # another address has a budget of its own
+        other = httpx.Client(
+            base_url=server.base_url, timeout=30, transport=httpx.HTTPTransport(local_address="127.0.0.2")
+        )
+        with other:
+            started = time.perf_counter()
+            assert other.post("/disparity", files=missing_right).status_code == 422
+            assert time.perf_counter() - started < 0.2
+        delayed = metric_total(httpx.get(server.base_url + "/metrics").text, "crestereo_client_errors_delayed_total")
+    assert delayed >= 5
