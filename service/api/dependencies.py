@@ -6,9 +6,8 @@ import hmac
 from typing import Annotated
 
 from fastapi import Depends, Request
-from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from fastapi.security import HTTPBearer
 
-from crestereo_pp.service.api.errors import ApiError
 from crestereo_pp.service.batching.runtime import ServiceRuntime
 from crestereo_pp.service.settings import Settings
 
@@ -27,6 +26,12 @@ SettingsDep = Annotated[Settings, Depends(get_settings)]
 
 _bearer = HTTPBearer(auto_error=False, description="Required only when the server sets `CRESTEREO_API_KEY`.")
 
+API_KEY_SCHEME = Depends(_bearer)
+"""A route's dependency that declares the optional bearer key in the OpenAPI contract (with
+`openapi_extra={"security": [{}]}` beside it: the key is needed only where the server sets one).
+It checks nothing: `ApiKeyMiddleware` refuses every request without the key to a path that is not
+open, before any route runs."""
+
 
 def bearer_accepted(settings: Settings, token: str | None) -> bool:
     """Whether a request bearing `token` (None: no bearer token) may use the service: always when
@@ -34,12 +39,3 @@ def bearer_accepted(settings: Settings, token: str | None) -> bool:
     if settings.api_key is None:
         return True
     return hmac.compare_digest((token or "").encode(), settings.api_key.encode())
-
-
-def require_api_key(
-    settings: SettingsDep,
-    credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
-) -> None:
-    """401 unless the bearer token equals `CRESTEREO_API_KEY` (`bearer_accepted`)."""
-    if not bearer_accepted(settings, None if credentials is None else credentials.credentials):
-        raise ApiError(401, "unauthorized", "missing or wrong bearer token", headers={"WWW-Authenticate": "Bearer"})

@@ -7,8 +7,9 @@ from typing import Any
 
 import anyio
 import pytest
+import yaml
 
-from service_helpers import lite_settings, serve_asgi
+from service_helpers import REPO, lite_settings, serve_asgi
 
 pytestmark = pytest.mark.anyio
 
@@ -111,3 +112,13 @@ async def test_without_a_key_every_route_is_open():
         stream = await websocket_handshake(h.app, "/disparity/stream", {})
     assert answers == {"/models": 200, "/models/lite": 200, "/nothing": 404}
     assert stream == "websocket.accept"
+
+
+def test_the_contract_declares_the_key_on_exactly_the_routes_that_refuse_requests_without_it():
+    contract = yaml.safe_load((REPO / "openapi.yaml").read_text())
+    operations = [(path, method, op) for path, ops in contract["paths"].items() for method, op in ops.items()]
+    assert {path for path, _, _ in operations} - OPEN == {"/disparity", "/models", "/models/{name}"}
+    for path, method, operation in operations:
+        keyed = path not in OPEN
+        assert ({"HTTPBearer": []} in operation.get("security", [])) == keyed, (method, path)
+        assert ("401" in operation["responses"]) == keyed, (method, path)

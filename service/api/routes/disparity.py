@@ -15,11 +15,11 @@ from collections.abc import Callable
 from functools import partial
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, Header, Query, Request, Response
+from fastapi import APIRouter, Header, Query, Request, Response
 from pydantic import BeforeValidator
 from starlette.requests import ClientDisconnect
 
-from crestereo_pp.service.api.dependencies import RuntimeDep, require_api_key
+from crestereo_pp.service.api.dependencies import API_KEY_SCHEME, RuntimeDep
 from crestereo_pp.service.api.disparity_docs import RESPONSES, UPLOAD_BODY
 from crestereo_pp.service.api.errors import ApiError, bad_input, client_gone
 from crestereo_pp.service.api.logs import request_id_var
@@ -52,7 +52,7 @@ def _plain_digits(value: object) -> object:
     responses=RESPONSES,
     # `{}` beside the bearer scheme: the key is optional (only when CRESTEREO_API_KEY is set).
     openapi_extra={"requestBody": UPLOAD_BODY, "security": [{}]},
-    dependencies=[Depends(require_api_key)],
+    dependencies=[API_KEY_SCHEME],
 )
 async def estimate_disparity(
     request: Request,

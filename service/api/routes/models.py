@@ -7,7 +7,8 @@ from typing import Any
 
 from fastapi import APIRouter
 
-from crestereo_pp.service.api.dependencies import RuntimeDep
+from crestereo_pp.service.api.dependencies import API_KEY_SCHEME, RuntimeDep
+from crestereo_pp.service.api.disparity_docs import RESPONSES
 from crestereo_pp.service.api.errors import ApiError
 from crestereo_pp.service.api.schemas import ErrorResponse, ModelInfo, ModelList, TensorMetadata, TrainingSummary
 from crestereo_pp.service.batching.runtime import ServiceRuntime, weights_identity
@@ -28,7 +29,15 @@ OUTPUTS = [
 
 
 @router.head("/models", include_in_schema=False)
-@router.get("/models", summary="The models this server has loaded", response_model=ModelList)
+@router.get(
+    "/models",
+    summary="The models this server has loaded",
+    response_model=ModelList,
+    responses={401: RESPONSES[401]},
+    # `{}` beside the bearer scheme: the key is optional (only when CRESTEREO_API_KEY is set).
+    openapi_extra={"security": [{}]},
+    dependencies=[API_KEY_SCHEME],
+)
 async def list_models(runtime: RuntimeDep) -> ModelList:
     """Every loaded model (none while loading)."""
     return ModelList(models=[model_info(runtime, name) for name in runtime.predictors])
@@ -39,7 +48,9 @@ async def list_models(runtime: RuntimeDep) -> ModelList:
     "/models/{name}",
     summary="One loaded model",
     response_model=ModelInfo,
-    responses={404: {"model": ErrorResponse, "description": "No such model on this server."}},
+    responses={401: RESPONSES[401], 404: {"model": ErrorResponse, "description": "No such model on this server."}},
+    openapi_extra={"security": [{}]},
+    dependencies=[API_KEY_SCHEME],
 )
 async def get_model(name: str, runtime: RuntimeDep) -> ModelInfo:
     if name not in runtime.predictors:

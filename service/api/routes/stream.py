@@ -32,7 +32,6 @@ from starlette.responses import Response
 from starlette.websockets import WebSocketState
 
 from crestereo_pp.inference import WarmStart
-from crestereo_pp.service.api.dependencies import bearer_accepted
 from crestereo_pp.service.api.errors import ApiError, batching_answer, error_response
 from crestereo_pp.service.api.pipeline import answer_pair
 from crestereo_pp.service.api.query import repeated_option
@@ -63,11 +62,6 @@ class _Closing(Exception):
 @router.websocket("/disparity/stream")
 async def stream_disparity(websocket: WebSocket) -> None:
     runtime: ServiceRuntime = websocket.app.state.runtime
-    scheme, _, token = websocket.headers.get("authorization", "").partition(" ")
-    if not bearer_accepted(runtime.settings, token if scheme.lower() == "bearer" else None):
-        # As ApiKeyMiddleware, which refuses it first: kept here should the route move out from under it.
-        await _refuse(websocket, error_response(403, "unauthorized", "missing or wrong bearer token"))
-        return
     streams: StreamSlots = websocket.app.state.streams
     stream_bytes: ByteBudget = websocket.app.state.stream_bytes
     with streams.place(websocket.client.host if websocket.client else "") as refusal:
