@@ -116,19 +116,20 @@ def _query_value(value: Any) -> str:
     return str(value)
 
 
-def _error(response: httpx.Response) -> ServiceError:
+def _error(status: int, body: bytes, retry_after: str | None) -> ServiceError:
+    """The error of an HTTP answer (a request's, or a stream's refused handshake): the service's
+    JSON `{"error": {"code", "message"}}`, else (a proxy, uvicorn itself) `http_error` with the text."""
     try:
-        body = response.json()["error"]
-        code, message = str(body["code"]), str(body["message"])
-    except (ValueError, KeyError, TypeError):  # not the service's JSON (a proxy, uvicorn itself)
-        code, message = "http_error", response.text[:200]
-    retry_after = response.headers.get("retry-after")
-    return ServiceError(response.status_code, code, message, float(retry_after) if retry_after else None)
+        error = json.loads(body)["error"]
+        code, message = str(error["code"]), str(error["message"])
+    except (ValueError, KeyError, TypeError):
+        code, message = "http_error", body[:200].decode(errors="replace")
+    return ServiceError(status, code, message, float(retry_after) if retry_after else None)
 
 
 def _result(response: httpx.Response) -> DisparityResult:
     if response.status_code != 200:
-        raise _error(response)
+        raise _error(response.status_code, response.content, response.headers.get("retry-after"))
     maps = np.load(io.BytesIO(response.content))
     headers = response.headers
     return DisparityResult(
@@ -145,7 +146,7 @@ def _result(response: httpx.Response) -> DisparityResult:
 
 def _json(response: httpx.Response) -> Any:
     if response.status_code >= 400 and response.status_code != 503:
-        raise _error(response)
+        raise _error(response.status_code, response.content, response.headers.get("retry-after"))
     return response.json()
 
 
@@ -265,9 +266,9 @@ class DisparityStream:
             self._socket = self._connection.enter_context(
                 connect(url, additional_headers=headers, max_size=None, open_timeout=timeout_s)
             )
-        except InvalidStatus as refused:
-            status = refused.response.status_code
-            raise ServiceError(status, "unauthorized" if status == 403 else "http_error", str(refused)) from None
+        except InvalidStatus as refused:  # a key or a place refused at the handshake, in the service's JSON
+            answer = refused.response
+            raise _error(answer.status_code, answer.body or b"", answer.headers.get("Retry-After")) from None
         self._timeout_s = timeout_s
 
     def send(self, left: Image, right: Image) -> DisparityResult:

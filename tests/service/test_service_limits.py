@@ -22,6 +22,7 @@ from pydantic import ValidationError
 from websockets.exceptions import ConnectionClosed, InvalidStatus
 from websockets.sync.client import ClientConnection
 
+from crestereo_pp.client import ServiceError, StereoClient
 from crestereo_pp.service.api.query import repeated_option
 from crestereo_pp.service.settings import Settings
 from service_helpers import (
@@ -84,6 +85,8 @@ def test_idle_streams_fill_only_their_own_places_and_the_probes_keep_answering(t
     with run_uvicorn(tmp_path, **limits) as server, ExitStack() as streams:
         first, second = (streams.enter_context(open_stream(server.base_url)) for _ in range(2))
         per_client = refused_handshake(server.base_url)
+        with pytest.raises(ServiceError) as client_refused, StereoClient(server.base_url) as service:
+            service.stream()  # the Python client reads the same refusal
         other = streams.enter_context(open_stream(server.base_url, source="127.0.0.2"))
         in_all = refused_handshake(server.base_url, source="127.0.0.3")
         probes = [live_seconds(server.base_url) for _ in range(5)]
@@ -101,6 +104,8 @@ def test_idle_streams_fill_only_their_own_places_and_the_probes_keep_answering(t
         assert headers["content-type"] == "application/json" and seconds < 1.0
     assert "from 127.0.0.1" in per_client[2]["message"] and "3 streams are open" in in_all[2]["message"]
     assert ready.status_code == 200 and max(probes) < 1.0, probes
+    refusal = client_refused.value
+    assert (refusal.status, refusal.code, refusal.retry_after) == (503, "overloaded", 1.0)
 
 
 @pytest.mark.slow

@@ -87,5 +87,5 @@ def test_a_stream_needs_the_bearer_key_when_the_server_has_one(tmp_path):
     # refused at the handshake, with the service's JSON error (the connection never opens)
     assert refused.value.response.status_code == 403
     assert json.loads(refused.value.response.body)["error"]["code"] == "unauthorized"
-    assert client_refused.value.status == 403
+    assert client_refused.value.status == 403 and client_refused.value.code == "unauthorized"
     assert result.disparity.shape == left.shape[:2]
