@@ -268,7 +268,7 @@ class DisparityStream:
             )
         except InvalidStatus as refused:  # a key or a place refused at the handshake, in the service's JSON
             answer = refused.response
-            raise _error(answer.status_code, answer.body or b"", answer.headers.get("Retry-After")) from None
+            raise _error(answer.status_code, bytes(answer.body or b""), answer.headers.get("Retry-After")) from None
         self._timeout_s = timeout_s
 
     def send(self, left: Image, right: Image) -> DisparityResult:
