@@ -10,7 +10,6 @@ says what each bounds and what uvicorn cannot bound.
 from __future__ import annotations
 
 import argparse
-import ctypes
 import logging
 import math
 import os
@@ -22,6 +21,7 @@ import uvicorn
 from crestereo_pp.service.batching.daemon_thread import any_busy
 from crestereo_pp.service.settings import Settings
 from crestereo_pp.service.uploads.budgets import largest_stream_image
+from crestereo_pp.service.uploads.memory import limit_malloc_arenas
 
 
 class ServerLimits(TypedDict):
@@ -56,13 +56,6 @@ SERVER_LIMITS: ServerLimits = {
 FILE_DESCRIPTORS_BESIDE = 256
 """File descriptors the server needs besides its connections' (the listening socket, the decoder
 processes' pipes, logs, the models' and libraries' files), for the soft RLIMIT_NOFILE."""
-MALLOC_ARENAS = 2
-"""glibc malloc arenas of the server process (glibc's default: 8 per core). Each thread that
-allocates (the inference thread, OpenVINO's and the response threads) gets an arena of its own up to that
-limit, and what one frees stays in it for that arena's next allocations: under a mix of image sizes
-16 arenas held 550-800 MiB free (and growing) beside about 1 GiB in use."""
-M_ARENA_MAX = -8  # mallopt's parameter number (malloc.h)
-
 SHUTDOWN_MARGIN_S = 5
 """After SIGTERM the service's drain (CRESTEREO_DRAIN_TIMEOUT_S) answers every admitted request;
 uvicorn cancels whatever still runs this long after it (a client that never reads its answer)."""
@@ -145,19 +138,6 @@ def raise_open_files_limit(needed: int) -> int | None:
     except (OSError, ValueError):
         return soft
     return target
-
-
-def limit_malloc_arenas(arenas: int = MALLOC_ARENAS) -> bool:
-    """Cap glibc's malloc arenas in this process at `arenas` (mallopt M_ARENA_MAX), before the
-    server starts its threads, unless MALLOC_ARENA_MAX is set (glibc read that at startup: it wins).
-    Returns whether the cap was set (False off glibc)."""
-    if "MALLOC_ARENA_MAX" in os.environ:
-        return False
-    try:
-        mallopt = ctypes.CDLL(None).mallopt
-    except (OSError, AttributeError):  # not glibc
-        return False
-    return bool(mallopt(M_ARENA_MAX, arenas))
 
 
 if __name__ == "__main__":

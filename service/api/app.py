@@ -24,6 +24,7 @@ from crestereo_pp.service.api.routes import disparity, docs, health, metrics, mo
 from crestereo_pp.service.batching.runtime import ModelLoader, ServiceRuntime
 from crestereo_pp.service.settings import Settings
 from crestereo_pp.service.uploads.budgets import ByteBudget, StreamSlots
+from crestereo_pp.service.uploads.memory import FreedMemory
 
 API_VERSION = "1.0.0"  # version of the HTTP contract in openapi.yaml
 
@@ -68,6 +69,7 @@ def create_app(
     app.state.uploads = ByteBudget(settings.max_upload_bytes)  # request bodies
     app.state.stream_bytes = ByteBudget(settings.max_stream_bytes, "stream images")  # apart from the bodies'
     app.state.streams = StreamSlots(settings.max_streams, settings.max_streams_per_client)
+    app.state.freed_memory = FreedMemory()  # given back after streams end
     app.add_middleware(UploadBudgetMiddleware, budget=app.state.uploads, metrics=runtime.metrics)
     app.add_middleware(RequestSizeLimitMiddleware, max_bytes=settings.max_body_bytes, metrics=runtime.metrics)
     app.add_middleware(ConcurrencyLimitMiddleware, max_requests=settings.max_requests, metrics=runtime.metrics)

@@ -39,6 +39,7 @@ from crestereo_pp.service.api.schemas import DisparityOptions, OutputFormat
 from crestereo_pp.service.batching.batcher import BatchingError
 from crestereo_pp.service.batching.runtime import ServiceRuntime
 from crestereo_pp.service.uploads.budgets import ByteBudget, StreamSlots, largest_stream_image
+from crestereo_pp.service.uploads.memory import FreedMemory
 from crestereo_pp.service.uploads.multipart import ImageLimits, Upload, UploadError
 
 logger = logging.getLogger(__name__)
@@ -79,6 +80,9 @@ async def stream_disparity(websocket: WebSocket) -> None:
             await websocket.close(code=closing.code, reason=closing.reason[:120])
         except WebSocketDisconnect:
             return
+        finally:  # its images are freed: give their memory back (glibc keeps large freed buffers)
+            freed: FreedMemory = websocket.app.state.freed_memory
+            freed.soon()
 
 
 async def _refuse(websocket: WebSocket, answer: Response) -> None:
