@@ -8,6 +8,7 @@ Disparity is positive everywhere, in pixels of the left image (the right match i
     disparity, uncertainty = predictor.predict(left_rgb, right_rgb)
 """
 
+from .batching import PairMaps
 from .loading import load_model
 from .options import (
     TWO_PASS_CHOICES,
@@ -18,7 +19,7 @@ from .options import (
     parse_iterations,
     parse_two_pass,
 )
-from .prediction import Prediction, TensorPrediction, on_host
+from .prediction import Prediction, TensorPrediction
 from .predictor import StereoPredictor
 from .warm_start import FrameStream, WarmStart
 
@@ -26,6 +27,7 @@ __all__ = [
     "TWO_PASS_CHOICES",
     "FrameStream",
     "InferenceOptions",
+    "PairMaps",
     "Iterations",
     "Prediction",
     "StageCounts",
@@ -34,7 +36,6 @@ __all__ = [
     "TwoPass",
     "WarmStart",
     "load_model",
-    "on_host",
     "parse_iterations",
     "parse_two_pass",
 ]

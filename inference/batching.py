@@ -8,6 +8,7 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -15,7 +16,7 @@ from crestereo_pp.model.network import padded_size
 
 from .options import TwoPass
 from .padding import Padding
-from .prediction import TensorPrediction
+from .prediction import Prediction, TensorPrediction
 from .two_pass import two_pass_possible
 
 ServeUncertainty = Callable[[Tensor, Tensor, Tensor], Tensor]
@@ -84,10 +85,40 @@ class PaddedBatch:
             served[i : i + 1, :, : padding.height, : padding.width] = serve(pair_raw, pair_disparity, pair_left)
         return served
 
-    def maps(self, disparity: Tensor, uncertainty: Tensor) -> list[TensorPrediction]:
-        """Each pair's maps, (1, h, w) on the device, cropped to its size from the batch's
-        (B, H, W) disparity and uncertainty."""
-        return [
-            TensorPrediction(padding.crop(disparity[i : i + 1]), padding.crop(uncertainty[i : i + 1]))
-            for i, padding in enumerate(self.paddings)
-        ]
+
+@dataclass(frozen=True)
+class PairMaps:
+    """The maps of pairs computed together (``StereoPredictor.predict_pairs``), on the device:
+    for each batch that ran, the indices of its pairs (in the order given), its padding and its
+    maps stacked as one (2, B, H, W) tensor (disparity, uncertainty)."""
+
+    batches: tuple[tuple[tuple[int, ...], PaddedBatch, Tensor], ...]
+
+    @staticmethod
+    def of(batches: Sequence[tuple[Sequence[int], PaddedBatch, Tensor, Tensor]]) -> PairMaps:
+        """From each batch's pair indices, padding, and (B, H, W) disparity and uncertainty."""
+        return PairMaps(
+            tuple(
+                (tuple(indices), batch, torch.stack((disparity, uncertainty)))
+                for indices, batch, disparity, uncertainty in batches
+            )
+        )
+
+    def on_host(self) -> list[Prediction]:
+        """Each pair's maps as numpy HxW arrays, copied to the host once per batch (the stack,
+        (2, H, W) for a batch of one pair): the only device-to-host transfer of a prediction."""
+        results: dict[int, Prediction] = {}
+        for indices, batch, maps in self.batches:
+            host = maps[:, 0].cpu().numpy()[:, None] if maps.shape[1] == 1 else maps.cpu().numpy()
+            for i, (index, padding) in enumerate(zip(indices, batch.paddings, strict=True)):
+                disparity, uncertainty = (np.ascontiguousarray(padding.crop(host[k, i])) for k in (0, 1))
+                results[index] = Prediction(disparity, uncertainty)
+        return [results[i] for i in range(len(results))]
+
+    def on_device(self) -> list[TensorPrediction]:
+        """Each pair's maps, (1, h, w) views of the batch's on the device."""
+        results: dict[int, TensorPrediction] = {}
+        for indices, batch, maps in self.batches:
+            for i, (index, padding) in enumerate(zip(indices, batch.paddings, strict=True)):
+                results[index] = TensorPrediction(padding.crop(maps[0, i : i + 1]), padding.crop(maps[1, i : i + 1]))
+        return [results[i] for i in range(len(results))]

@@ -1,10 +1,9 @@
 """What a prediction takes and gives: images in (arrays or tensors, onto the predictor's device),
-maps out (``Prediction`` on the host, ``TensorPrediction`` on the device), and the one copy of the
-maps from the device to the host."""
+and maps out (``Prediction`` on the host, ``TensorPrediction`` on the device; the one copy from
+the device to the host is ``batching.PairMaps.on_host``)."""
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from typing import NamedTuple
 
 import numpy as np
@@ -62,21 +61,3 @@ def image_size(image: np.ndarray | Tensor) -> tuple[int, int]:
     if isinstance(image, Tensor):
         return image.shape[-2], image.shape[-1]
     raise TypeError(f"expected a numpy array or a torch tensor, got {type(image).__name__}")
-
-
-def on_host(predictions: Sequence[TensorPrediction]) -> list[Prediction]:
-    """Maps of single pairs ((1, H, W) tensors on any device, ``predict_pairs``') as numpy HxW
-    arrays, copied to the host in one transfer for all of them: the only device-to-host transfer
-    of a prediction."""
-    if any(p.disparity.shape[0] != 1 or p.uncertainty.shape != p.disparity.shape for p in predictions):
-        raise ValueError("on_host takes the maps of single pairs, (1, H, W) each")
-    flat = torch.cat([torch.cat((p.disparity.flatten(), p.uncertainty.flatten())) for p in predictions])
-    values = flat.cpu().numpy()
-    results, start = [], 0
-    for p in predictions:
-        height, width = p.disparity.shape[-2:]
-        size = height * width
-        maps = values[start : start + 2 * size].reshape(2, height, width)
-        results.append(Prediction(maps[0], maps[1]))
-        start += 2 * size
-    return results

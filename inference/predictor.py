@@ -27,13 +27,13 @@ from crestereo_pp.model.upsample import resize_disparity
 from crestereo_pp.model.weights import is_trained
 
 from .backend_choice import Backend, Precision
-from .batching import PaddedBatch, batch_groups
+from .batching import PaddedBatch, PairMaps, batch_groups
 from .cuda_graphs import GraphedForward
 from .forward import Forward, Maps
 from .openvino_backend import OpenVINOForward
 from .options import InferenceOptions, Iterations, IterationsGiven, StageCounts, TwoPass
 from .padding import Padding
-from .prediction import Prediction, TensorPrediction, as_image_batch, image_size, on_host
+from .prediction import Prediction, TensorPrediction, as_image_batch, image_size
 from .scaling import scaled_size, shrink
 from .torch_backend import autocast_bf16
 from .two_pass import cold_maps, large_disparity_percentile
@@ -207,8 +207,9 @@ class StereoPredictor:
             inits = one_per_pair(init.reshape(left_batch.shape[0], *left_batch.shape[-2:]))
         maps = self.predict_pairs(one_per_pair(left_batch), one_per_pair(right_batch), options, inits, graphed=False)
         if isinstance(left, np.ndarray):
-            return on_host(maps)[0]
-        return TensorPrediction(torch.cat([m.disparity for m in maps]), torch.cat([m.uncertainty for m in maps]))
+            return maps.on_host()[0]
+        pairs = maps.on_device()
+        return TensorPrediction(torch.cat([m.disparity for m in pairs]), torch.cat([m.uncertainty for m in pairs]))
 
     def predict_batch(
         self,
@@ -224,7 +225,7 @@ class StereoPredictor:
         """Several pairs (arrays, as ``predict`` takes them) in one forward pass: ``predict_pairs``
         with the options read once, here, as ``InferenceOptions``, its maps copied to the host."""
         options = InferenceOptions(iters, two_pass, scale, raw_uncertainty)
-        return on_host(self.predict_pairs(lefts, rights, options, init_disparities))
+        return self.predict_pairs(lefts, rights, options, init_disparities).on_host()
 
     @torch.inference_mode()
     def predict_pairs(
@@ -235,10 +236,10 @@ class StereoPredictor:
         init_disparities: Sequence[np.ndarray | Tensor] | None = None,
         *,
         graphed: bool = True,
-    ) -> list[TensorPrediction]:
+    ) -> PairMaps:
         """The maps of several pairs with ``options`` (as they travel from a request: the
-        service's batches), in as few forward passes as they allow: each pair's disparity and
-        uncertainty, (1, h, w) on the device (``on_host`` copies them to the host at once).
+        service's batches), in as few forward passes as they allow, on the device
+        (``PairMaps.on_host`` copies them to the host, once per batch that ran).
         Every call of the network with a request's options runs through here.
 
         lefts, rights: one image per pair, an array (as ``predict`` takes it) or a (1, 3|1, h, w)
@@ -264,7 +265,7 @@ class StereoPredictor:
             raise ValueError(f"need one warm start per pair, got {len(init_disparities)} for {len(lefts)}")
         iters = self.iterations(options.iters)
         forward = partial(self.forward_padded, backend=self.openvino or (self.graphs if graphed else None))
-        results: dict[int, TensorPrediction] = {}
+        batches: list[tuple[list[int], PaddedBatch, Tensor, Tensor]] = []
         for group, two_pass in batch_groups(sizes, options.two_pass, init_disparities is not None, options.scale):
             batch = PaddedBatch.of([sizes[i] for i in group])
             left = original_left = batch.stack([as_image_batch(lefts[i], self.device) for i in group])
@@ -291,8 +292,8 @@ class StereoPredictor:
                 uncertainty = F.interpolate(uncertainty, size=(height, width), mode="bilinear", align_corners=False)
             if not options.raw_uncertainty:
                 uncertainty = batch.served(uncertainty, disparity, original_left, self.served_uncertainty)
-            results.update(zip(group, batch.maps(disparity[:, 0], uncertainty[:, 0]), strict=True))
-        return [results[i] for i in range(len(lefts))]
+            batches.append((group, batch, disparity[:, 0], uncertainty[:, 0]))
+        return PairMaps.of(batches)
 
     def stream(self, options: InferenceOptions | None = None, warm_iters: IterationsGiven = None) -> FrameStream:
         """A video's pairs one at a time, each warm-started from the previous one (``FrameStream``)."""

@@ -10,7 +10,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from crestereo_pp.inference import InferenceOptions, Iterations, StageCounts, TensorPrediction, TwoPass, on_host
+from crestereo_pp.inference import InferenceOptions, Iterations, PairMaps, StageCounts, TwoPass
 from crestereo_pp.inference.backend_choice import Backend, Precision
 from crestereo_pp.inference.uncertainty_calibration import UncertaintyCalibration
 from crestereo_pp.model import ModelConfig, padded_size
@@ -45,7 +45,7 @@ class Predictor(Protocol):
         rights: Sequence[np.ndarray],
         options: InferenceOptions,
         init_disparities: Sequence[np.ndarray] | None = None,
-    ) -> list[TensorPrediction]: ...
+    ) -> PairMaps: ...
 
 
 @dataclass(frozen=True)
@@ -143,9 +143,9 @@ class StereoBatches:
         every pair (and warm start) to the batch shape the way the network pads one; the maps
         come to the host at once."""
         inits = [pair.init for pair in pairs if pair.init is not None] if key.warm_start else None
-        predictions = on_host(
-            self.predictors[key.model].predict_pairs(
-                [pair.left for pair in pairs], [pair.right for pair in pairs], key.options, inits
-            )
+        predictions = (
+            self.predictors[key.model]
+            .predict_pairs([pair.left for pair in pairs], [pair.right for pair in pairs], key.options, inits)
+            .on_host()
         )
         return [StereoMaps(p.disparity, p.uncertainty) for p in predictions]
