@@ -115,10 +115,10 @@ class PairMaps:
                 results[index] = Prediction(disparity, uncertainty)
         return [results[i] for i in range(len(results))]
 
-    def on_device(self) -> list[TensorPrediction]:
-        """Each pair's maps, (1, h, w) views of the batch's on the device."""
-        results: dict[int, TensorPrediction] = {}
-        for indices, batch, maps in self.batches:
-            for i, (index, padding) in enumerate(zip(indices, batch.paddings, strict=True)):
-                results[index] = TensorPrediction(padding.crop(maps[0, i : i + 1]), padding.crop(maps[1, i : i + 1]))
-        return [results[i] for i in range(len(results))]
+    def on_device(self) -> TensorPrediction:
+        """The maps of pairs of one size computed as one batch (``predict`` of a tensor batch),
+        (B, H, W) each, on the device as they are."""
+        if len(self.batches) != 1 or self.batches[0][1].mixed:
+            raise ValueError("on_device takes the maps of pairs of one size, computed as one batch")
+        maps = self.batches[0][2]
+        return TensorPrediction(maps[0], maps[1])

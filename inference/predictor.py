@@ -208,8 +208,7 @@ class StereoPredictor:
         maps = self.predict_pairs(one_per_pair(left_batch), one_per_pair(right_batch), options, inits, graphed=False)
         if isinstance(left, np.ndarray):
             return maps.on_host()[0]
-        pairs = maps.on_device()
-        return TensorPrediction(torch.cat([m.disparity for m in pairs]), torch.cat([m.uncertainty for m in pairs]))
+        return maps.on_device()
 
     def predict_batch(
         self,

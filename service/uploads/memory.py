@@ -50,7 +50,6 @@ class FreedMemory:
     def __init__(self) -> None:
         self._libc = _libc()
         self._pending: asyncio.TimerHandle | None = None
-        self.trims = 0
 
     def soon(self) -> None:
         """Trim TRIM_DELAY_S from now (call on the event loop)."""
@@ -62,4 +61,3 @@ class FreedMemory:
         self._pending = None
         if self._libc is not None:
             self._libc.malloc_trim(0)
-            self.trims += 1
