@@ -10,7 +10,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.description = (
         "Run the network on procedural validation scenes (never real pairs), fit the map from "
         "the paper's uncertainty U and features of each pixel's answer (disparity edges, texture, "
-        "matches outside the right image) to the probability of an error above 2 px, and store it in "
+        "matches outside the right image, how well the right image matches there and nearby) to the "
+        "probability of an error above 2 px, and store it in "
         "WEIGHTS, replacing any earlier one. Run it whenever the weights change. Needs the train "
         "extra (pip install 'crestereo-pp[train]')."
     )

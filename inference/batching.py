@@ -19,9 +19,9 @@ from .padding import Padding
 from .prediction import Prediction, TensorPrediction
 from .two_pass import two_pass_possible
 
-ServeUncertainty = Callable[[Tensor, Tensor, Tensor], Tensor]
-"""serve(raw, disparity, left): the uncertainty as served, (B, 1, H, W), from the paper's U
-(B, 1, H, W), the disparity (B, 1, H, W) and the left images (B, 3, H, W)
+ServeUncertainty = Callable[[Tensor, Tensor, Tensor, Tensor], Tensor]
+"""serve(raw, disparity, left, right): the uncertainty as served, (B, 1, H, W), from the paper's U
+(B, 1, H, W), the disparity (B, 1, H, W) and the left and right images (B, 3, H, W)
 (``StereoPredictor.served_uncertainty``)."""
 
 
@@ -72,17 +72,17 @@ class PaddedBatch:
         """One (1, C, h, w) tensor per pair, each padded, as one (B, C, H, W) batch."""
         return torch.cat([padding.pad(image) for padding, image in zip(self.paddings, images, strict=True)])
 
-    def served(self, raw: Tensor, disparity: Tensor, left: Tensor, serve: ServeUncertainty) -> Tensor:
+    def served(self, raw: Tensor, disparity: Tensor, left: Tensor, right: Tensor, serve: ServeUncertainty) -> Tensor:
         """The uncertainty as served, (B, 1, H, W), of the batch's paper's U `raw` (B, 1, H, W)
-        through `serve`: each pair's from its own maps and `left` image (disparity (B, 1, H, W),
-        left (B, 3, H, W)) cropped to its size, borders as the pair alone has them; the padding
-        keeps U."""
+        through `serve`: each pair's from its own maps and images (disparity (B, 1, H, W), `left`
+        and `right` (B, 3, H, W)) cropped to its size, borders as the pair alone has them; the
+        padding keeps U."""
         if not self.mixed:
-            return serve(raw, disparity, left)
+            return serve(raw, disparity, left, right)
         served = raw.clone()
         for i, padding in enumerate(self.paddings):
-            pair_raw, pair_disparity, pair_left = (padding.crop(x[i : i + 1]) for x in (raw, disparity, left))
-            served[i : i + 1, :, : padding.height, : padding.width] = serve(pair_raw, pair_disparity, pair_left)
+            pair_maps = (padding.crop(x[i : i + 1]) for x in (raw, disparity, left, right))
+            served[i : i + 1, :, : padding.height, : padding.width] = serve(*pair_maps)
         return served
 
 

@@ -29,7 +29,7 @@ class ExportedGraph(nn.Module):
 
     def forward(self, left: Tensor, right: Tensor) -> tuple[Tensor, Tensor]:
         disparity, uncertainty = self.predictor.forward_padded(left, right, self.counts, None)
-        return disparity, self.predictor.served_uncertainty(uncertainty, disparity, left)
+        return disparity, self.predictor.served_uncertainty(uncertainty, disparity, left, right)
 
 
 def export_onnx(

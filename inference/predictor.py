@@ -268,7 +268,7 @@ class StereoPredictor:
         for group, two_pass in batch_groups(sizes, options.two_pass, init_disparities is not None, options.scale):
             batch = PaddedBatch.of([sizes[i] for i in group])
             left = original_left = batch.stack([as_image_batch(lefts[i], self.device) for i in group])
-            right = batch.stack([as_image_batch(rights[i], self.device) for i in group])
+            right = original_right = batch.stack([as_image_batch(rights[i], self.device) for i in group])
             height, width = left.shape[-2:]
             size = scaled_size(height, width, options.scale)
             if size != (height, width):
@@ -290,7 +290,9 @@ class StereoPredictor:
                 disparity = resize_disparity(disparity, height, width)
                 uncertainty = F.interpolate(uncertainty, size=(height, width), mode="bilinear", align_corners=False)
             if not options.raw_uncertainty:
-                uncertainty = batch.served(uncertainty, disparity, original_left, self.served_uncertainty)
+                uncertainty = batch.served(
+                    uncertainty, disparity, original_left, original_right, self.served_uncertainty
+                )
             batches.append((group, batch, disparity[:, 0], uncertainty[:, 0]))
         return PairMaps.of(batches)
 
@@ -327,11 +329,12 @@ class StereoPredictor:
             partial(self.forward_padded, backend=forward or self.openvino),
         )
 
-    def served_uncertainty(self, raw: Tensor, disparity: Tensor, left: Tensor) -> Tensor:
+    def served_uncertainty(self, raw: Tensor, disparity: Tensor, left: Tensor, right: Tensor) -> Tensor:
         """The uncertainty as served, (B, 1, H, W), from the paper's U `raw` (B, 1, H, W), the
-        `disparity` (B, 1, H, W) and the `left` image (B, 3, H, W) it answers: P(|error| >
-        threshold_px) through the weights' calibration where they carry one, else U itself."""
-        return raw if self.calibration is None else self.calibration.apply(raw, disparity, left)
+        `disparity` (B, 1, H, W) and the `left` and `right` images (B, 3, H, W) it answers:
+        P(|error| > threshold_px) through the weights' calibration where they carry one, else U
+        itself."""
+        return raw if self.calibration is None else self.calibration.apply(raw, disparity, left, right)
 
     def forward_padded(
         self,

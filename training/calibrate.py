@@ -109,7 +109,8 @@ def calibrate(
         assert isinstance(prediction.disparity, torch.Tensor)
         disparity = prediction.disparity[:, None]
         known = batch.valid[:, 0]
-        per_pixel = confidence_features(prediction.uncertainty[:, None], disparity, batch.left).permute(0, 2, 3, 1)
+        maps = confidence_features(prediction.uncertainty[:, None], disparity, batch.left, batch.right)
+        per_pixel = maps.permute(0, 2, 3, 1)
         features.append(per_pixel[known].cpu().numpy())
         errors.append((prediction.disparity - batch.disparity[:, 0]).abs()[known].cpu().numpy())
     all_features, all_errors = np.concatenate(features), np.concatenate(errors)
