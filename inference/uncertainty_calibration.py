@@ -45,6 +45,12 @@ MATCH_WINDOW_PX = 5
 pixels of the image)."""
 AMBIGUITY_OFFSETS_PX = (-12.0, -4.0, 4.0, 12.0)
 """The other disparities the match is compared with, as offsets (px of the image) from the answer."""
+CENTRING_WINDOW_PX = 15
+"""Side of the square window (at half resolution, about 30 pixels of the image) whose mean the
+match features subtract from each grey image first. It is nearly constant over a correlation
+window, so the correlation hardly changes, but it keeps the windows' sums small: a variance is a
+difference of two sums, and of raw grey levels (squares up to 255^2) float32 lost about 1e-3 of a
+correlation in flat windows, rounded differently by each runtime."""
 ZNCC_VARIANCE_FLOOR = 4.0
 """Added to the product of the two windows' grey variances (grey levels^4) under the correlation's
 square root, so that flat windows correlate near 0, not at random."""
@@ -85,15 +91,14 @@ def answer_features(raw: Tensor, disparity: Tensor, left: Tensor) -> Tensor:
 def match_features(disparity: Tensor, left: Tensor, right: Tensor) -> Tensor:
     """MATCH_FEATURES (B, 2, H, W): how the grey `left` image (B, 3, H, W; RGB in [0, 255])
     matches the grey `right` image sampled at x - d for the `disparity` d (B, 1, H, W; px), by
-    zero-mean normalised cross-correlation (ZNCC) over MATCH_WINDOW_PX windows at half resolution:
+    zero-mean normalised cross-correlation (ZNCC) over MATCH_WINDOW_PX windows at half resolution
+    (of the images less their local mean, CENTRING_WINDOW_PX):
     1 - ZNCC at the answer (0: the windows agree, up to 2: inverted), and the best ZNCC at the
     answer + AMBIGUITY_OFFSETS_PX minus the ZNCC at the answer (above 0: another disparity nearby
     matches better, as wrong matches and repeated patterns do). Each brought back to H x W
     bilinearly. Pooling, sampling and elementwise ops only, so it exports to ONNX."""
     height, width = disparity.shape[-2:]
-    half_left, half_right = (
-        F.avg_pool2d(image.mean(dim=1, keepdim=True), 2, ceil_mode=True) for image in (left, right)
-    )
+    half_left, half_right = (_half_resolution_detail(image) for image in (left, right))
     half_disparity = F.avg_pool2d(disparity, 2, ceil_mode=True) / 2.0
     left_mean = _box_mean(half_left, MATCH_WINDOW_PX)
     left_variance = (_box_mean(half_left**2, MATCH_WINDOW_PX) - left_mean**2).clamp(min=0.0)
@@ -109,6 +114,13 @@ def match_features(disparity: Tensor, left: Tensor, right: Tensor) -> Tensor:
     best_elsewhere = torch.stack([zncc(offset) for offset in AMBIGUITY_OFFSETS_PX]).amax(dim=0)
     half_features = torch.cat([1.0 - at_answer, best_elsewhere - at_answer], dim=1)
     return F.interpolate(half_features, size=(height, width), mode="bilinear", align_corners=False)
+
+
+def _half_resolution_detail(image: Tensor) -> Tensor:
+    """The grey of the (B, 3, H, W) `image` at half resolution, (B, 1, ceil(H/2), ceil(W/2)), minus
+    its mean over CENTRING_WINDOW_PX."""
+    grey = F.avg_pool2d(image.mean(dim=1, keepdim=True), 2, ceil_mode=True)
+    return grey - _box_mean(grey, CENTRING_WINDOW_PX)
 
 
 def _sample_along_rows(image: Tensor, disparity: Tensor) -> Tensor:
