@@ -33,6 +33,9 @@ from .visualize import evaluation_sheet
 
 SGBM = "sgbm"
 """Method name of the OpenCV StereoSGBM baseline in reports."""
+CALIBRATION_TOLERANCE = 0.05
+"""How far a pair's mean predicted probability of a large error may be from its observed share of
+large errors for `pair_calibration_table` to count the pair as calibrated."""
 
 
 @dataclass(frozen=True)
@@ -115,12 +118,14 @@ class EvaluationReport:
 
     def calibration_table(self) -> str:
         """Plain-text reliability table (all pixels of all pairs) of each method whose
-        uncertainty is a calibrated probability; empty when there is none."""
+        uncertainty is a calibrated probability, then its per-pair table
+        (`pair_calibration_table`); empty when there is none."""
         blocks = []
         for method in self.method_names:
             pooled = self.mean(method).reliability
             if pooled is None:
                 continue
+            blocks.append(self.pair_calibration_table(method))
             lines = [
                 f"{method}: predicted vs observed P(error > {pooled.threshold_px:g} px), all pixels of "
                 f"{len(self.pairs)} pairs; expected calibration error {pooled.expected_calibration_error:.4f}",
@@ -135,6 +140,39 @@ class EvaluationReport:
                 )
             blocks.append("\n".join(lines))
         return "\n\n".join(blocks)
+
+    def pair_calibration_table(self, method: str, tolerance: float = CALIBRATION_TOLERANCE) -> str:
+        """Plain-text table of `method`'s calibrated uncertainty pair by pair: the observed share
+        of pixels wrong by over the threshold, the mean predicted probability, and the
+        sparsification AUC / random AUC (below 1: the map ranks the errors better than chance);
+        then the means over pairs (each pair counts once; AUC / random is the mean of the pairs'
+        ratios) and how many pairs have their mean predicted within `tolerance` of the observed."""
+        header = f"{'pair':<34} {'observed':>8} {'predicted':>9} {'AUC/rnd':>8}"
+        rows = []
+        for pair in self.pairs:
+            result = pair.methods[method]
+            assert result.reliability is not None, f"{method} has no calibrated uncertainty on {pair.name}"
+            rows.append(
+                (
+                    pair.name,
+                    result.reliability.observed_rate,
+                    result.reliability.mean_predicted,
+                    result.sparsification.ratio_to_random,
+                )
+            )
+        threshold = self.pairs[0].methods[method].sparsification.threshold_px
+        close = sum(abs(predicted - observed) <= tolerance for _, observed, predicted, _ in rows)
+        means = [float(np.nanmean([row[i] for row in rows])) for i in (1, 2, 3)]
+        lines = [
+            f"{method}: observed vs mean predicted P(error > {threshold:g} px) and AUC / random, pair by pair",
+            header,
+            "-" * len(header),
+            *(f"{name:<34.34} {obs:>8.3f} {pred:>9.3f} {ratio:>8.2f}" for name, obs, pred, ratio in rows),
+            f"{f'mean of {len(rows)} pairs':<34} {means[0]:>8.3f} {means[1]:>9.3f} {means[2]:>8.2f}",
+            f"pairs whose mean predicted is within {tolerance:g} of the observed: {close} of {len(rows)}; "
+            f"worst AUC / random {float(np.nanmax([row[3] for row in rows])):.2f}",
+        ]
+        return "\n".join(lines)
 
     def uncertainty_table(self) -> str:
         """Plain-text table of how each method's uncertainty ranks its errors: bad-2 after

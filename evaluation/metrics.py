@@ -123,6 +123,12 @@ class Sparsification:
         """auc / auc_optimal (>= 1; 1 is perfect); nan when there is no error at all."""
         return self.auc / self.auc_optimal if self.auc_optimal > 0 else float("nan")
 
+    @property
+    def ratio_to_random(self) -> float:
+        """auc / auc_random (1 is no better than chance, below 1 better); nan when there is no
+        error at all."""
+        return self.auc / self.auc_random if self.auc_random > 0 else float("nan")
+
 
 def optimal_sparsification_auc(error_rate: float) -> float:
     """Area under the sparsification curve of a perfect ranking for error rate `error_rate` (a
@@ -183,6 +189,20 @@ class Reliability:
     observed: tuple[float, ...]
     pixels: tuple[int, ...]
     expected_calibration_error: float
+
+    @property
+    def mean_predicted(self) -> float:
+        """The mean predicted probability over all pixels."""
+        return self._pixel_mean(self.predicted)
+
+    @property
+    def observed_rate(self) -> float:
+        """The share of all pixels with an error above threshold_px."""
+        return self._pixel_mean(self.observed)
+
+    def _pixel_mean(self, per_bin: tuple[float, ...]) -> float:
+        filled = [(value, count) for value, count in zip(per_bin, self.pixels, strict=True) if count]
+        return sum(value * count for value, count in filled) / sum(count for _, count in filled)
 
 
 def reliability(errors: np.ndarray, probability: np.ndarray, threshold_px: float, bins: int = 10) -> Reliability:

@@ -7,8 +7,10 @@ import numpy as np
 import pytest
 
 from crestereo_pp.evaluation.evaluate import SGBM, evaluate
+from crestereo_pp.evaluation.metrics import sparsification
 from crestereo_pp.evaluation.visualize import PANEL_WIDTH
 from crestereo_pp.inference import Prediction
+from crestereo_pp.inference.uncertainty_calibration import UncertaintyCalibration
 from crestereo_pp.stereo_data.readers import StereoSample
 from crestereo_pp.stereo_data.visualize import colorize
 
@@ -123,3 +125,48 @@ def test_color_scale_is_fixed_and_unknown_is_black():
     np.testing.assert_array_equal(image[0, 1], image[0, 2])  # clipped at the top of the scale
     assert not np.array_equal(image[0, 0], image[0, 1])
     np.testing.assert_array_equal(image[0, 3], [0, 0, 0])
+
+
+class HalfWrongPredictor(OffsetPredictor):
+    """Off by 3 px on the left half of each image, exact on the right half, with a calibrated
+    uncertainty that says so: `wrong_p` on the left half, 0.1 on the right."""
+
+    calibration = UncertaintyCalibration(threshold_px=2.0, knots=(0.0, 1.0), probabilities=(0.0, 1.0), fitted_on="test")
+
+    def __init__(self, samples: list[StereoSample], wrong_p: dict[str, float]) -> None:
+        super().__init__(samples, 0.0)
+        self.wrong_p = {id(s.left): wrong_p[s.name] for s in samples}
+
+    def predict(self, left, right, *, two_pass="auto", iters=None, scale=1.0, raw_uncertainty=False):
+        truth = self.truth[id(left)]
+        half = truth.shape[1] // 2
+        disparity = np.where(np.isfinite(truth), truth, 0.0).astype(np.float32)
+        disparity[:, :half] += 3.0
+        uncertainty = np.full(truth.shape, 0.1, np.float32)
+        uncertainty[:, :half] = self.wrong_p[id(left)]
+        return Prediction(disparity, uncertainty)
+
+
+def test_the_pair_calibration_table_gives_each_pairs_observed_and_predicted_error_rates_and_ranking(samples):
+    predictor = HalfWrongPredictor(samples, {"a": 0.5, "b": 0.9})
+    report = evaluate(samples, predictor, dataset_name="mem", progress=False)
+    lines = report.pair_calibration_table("lite").splitlines()
+    rows = {line.split()[0]: [float(v) for v in line.split()[1:]] for line in lines[3:5]}
+    for sample in samples:
+        prediction = predictor.predict(sample.left, sample.right)
+        errors = np.abs(prediction.disparity - sample.disparity)[sample.valid]
+        trust = prediction.uncertainty[sample.valid]
+        curve = sparsification(errors, trust)
+        observed, predicted, ratio = rows[sample.name]
+        assert observed == pytest.approx((errors > 2.0).mean(), abs=5e-4)
+        assert predicted == pytest.approx(trust.mean(), abs=5e-4)
+        assert ratio == pytest.approx(curve.auc / curve.auc_random, abs=5e-3)
+        assert ratio < 1.0  # the wrong half is the flagged half
+    mean_row = lines[5].split()
+    assert mean_row[:3] == ["mean", "of", "2"]
+    assert [float(v) for v in mean_row[4:]] == pytest.approx(
+        np.mean(list(rows.values()), axis=0), abs=6e-3
+    )  # of printed values
+    # a: 0.5 on the wrong ~48 % of pixels and 0.1 elsewhere predicts ~0.29 (off by ~0.19); b predicts ~0.49
+    assert lines[-1].startswith("pairs whose mean predicted is within 0.05 of the observed: 1 of 2")
+    assert report.calibration_table().startswith(report.pair_calibration_table("lite"))
