@@ -6,6 +6,7 @@ import torch
 import torch.nn.functional as F
 
 from ..photos import load_photos
+from ..readers import StereoSample
 from .config import SceneConfig
 from .draw import Draw
 from .photometric import apply_photometric
@@ -35,6 +36,17 @@ class SceneGenerator:
             batch.left = apply_photometric(batch.left, self.config.photometric, draw)
             batch.right = apply_photometric(batch.right, self.config.photometric, draw)
         return batch
+
+    def samples(self, count: int, seed: int, batch_size: int = 4) -> list[StereoSample]:
+        """`count` pairs as a dataset of real pairs reads them (`SyntheticBatch.sample`), drawn
+        `batch_size` at a time: the batch from seed + i holds pairs i.. (named
+        ``procedural_{seed + i}_{k}``), as `training.calibrate` draws its scenes."""
+        samples = []
+        for first in range(0, count, batch_size):
+            size = min(batch_size, count - first)
+            batch = self.generate(size, seed=seed + first)
+            samples += [batch.sample(k, f"procedural_{seed + first}_{k}") for k in range(size)]
+        return samples
 
     def pan(self, seed: int, frames: int, step: tuple[float, float]) -> list[SyntheticBatch]:
         """A video with exact ground truth: `frames` renders (batches of one, without photometric

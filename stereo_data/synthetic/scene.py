@@ -7,6 +7,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 import torch
 
+from ..readers import StereoSample
+
 MAX_SIDES = 24
 """Polygons have 3..MAX_SIDES vertices; a MAX_SIDES-gon with equal radii stands for an ellipse."""
 
@@ -134,3 +136,11 @@ class SyntheticBatch:
             for view in (self.left, self.right)
         )
         return left, right
+
+    def sample(self, index: int, name: str) -> StereoSample:
+        """Pair `index` as a real pair is read (`StereoSample` named `name`): the uint8 views of
+        `pair`, the disparity (+inf where not `valid`), and the non-occluded mask."""
+        left, right = self.pair(index)
+        valid = self.valid[index, 0].cpu().numpy()
+        disparity = np.where(valid, self.disparity[index, 0].cpu().numpy(), np.inf).astype(np.float32)
+        return StereoSample(name, left, right, disparity, valid, valid & ~self.occluded[index, 0].cpu().numpy())

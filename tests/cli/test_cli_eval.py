@@ -11,7 +11,10 @@ import pytest
 import torch
 
 from crestereo_pp.cli.main import main
+from crestereo_pp.evaluation.metrics import compute_metrics
+from crestereo_pp.evaluation.sgbm import sgbm_disparity
 from crestereo_pp.model import CREStereoPP, ModelConfig
+from crestereo_pp.stereo_data.synthetic import SceneConfig, SceneGenerator
 
 REPO = Path(__file__).resolve().parents[2]
 pytestmark = pytest.mark.filterwarnings("ignore:no weights at:RuntimeWarning")
@@ -111,3 +114,51 @@ def test_eval_runs_and_records_the_inference_knobs(pairs_dir, tmp_path):
     assert (model["iters"], model["scale"], model["two_pass"]) == ([1, 1, 2], 0.5, "auto")
     with pytest.raises(SystemExit, match="1 or 3 counts"):
         main(["eval", str(pairs_dir), "--device", "cpu", "--iters", "1", "2"])
+
+
+def test_eval_on_procedural_scenes_of_one_kind_scores_them_against_their_exact_ground_truth(tmp_path):
+    out = tmp_path / "report.json"
+    argv = ["eval", "--procedural", "--scene", "thin_probability=1", "--scene", "max_disparity=24"]
+    argv += ["--scenes", "2", "--size", "64x128", "--seed", "5", "--baseline", "sgbm", "--json", str(out)]
+    assert main([*argv, "--device", "cpu", "--iters", "1", "1", "1"]) == 0
+
+    report = json.loads(out.read_text())
+    assert report["dataset"] == "2 procedural scenes 64x128 thin_probability=1 max_disparity=24, seeds from 5"
+    scenes = SceneGenerator(SceneConfig(height=64, width=128, thin_probability=1.0, max_disparity=24.0)).samples(2, 5)
+    assert [pair["name"] for pair in report["pairs"]] == [scene.name for scene in scenes]
+    for pair, scene in zip(report["pairs"], scenes, strict=True):
+        known = scene.valid
+        sgbm = pair["methods"]["sgbm"]["metrics"]
+        expected = compute_metrics(
+            sgbm_disparity(scene.left, scene.right, float(scene.disparity.max()))[0], scene.disparity, known
+        )
+        assert sgbm["valid_pixels"] == 64 * 128 and sgbm["epe"] == pytest.approx(expected.epe)
+
+
+@pytest.mark.parametrize(
+    ("argv", "says"),
+    [
+        (["--procedural", "--scene", "nope=1"], "numeric scene settings: "),
+        (["--procedural", "--scene", "thin_probability=lots"], "thin_probability takes a number"),
+        (["--procedural", "--size", "64by128"], "expected HEIGHTxWIDTH"),
+        (["--procedural", "--scenes", "0"], "expected a positive whole number"),
+    ],
+)
+def test_eval_refuses_procedural_settings_it_cannot_use_and_says_why(argv, says, capsys):
+    with pytest.raises(SystemExit) as exit_:
+        main(["eval", *argv])
+    assert exit_.value.code == 2 and says in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("argv", "says"),
+    [
+        (["--procedural", "somewhere"], "give either DATA_DIR or --procedural"),
+        ([], "give either DATA_DIR or --procedural"),
+        (["somewhere", "--scene", "thin_probability=1"], "--scene sets procedural scenes"),
+        (["--procedural", "--scene", "thin_probability=2"], "thin_probability"),
+    ],
+)
+def test_eval_needs_real_pairs_or_procedural_scenes_and_scene_values_the_generator_takes(argv, says, capsys):
+    assert main(["eval", *argv]) == 2
+    assert says in capsys.readouterr().err

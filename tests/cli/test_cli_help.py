@@ -18,7 +18,7 @@ SCRIPT = """
 import sys
 from crestereo_pp.cli.main import main
 try:
-    main(sys.argv[1:])
+    raise SystemExit(main(sys.argv[1:]))  # as the installed entry point does
 finally:
     print("torch imported:", "torch" in sys.modules, file=sys.stderr)
 """
