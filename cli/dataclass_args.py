@@ -27,7 +27,7 @@ def add_dataclass_options(parser: argparse.ArgumentParser | argparse._ArgumentGr
     metadata["help"], defaulting to "not given" (the dataclass default is shown in the help)."""
     hints = typing.get_type_hints(cls)
     for f in fields(cls):
-        kind = _strip_optional(hints[f.name])
+        kind = strip_optional(hints[f.name])
         options: dict[str, Any] = {
             "dest": f.name,
             "default": argparse.SUPPRESS,
@@ -59,7 +59,7 @@ def given_options(args: argparse.Namespace, cls: type) -> dict[str, Any]:
     return values
 
 
-def _strip_optional(kind: Any) -> Any:
+def strip_optional(kind: Any) -> Any:
     """X for `X | None`, else the type unchanged."""
     arguments = typing.get_args(kind)
     if typing.get_origin(kind) in (typing.Union, types.UnionType) and type(None) in arguments:

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import types
 import typing
 from collections.abc import Sequence
 from pathlib import Path
@@ -104,31 +103,27 @@ def evaluation_pairs(args: argparse.Namespace) -> tuple[Sequence[StereoSample], 
 
 
 def scene_setting(text: str) -> tuple[str, float]:
-    """--scene KEY=VALUE: a numeric field of SceneConfig and its value, of the field's type."""
+    """--scene KEY=VALUE: a numeric field of SceneConfig (int, float, or either or None) and its
+    value, of the field's type; the size is --size's."""
     from crestereo_pp.stereo_data.synthetic import SceneConfig
+
+    from .dataclass_args import strip_optional
 
     key, separator, value = text.partition("=")
     numeric = {
-        name: kind for name, kind in typing.get_type_hints(SceneConfig).items() if _number_type(kind) is not None
+        name: kind
+        for name, kind in ((name, strip_optional(hint)) for name, hint in typing.get_type_hints(SceneConfig).items())
+        if kind in (int, float) and name not in ("height", "width")
     }
     if not separator or key not in numeric:
         raise argparse.ArgumentTypeError(
             f"expected KEY=VALUE with KEY one of the numeric scene settings: {', '.join(sorted(numeric))}"
         )
-    kind = _number_type(numeric[key])
-    assert kind is not None
+    kind = numeric[key]
     try:
         return key, kind(value)
     except ValueError:
         raise argparse.ArgumentTypeError(f"{key} takes a number ({kind.__name__}), got {value!r}") from None
-
-
-def _number_type(kind: object) -> type[int] | type[float] | None:
-    """int or float for a field annotated int, float or either `| None`; None otherwise."""
-    arguments = [a for a in typing.get_args(kind) if a is not type(None)]
-    if typing.get_origin(kind) in (typing.Union, types.UnionType) and len(arguments) == 1:
-        kind = arguments[0]
-    return kind if kind in (int, float) else None
 
 
 def scene_size(text: str) -> tuple[int, int]:

@@ -25,6 +25,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from crestereo_pp.model.warping import bilinear_warp
+
 ANSWER_FEATURES = (
     "uncertainty",
     "uncertainty_nearby",
@@ -90,7 +92,8 @@ def answer_features(raw: Tensor, disparity: Tensor, left: Tensor) -> Tensor:
 
 def match_features(disparity: Tensor, left: Tensor, right: Tensor) -> Tensor:
     """MATCH_FEATURES (B, 2, H, W): how the grey `left` image (B, 3, H, W; RGB in [0, 255])
-    matches the grey `right` image sampled at x - d for the `disparity` d (B, 1, H, W; px), by
+    matches the grey `right` image warped to it by the `disparity` d (B, 1, H, W; px;
+    `model.warping.bilinear_warp`: x - d, zeros beyond the image), by
     zero-mean normalised cross-correlation (ZNCC) over MATCH_WINDOW_PX windows at half resolution
     (of the images less their local mean, CENTRING_WINDOW_PX):
     1 - ZNCC at the answer (0: the windows agree, up to 2: inverted), and the best ZNCC at the
@@ -104,7 +107,7 @@ def match_features(disparity: Tensor, left: Tensor, right: Tensor) -> Tensor:
     left_variance = (_box_mean(half_left**2, MATCH_WINDOW_PX) - left_mean**2).clamp(min=0.0)
 
     def zncc(shift_px: float) -> Tensor:
-        matched = _sample_along_rows(half_right, (half_disparity + shift_px / 2.0).clamp(min=0.0))
+        matched = bilinear_warp(half_right, (half_disparity + shift_px / 2.0).clamp(min=0.0))
         matched_mean = _box_mean(matched, MATCH_WINDOW_PX)
         matched_variance = (_box_mean(matched**2, MATCH_WINDOW_PX) - matched_mean**2).clamp(min=0.0)
         covariance = _box_mean(half_left * matched, MATCH_WINDOW_PX) - left_mean * matched_mean
@@ -121,18 +124,6 @@ def _half_resolution_detail(image: Tensor) -> Tensor:
     its mean over CENTRING_WINDOW_PX."""
     grey = F.avg_pool2d(image.mean(dim=1, keepdim=True), 2, ceil_mode=True)
     return grey - _box_mean(grey, CENTRING_WINDOW_PX)
-
-
-def _sample_along_rows(image: Tensor, disparity: Tensor) -> Tensor:
-    """The (B, 1, H, W) `image` sampled bilinearly at (x - disparity, y) for each pixel (x, y) of the
-    (B, 1, H, W) `disparity` (px), the border column repeated beyond the image."""
-    height, width = disparity.shape[-2:]
-    columns = torch.arange(width, device=disparity.device, dtype=disparity.dtype)
-    rows = torch.arange(height, device=disparity.device, dtype=disparity.dtype)
-    x = (columns - disparity[:, 0]) * (2.0 / max(width - 1, 1)) - 1.0
-    y = (rows[:, None] * (2.0 / max(height - 1, 1)) - 1.0).expand_as(x)
-    grid = torch.stack([x, y], dim=-1)
-    return F.grid_sample(image, grid, mode="bilinear", padding_mode="border", align_corners=True)
 
 
 def _box_mean(image: Tensor, window: int) -> Tensor:

@@ -139,6 +139,7 @@ def test_eval_on_procedural_scenes_of_one_kind_scores_them_against_their_exact_g
     ("argv", "says"),
     [
         (["--procedural", "--scene", "nope=1"], "numeric scene settings: "),
+        (["--procedural", "--scene", "height=64"], "numeric scene settings: "),  # the size is --size's
         (["--procedural", "--scene", "thin_probability=lots"], "thin_probability takes a number"),
         (["--procedural", "--size", "64by128"], "expected HEIGHTxWIDTH"),
         (["--procedural", "--scenes", "0"], "expected a positive whole number"),
