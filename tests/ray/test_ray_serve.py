@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import os
 import signal
+import threading
 import time
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
@@ -100,14 +101,28 @@ def cpu_seconds(pid: int) -> float:
 
 
 def wait_until_computing(pid: int, timeout_s: float = 60.0) -> None:
-    """Return once process `pid` uses at least half a CPU over 0.3 s (a replica computing a batch)."""
+    """Return once process `pid` uses at least a third of a CPU over 0.3 s (a replica computing a
+    batch; an idle one uses about 1 %)."""
     deadline = time.monotonic() + timeout_s
     while True:
         before = cpu_seconds(pid)
         time.sleep(0.3)
-        if cpu_seconds(pid) - before >= 0.15:
+        if cpu_seconds(pid) - before >= 0.1:
             return
         assert time.monotonic() < deadline, f"replica {pid} never started computing"
+
+
+def post_until(
+    stop: threading.Event, base_url: str, crops: list[tuple[np.ndarray, np.ndarray]], first: int, step: int
+) -> list[tuple[int, httpx.Response]]:
+    """Post crops[first], crops[first + step], ... (cycling) until `stop` is set; the (crop index,
+    answer) of each request, the one in flight when `stop` is set included."""
+    answers: list[tuple[int, httpx.Response]] = []
+    index = first
+    while not stop.is_set():
+        answers.append((index % len(crops), post_pair(base_url, *crops[index % len(crops)])))
+        index += step
+    return answers
 
 
 def test_a_replica_killed_under_load_answers_each_request_with_its_maps_or_refuses_it_503_and_is_replaced(
@@ -116,19 +131,25 @@ def test_a_replica_killed_under_load_answers_each_request_with_its_maps_or_refus
     service, _ = ray_service
     crops = real_crops(4)
     victim = replica_processes()[0]
-    with ThreadPoolExecutor(16) as pool:
-        pending = [pool.submit(post_pair, service.base_url, *crops[i % 4]) for i in range(16)]
-        wait_until_computing(victim)  # so that requests are in flight on it when it dies
-        os.kill(victim, signal.SIGKILL)
-        answers = [future.result() for future in pending]
+    stop = threading.Event()
+    clients = 8
+    with ThreadPoolExecutor(clients) as pool:  # a load that lasts until the victim is seen computing
+        pending = [pool.submit(post_until, stop, service.base_url, crops, i, clients) for i in range(clients)]
+        try:
+            wait_until_computing(victim)  # so that requests are in flight on it when it dies
+            os.kill(victim, signal.SIGKILL)
+        finally:
+            stop.set()
+        indexed = [answer for future in pending for answer in future.result()]
+    answers = [answer for _, answer in indexed]
     lost = [answer for answer in answers if answer.status_code != 200]
     assert lost, "no request was in flight on the killed replica"
     assert any(answer.status_code == 200 for answer in answers), "the other replica answered nothing"
     predictor = quiet_load_model("lite", backend="torch")
     expected = [predictor.predict(*(cv2.cvtColor(image, cv2.COLOR_BGR2RGB) for image in crop)) for crop in crops]
-    for index, answer in enumerate(answers):
+    for index, answer in indexed:
         if answer.status_code == 200:  # an answer that came back is the pair's own, whichever replica gave it
-            assert_same_maps(decode_array(answer.json()["disparity"]), expected[index % 4].disparity)
+            assert_same_maps(decode_array(answer.json()["disparity"]), expected[index].disparity)
         else:
             assert answer.status_code == 503, answer.text
             assert answer.headers["retry-after"] == "1"
