@@ -19,7 +19,6 @@ from typing import Any, overload
 import numpy as np
 import torch
 from torch import Tensor
-from torch.nn import functional as F
 
 from crestereo_pp.model.config import ModelConfig
 from crestereo_pp.model.network import CREStereoPP, finest_stage_only
@@ -34,7 +33,7 @@ from .openvino_backend import OpenVINOForward
 from .options import InferenceOptions, Iterations, IterationsGiven, StageCounts, TwoPass
 from .padding import Padding
 from .prediction import Prediction, TensorPrediction, as_image_batch, image_size
-from .scaling import scaled_size, shrink
+from .scaling import maps_at, resize_images, scaled_size
 from .torch_backend import autocast_bf16
 from .two_pass import cold_maps, large_disparity_percentile
 from .uncertainty_calibration import UncertaintyCalibration
@@ -272,9 +271,9 @@ class StereoPredictor:
             height, width = left.shape[-2:]
             size = scaled_size(height, width, options.scale)
             if size != (height, width):
-                left, right = shrink(left, size), shrink(right, size)
+                left, right = resize_images(left, size), resize_images(right, size)
             if init_disparities is None:
-                disparity, uncertainty = cold_maps(left, right, iters, two_pass, forward)
+                disparity, uncertainty = cold_maps(left, right, iters, two_pass, forward, enlarge=options.scale == 1.0)
             else:
                 init = batch.stack(
                     [
@@ -286,9 +285,7 @@ class StereoPredictor:
                 )
                 init = init if size == (height, width) else resize_disparity(init, *size)
                 disparity, uncertainty = forward(left, right, iters, init)
-            if size != (height, width):
-                disparity = resize_disparity(disparity, height, width)
-                uncertainty = F.interpolate(uncertainty, size=(height, width), mode="bilinear", align_corners=False)
+            disparity, uncertainty = maps_at((disparity, uncertainty), height, width)
             if not options.raw_uncertainty:
                 uncertainty = batch.served(
                     uncertainty, disparity, original_left, original_right, self.served_uncertainty
