@@ -23,8 +23,9 @@ None; ``parse_iterations`` reads them as ``Iterations``."""
 
 TwoPass = bool | Literal["auto"]
 """Whether a cold pair is computed in two passes (a half-resolution pass, then refinement at full
-resolution from it): True, False, or "auto": two passes only where a quick quarter-resolution pass
-finds large disparities (see ``StereoPredictor.large_disparity_percentile``)."""
+resolution from it): True, False, or "auto": a quick quarter-resolution pass decides, two passes
+where it finds large disparities, one pass on the pair enlarged up to 1.5x where they are small, one
+pass at its size between (``inference.two_pass.auto_way``)."""
 
 TWO_PASS_CHOICES = ("auto", "on", "off")
 """``TwoPass`` as the command line and other text spell it (``parse_two_pass``)."""

@@ -68,7 +68,7 @@ ENLARGEMENTS = (1.25, 1.5)
 where the network sees a pair larger, as long as its disparities stay in the range one pass
 holds: on the 16 dev pairs (torch fp32) every pair with a quick-pass 99th percentile under 75 px
 is better enlarged 1.5x than at its size, and the mean over the pairs goes from bad-1 21.9 %,
-bad-2 10.9 %, EPE 1.26 px to 18.1 %, 9.3 %, 1.11 px (MODEL_CARD.md, "Enlarged where the
+bad-2 10.9 %, EPE 1.26 px to 18.1 %, 9.3 %, 1.10 px (MODEL_CARD.md, "Enlarged where the
 disparities are small"). A few fixed factors, so that a camera's pairs meet a few shapes (each
 shape is a compile for OpenVINO and CUDA graphs)."""
 
@@ -86,20 +86,27 @@ AutoWay = tuple[bool, float]
 """How ``two_pass="auto"`` computes one pair: (two passes, enlargement factor)."""
 
 
-def auto_way(evidence_px: float, height: int, width: int, enlarge: bool = True) -> AutoWay:
+def largest_enlargement(height: int, width: int) -> float:
+    """The largest factor ``two_pass="auto"`` may enlarge a ``height`` x ``width`` pair by, whatever
+    its disparities: the largest of ENLARGEMENTS within MAX_ENLARGED_PIXELS where
+    ``two_pass_possible``, else 1 (what a request costs at most: the service's cost model)."""
+    if not two_pass_possible(height, width):
+        return 1.0
+    return max((factor for factor in ENLARGEMENTS if height * width * factor**2 <= MAX_ENLARGED_PIXELS), default=1.0)
+
+
+def auto_way(
+    evidence_px: float, height: int, width: int, enlarge: bool = True, large_px: float = LARGE_DISPARITY_PX
+) -> AutoWay:
     """How ``two_pass="auto"`` computes a ``height`` x ``width`` pair whose quick pass puts the
-    99th percentile of its disparity at ``evidence_px``: two passes above LARGE_DISPARITY_PX;
-    else one pass, enlarged by the largest of ENLARGEMENTS within ENLARGED_DISPARITY_PX and
-    MAX_ENLARGED_PIXELS where ``enlarge`` (not for a pair the caller shrank: ``scale`` < 1)."""
-    if evidence_px > LARGE_DISPARITY_PX:
+    99th percentile of its disparity at ``evidence_px``: two passes above ``large_px``; else one
+    pass, enlarged by the largest of ENLARGEMENTS within ENLARGED_DISPARITY_PX and
+    ``largest_enlargement`` where ``enlarge`` (not for a pair the caller shrank: ``scale`` < 1).
+    ``large_px`` other than LARGE_DISPARITY_PX: the rule's measurement (``evaluation.two_pass_rule``)."""
+    if evidence_px > large_px:
         return True, 1.0
-    fitting = [
-        factor
-        for factor in ENLARGEMENTS
-        if enlarge
-        and evidence_px * factor <= ENLARGED_DISPARITY_PX
-        and height * width * factor**2 <= MAX_ENLARGED_PIXELS
-    ]
+    bound = largest_enlargement(height, width) if enlarge else 1.0
+    fitting = [factor for factor in ENLARGEMENTS if factor <= bound and evidence_px * factor <= ENLARGED_DISPARITY_PX]
     return False, max(fitting, default=1.0)
 
 

@@ -12,6 +12,7 @@ import numpy as np
 
 from crestereo_pp.inference import InferenceOptions, Iterations, PairMaps, StageCounts, TwoPass
 from crestereo_pp.inference.backend_choice import Backend, Precision
+from crestereo_pp.inference.two_pass import largest_enlargement
 from crestereo_pp.inference.uncertainty_calibration import UncertaintyCalibration
 from crestereo_pp.model import ModelConfig, padded_size
 
@@ -132,10 +133,14 @@ class StereoBatches:
         return list(self.predictors)
 
     def work(self, key: StereoKey) -> float:
-        """Units of compute of one request of `key`: its padded pixels times `relative_cost`."""
+        """Units of compute of one request of `key`: its padded pixels times `relative_cost`, and,
+        where "auto" may enlarge the pair, times the square of the largest factor it may take (an
+        upper bound: a pair with large disparities is computed at its size)."""
         predictor = self.predictors[key.model]
         counts = predictor.iterations(key.options.iters)
         cost = relative_cost(counts, predictor.config.iters, key.options.scale, key.options.two_pass)
+        if key.options.two_pass == "auto" and key.options.scale == 1.0 and not key.warm_start:
+            cost *= largest_enlargement(key.height, key.width) ** 2
         return key.pixels * cost
 
     def compute(self, key: StereoKey, pairs: Sequence[StereoPair]) -> list[StereoMaps]:

@@ -189,7 +189,11 @@ def waiting_decoders(parent: int) -> list[int]:
     """The decoder processes that `parent` started and that wait for a job (read their pipe)."""
     pids = []
     for task in Path(f"/proc/{parent}/task").iterdir():
-        for pid in (task / "children").read_text().split():
+        try:
+            children = (task / "children").read_text().split()
+        except FileNotFoundError:  # a thread that ended since the listing
+            continue
+        for pid in children:
             with contextlib.suppress(FileNotFoundError):
                 waiting = "pipe_read" in Path(f"/proc/{pid}/wchan").read_text()
                 if waiting and b"crestereo_pp.service.uploads.sandbox" in Path(f"/proc/{pid}/cmdline").read_bytes():
