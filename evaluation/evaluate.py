@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -12,8 +12,6 @@ import numpy as np
 from tqdm import tqdm
 
 from crestereo_pp.inference import InferenceOptions, Prediction, StereoPredictor
-from crestereo_pp.inference.scaling import scaled_size
-from crestereo_pp.inference.two_pass import two_pass_possible
 from crestereo_pp.stereo_data.formats import encode_png
 from crestereo_pp.stereo_data.readers import StereoSample
 
@@ -207,11 +205,12 @@ def evaluate(
     """Predict every pair of `dataset` with `predictor` (and SGBM when `baseline_sgbm`), score it.
 
     options: how each pair is computed (`StereoPredictor.predict`'s options; None: the defaults).
-    Times are wall-clock seconds of one prediction; on OpenVINO after untimed warm-up predictions
-    at each image size (where it compiles the size; with two_pass "auto", one per path a pair of
-    that size may take). The progress bar shows the model's seconds of the last pair beside its
-    own rate, which also counts reading, scoring, SGBM and those warm-ups. With `sheets_dir`, writes
-    `sheets_dir/NAME.png` per pair: left image, ground truth, uncertainty, then each method's
+    Times are wall-clock seconds of one prediction; on OpenVINO after the same prediction untimed
+    (which compiles the shapes the pair runs at, or brings them back into memory: with two_pass
+    "auto" pairs of one size may run at different shapes, more than the compiled-shape bound
+    keeps), as a camera's next frame would run. The progress bar shows the model's seconds of the
+    last pair beside its own rate, which also counts reading, scoring, SGBM and those warm-ups.
+    With `sheets_dir`, writes `sheets_dir/NAME.png` per pair: left image, ground truth, uncertainty, then each method's
     disparity and error map, on fixed colour scales (disparity 0..max ground truth of the pair;
     error 0..ERROR_SCALE_PX).
     """
@@ -237,30 +236,17 @@ def evaluate(
         },
     )
 
-    def predict(sample: StereoSample, chosen: InferenceOptions = options) -> Prediction:
-        return predictor.predict(sample.left, sample.right, **chosen.keywords())
+    def predict(sample: StereoSample) -> Prediction:
+        return predictor.predict(sample.left, sample.right, **options.keywords())
 
-    def warm_ups(height: int, width: int) -> list[InferenceOptions]:
-        """The untimed runs at a new size: OpenVINO compiles every shape its pairs may run at (with
-        "auto", both paths, since one pair of a size may take two passes and the next one); torch
-        compiles nothing."""
-        if predictor.backend != "openvino":
-            return []
-        if options.two_pass == "auto" and two_pass_possible(*scaled_size(height, width, options.scale)):
-            return [options, replace(options, two_pass=True), replace(options, two_pass=False)]
-        return [options]
-
-    sizes_seen: set[tuple[int, ...]] = set()
     bar = tqdm(range(len(dataset)), desc=f"eval {predictor.name}", unit="pair", disable=not progress)
     for index in bar:
         sample = dataset[index]
         known = sample.valid & np.isfinite(sample.disparity)
         if not known.any():
             raise ValueError(f"pair {sample.name!r} has no valid ground-truth pixel")
-        if sample.left.shape not in sizes_seen:
-            sizes_seen.add(sample.left.shape)
-            for warm_up in warm_ups(*sample.left.shape[:2]):
-                predict(sample, warm_up)
+        if predictor.backend == "openvino":  # compiles (or reloads) the shapes this pair's way runs at
+            predict(sample)
         start = time.perf_counter()
         prediction = predict(sample)
         seconds = time.perf_counter() - start
