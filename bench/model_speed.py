@@ -11,8 +11,9 @@ GFLOP/s they make, the OpenVINO graph's preparation time (its export, or reading
 cache) and the first call's time (OpenVINO compiles the shape there), and peak memory; then
 OpenCV SGBM on the same pairs. Each row runs in a fresh child process, so that its peak RSS is its
 own. torch rows with bf16 run under autocast. Each timing is the network's one pass
-(``two_pass=False``); the default ``two_pass="auto"`` adds a pass at quarter resolution, and a
-half-resolution one for pairs with large disparities (``crestereo-pp eval`` times the default).
+(``two_pass=False``); the default ``two_pass="auto"`` adds a pass at quarter resolution, and
+either a half-resolution one for pairs with large disparities or, for pairs with small ones, runs
+the pass on the pair enlarged up to 1.5x (``crestereo-pp eval`` times the default).
 --profile adds the torch rows' top operators.
 
 --rounds R runs a model and size's rows R times, interleaved (torch fp32, torch bf16, OpenVINO

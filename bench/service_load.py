@@ -96,16 +96,16 @@ def concurrently(send: Callable[[int], Answer], concurrency: int, requests: int)
 
 
 def run_cell(
-    base_url: str, files: dict[str, Any], concurrency: int, requests: int
+    base_url: str, files: dict[str, Any], concurrency: int, requests: int, two_pass: str = "auto"
 ) -> tuple[float, list[float], list[int], set[str]]:
-    """Send `requests` requests from `concurrency` threads; wall seconds, latencies, batch sizes,
-    and the replicas that answered (`X-Replica`, behind Ray Serve; else none)."""
+    """Send `requests` requests (with `two_pass`) from `concurrency` threads; wall seconds,
+    latencies, batch sizes, and the replicas that answered (`X-Replica`, behind Ray Serve; else none)."""
     limits = httpx.Limits(max_connections=concurrency)
     with httpx.Client(base_url=base_url, timeout=600, limits=limits) as client:
 
         def one(_: int) -> tuple[float, int, str | None]:
             started = time.perf_counter()
-            response = client.post("/disparity", params={"format": "npz"}, files=files)
+            response = client.post("/disparity", params={"format": "npz", "two_pass": two_pass}, files=files)
             response.raise_for_status()
             headers = response.headers
             return (time.perf_counter() - started) * 1000, int(headers["x-batch-size"]), headers.get("x-replica")
@@ -115,10 +115,10 @@ def run_cell(
     return seconds, [latency for latency, *_ in results], [batch for _, batch, _ in results], replicas
 
 
-def wait_compiled(base_url: str, files: dict[str, Any], timeout_s: float = 600.0) -> None:
+def wait_compiled(base_url: str, files: dict[str, Any], two_pass: str, timeout_s: float = 600.0) -> None:
     """One request, then poll `GET /models/lite` until its default iterations run on the backend
     (the server exports them at startup where they are not cached)."""
-    run_cell(base_url, files, 1, 1)
+    run_cell(base_url, files, 1, 1, two_pass)
     deadline = time.monotonic() + timeout_s
     while not httpx.get(f"{base_url}/models/lite", timeout=10).json()["compiled"]:
         if time.monotonic() > deadline:
@@ -135,12 +135,13 @@ def measure(backend: str, batching: bool, args: argparse.Namespace, log_dir: Pat
         for height, width in args.sizes:
             files = stereo_pair_files(height, width)
             if backend == "openvino":
-                wait_compiled(base_url, files)
+                wait_compiled(base_url, files, args.two_pass)
             top = max(args.concurrency)
-            run_cell(base_url, files, top, max(2, 2 * top if batching else 2))  # warm-up: compiles the batch shapes
+            warm_up = max(2, 2 * top if batching else 2)
+            run_cell(base_url, files, top, warm_up, args.two_pass)  # warm-up: compiles the batch shapes
             for concurrency in args.concurrency:
                 requests = max(args.requests, 2 * concurrency)
-                seconds, latencies, batches, _ = run_cell(base_url, files, concurrency, requests)
+                seconds, latencies, batches, _ = run_cell(base_url, files, concurrency, requests, args.two_pass)
                 cell = Cell(backend, batching, (height, width), concurrency, requests, seconds, latencies, batches)
                 cells.append(cell)
                 print(row(cell), flush=True)
@@ -173,9 +174,16 @@ def main() -> None:
     parser.add_argument("--batching", nargs="+", choices=["on", "off"], default=["on", "off"])
     parser.add_argument("--max-batch-size", type=int, default=8, help="with batching on")
     parser.add_argument("--threads", type=int, default=0, help="CRESTEREO_THREADS (0 = CPU quota)")
+    parser.add_argument(
+        "--two-pass",
+        choices=["auto", "true", "false"],
+        default="auto",
+        help="the requests' two_pass (auto: the pairs' 8 px disparities are computed enlarged 1.5x) [auto]",
+    )
     args = parser.parse_args()
 
-    print(f"lite model; server and client on this machine ({os.cpu_count()} CPUs); latency in ms")
+    cpus = os.cpu_count()
+    print(f"lite model, two_pass={args.two_pass}; server and client on this machine ({cpus} CPUs); latency in ms")
     print("| backend | batching | size | concurrency | requests | req/s | p50 | p95 | p99 | mean batch |")
     print("|---|---|---|---|---|---|---|---|---|---|")
     with tempfile.TemporaryDirectory() as log_dir:

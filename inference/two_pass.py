@@ -111,7 +111,7 @@ def auto_way(
 
 
 def cold_maps(
-    left: Tensor, right: Tensor, iters: StageCounts, two_pass: TwoPass, forward: PaddedForward, enlarge: bool = True
+    left: Tensor, right: Tensor, iters: StageCounts, two_pass: TwoPass, forward: PaddedForward, *, enlarge: bool
 ) -> Maps:
     """The maps of (B, 3, H, W) pairs without a warm start, each (B, 1, H, W), computed by
     `forward` with `iters`: one pass, two passes (the second refining at 1/4 only from a
