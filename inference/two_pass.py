@@ -120,10 +120,11 @@ def cold_maps(
     too small); `enlarge`: whether "auto" may enlarge them. The one place "auto" is decided."""
     if two_pass != "auto":
         return way_maps(left, right, iters, (two_pass, 1.0), forward)
-    if not two_pass_possible(*left.shape[-2:]):
+    height, width = left.shape[-2:]
+    if not two_pass_possible(height, width):
         return forward(left, right, iters, None)
     evidence = large_disparity_percentile(left, right, iters, forward)
-    ways = [auto_way(value, *left.shape[-2:], enlarge) for value in evidence.tolist()]
+    ways = [auto_way(value, height, width, enlarge=enlarge) for value in evidence.tolist()]
     if len(set(ways)) == 1:
         return way_maps(left, right, iters, ways[0], forward)
     disparity, uncertainty = torch.empty_like(left[:, :1]), torch.empty_like(left[:, :1])
