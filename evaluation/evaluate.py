@@ -210,9 +210,9 @@ def evaluate(
     "auto" pairs of one size may run at different shapes, more than the compiled-shape bound
     keeps), as a camera's next frame would run. The progress bar shows the model's seconds of the
     last pair beside its own rate, which also counts reading, scoring, SGBM and those warm-ups.
-    With `sheets_dir`, writes `sheets_dir/NAME.png` per pair: left image, ground truth, uncertainty, then each method's
-    disparity and error map, on fixed colour scales (disparity 0..max ground truth of the pair;
-    error 0..ERROR_SCALE_PX).
+    With `sheets_dir`, writes `sheets_dir/NAME.png` per pair: left image, ground truth,
+    uncertainty, then each method's disparity and error map, on fixed colour scales (disparity
+    0..max ground truth of the pair; error 0..ERROR_SCALE_PX).
     """
     if len(dataset) == 0:
         raise ValueError(f"{dataset_name} holds no stereo pairs")
