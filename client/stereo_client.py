@@ -184,8 +184,8 @@ class StereoClient:
     ) -> DisparityResult:
         """Disparity and uncertainty of a rectified pair, or of a raw pair with its `calibration`
         (raises `ServiceError` on an error answer). `two_pass`: True, False or "auto" (a quick pass
-        decides: two passes where it finds large disparities, the pair enlarged up to 1.5x where
-        they are small)."""
+        decides: two passes where it finds large disparities, one elsewhere, the pair enlarged up
+        to 1.5x as far as their range allows)."""
         request = _request(
             left,
             right,

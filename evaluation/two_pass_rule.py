@@ -1,8 +1,8 @@
 """Where two-pass inference and enlarging pay, pair by pair: the evidence ``two_pass="auto"``
-decides by (the 99th percentile of a quick quarter-resolution pass's disparity) beside bad-2 and
-EPE of one pass at the pair's size, of one pass on the pair enlarged by each of
-``inference.two_pass.ENLARGEMENTS``, and of two passes; what auto picks; and the mean bad-2 that
-each two-pass threshold between the pairs' evidence would give. How ``LARGE_DISPARITY_PX`` and
+decides by (the 99th percentile of a quick quarter-resolution pass's disparity) beside bad-2 of
+each way auto may compute a pair (one pass or two, at the pair's size or enlarged by each of
+``inference.two_pass.ENLARGEMENTS``), what auto picks, and the mean bad-2 that each two-pass
+threshold between the pairs' evidence would give. How ``LARGE_DISPARITY_PX`` and
 ``ENLARGED_DISPARITY_PX`` are measured for new weights:
 
     python -m crestereo_pp.evaluation.two_pass_rule ../shared/data/stereo-dev [--model lite] [--weights W]
@@ -16,67 +16,54 @@ import statistics
 import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
+import torch
 
 from crestereo_pp.evaluation.metrics import DisparityMetrics, compute_metrics
 from crestereo_pp.inference import StereoPredictor, load_model
 from crestereo_pp.inference.prediction import as_image_batch
-from crestereo_pp.inference.scaling import maps_at, resize_images
-from crestereo_pp.inference.two_pass import ENLARGEMENTS, LARGE_DISPARITY_PX, AutoWay, auto_way
+from crestereo_pp.inference.two_pass import ENLARGEMENTS, LARGE_DISPARITY_PX, AutoWay, auto_way, way_maps
 from crestereo_pp.stereo_data.readers import StereoSample, open_dataset
+
+WAYS: tuple[AutoWay, ...] = tuple((two, factor) for two in (False, True) for factor in (1.0, *ENLARGEMENTS))
+"""Every way auto may compute a pair: one pass or two, at its size or enlarged."""
 
 
 @dataclass(frozen=True)
 class PairRule:
-    """One pair: the auto rule's evidence (px), its size, and the metrics of one pass at its size,
-    of one pass enlarged by each factor of ENLARGEMENTS, and of two passes."""
+    """One pair: the auto rule's evidence (px), its size, and the metrics of each of WAYS."""
 
     name: str
     evidence_px: float
     size: tuple[int, int]
-    one: DisparityMetrics
-    two: DisparityMetrics
-    enlarged: dict[float, DisparityMetrics]
+    ways: dict[AutoWay, DisparityMetrics]
 
     def way(self, threshold_px: float = LARGE_DISPARITY_PX, enlarge: bool = True) -> AutoWay:
         """What auto computes with two passes above `threshold_px` (``auto_way``)."""
         return auto_way(self.evidence_px, *self.size, enlarge=enlarge, large_px=threshold_px)
 
-    def metrics(self, way: AutoWay) -> DisparityMetrics:
-        two_passes, factor = way
-        return self.two if two_passes else self.enlarged.get(factor, self.one)
-
     def bad2(self, threshold_px: float, enlarge: bool = True) -> float:
-        return self.metrics(self.way(threshold_px, enlarge)).bad2
+        return self.ways[self.way(threshold_px, enlarge)].bad2
 
 
 def measure(samples: Sequence[StereoSample], predictor: StereoPredictor) -> list[PairRule]:
-    """Each pair computed in one pass at its size and enlarged, and in two passes, with the
-    evidence the auto rule reads."""
+    """Each pair computed each of WAYS (``two_pass.way_maps``, on the predictor's backend), with
+    the evidence the auto rule reads."""
+    forward = partial(predictor.forward_padded, backend=predictor.openvino)
     rules = []
     for sample in samples:
         known = sample.valid & np.isfinite(sample.disparity)
         left, right = (as_image_batch(image, predictor.device) for image in (sample.left, sample.right))
         evidence = predictor.large_disparity_percentile(left, right)
-        one, two = (predictor.predict(sample.left, sample.right, two_pass=flag).disparity for flag in (False, True))
+        ways = {}
+        for way in WAYS:
+            with torch.inference_mode():
+                disparity, _ = way_maps(left, right, predictor.config.iters, way, forward)
+            ways[way] = compute_metrics(disparity[0, 0].cpu().numpy(), sample.disparity, known)
         height, width = sample.left.shape[:2]
-        enlarged = {}
-        for factor in ENLARGEMENTS:
-            size = (round(height * factor), round(width * factor))
-            maps = predictor.predict(resize_images(left, size), resize_images(right, size), two_pass=False)
-            disparity, _ = maps_at((maps.disparity[:, None], maps.uncertainty[:, None]), height, width)
-            enlarged[factor] = compute_metrics(disparity[0, 0].cpu().numpy(), sample.disparity, known)
-        rules.append(
-            PairRule(
-                sample.name,
-                float(evidence[0]),
-                (height, width),
-                compute_metrics(one, sample.disparity, known),
-                compute_metrics(two, sample.disparity, known),
-                enlarged,
-            )
-        )
+        rules.append(PairRule(sample.name, float(evidence[0]), (height, width), ways))
     return rules
 
 
@@ -89,36 +76,33 @@ def thresholds_between(rules: Sequence[PairRule]) -> list[float]:
 
 def way_name(way: AutoWay) -> str:
     two_passes, factor = way
-    return "two" if two_passes else f"{factor:g}x"
+    return f"{'two' if two_passes else 'one'} {factor:g}x"
 
 
 def report(rules: Sequence[PairRule], threshold_px: float = LARGE_DISPARITY_PX) -> str:
     """The per-pair table, its means, and the threshold sweep, as text."""
-    factors = sorted({factor for rule in rules for factor in rule.enlarged})
-    enlarged_header = "".join(f" {f'{factor:g}x':>6}" for factor in factors)
+    ways = [way for way in WAYS if all(way in rule.ways for rule in rules)]
+    header = "".join(f" {way_name(way):>9}" for way in ways)
     lines = [
-        f"{'pair':34} {'p99 px':>7} {'auto':>5} {'bad-2 1x':>8}{enlarged_header} {'two':>6} {'EPE 1x':>7} {'two':>6}",
-        "-" * (82 + 7 * len(factors)),
+        f"{'pair':34} {'p99 px':>7} {'auto':>9} | bad-2 %{header}",
+        "-" * (62 + 10 * len(ways)),
     ]
     for rule in rules:
-        enlarged = "".join(f" {rule.enlarged[factor].bad2:6.2f}" for factor in factors)
-        lines.append(
-            f"{rule.name[:34]:34} {rule.evidence_px:7.1f} {way_name(rule.way(threshold_px)):>5} "
-            f"{rule.one.bad2:8.2f}{enlarged} {rule.two.bad2:6.2f} {rule.one.epe:7.3f} {rule.two.epe:6.3f}"
-        )
+        values = "".join(f" {rule.ways[way].bad2:9.2f}" for way in ways)
+        picked = way_name(rule.way(threshold_px))
+        lines.append(f"{rule.name[:34]:34} {rule.evidence_px:7.1f} {picked:>9} |        {values}")
 
     def mean(values: Sequence[float]) -> float:
         return statistics.fmean(values)
 
-    everywhere = ", ".join(f"{factor:g}x {mean([r.enlarged[factor].bad2 for r in rules]):.2f}" for factor in factors)
+    chosen = [rule.ways[rule.way(threshold_px)] for rule in rules]
     lines += [
         "",
-        f"mean bad-2: one pass {mean([r.one.bad2 for r in rules]):.2f}, enlarged everywhere {everywhere}, "
-        f"two passes {mean([r.two.bad2 for r in rules]):.2f}",
-        f"auto at {threshold_px:g} px: {mean([r.bad2(threshold_px) for r in rules]):.2f} "
-        f"(bad-1 {mean([r.metrics(r.way(threshold_px)).bad1 for r in rules]):.2f}, "
-        f"EPE {mean([r.metrics(r.way(threshold_px)).epe for r in rules]):.3f}); "
-        f"without enlarging {mean([r.bad2(threshold_px, enlarge=False) for r in rules]):.2f}",
+        "mean bad-2, each way everywhere: "
+        + ", ".join(f"{way_name(way)} {mean([r.ways[way].bad2 for r in rules]):.2f}" for way in ways),
+        f"auto at {threshold_px:g} px: bad-2 {mean([m.bad2 for m in chosen]):.2f}, bad-1 "
+        f"{mean([m.bad1 for m in chosen]):.2f}, EPE {mean([m.epe for m in chosen]):.3f}; "
+        f"without enlarging: bad-2 {mean([r.bad2(threshold_px, enlarge=False) for r in rules]):.2f}",
         "mean bad-2 of auto by threshold (two passes where p99 > threshold):",
     ]
     for threshold in thresholds_between(rules):

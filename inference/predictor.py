@@ -188,8 +188,9 @@ class StereoPredictor:
         two_pass: first a pass at half resolution, then refinement at full resolution from it
             (better for large disparities, coarser on fine detail): True, False, or "auto" (a quick
             quarter-resolution pass decides: two passes where it finds disparities above
-            LARGE_DISPARITY_PX, one pass on the pair enlarged up to 1.5x where they are small,
-            at scale 1; see ``two_pass.auto_way``). Ignored when init_disparity is given.
+            LARGE_DISPARITY_PX, one elsewhere, either way on the pair enlarged up to 1.5x as
+            far as their range allows, at scale 1; see ``two_pass.auto_way``). Ignored when
+            init_disparity is given.
         scale: in (0, 1]: the network sees the pair resized by this factor (fewer pixels, so
             faster, and disparities shrunk by it); the maps come back at the input's size, the
             disparity in input pixels.

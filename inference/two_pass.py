@@ -1,7 +1,8 @@
 """Two passes for large disparities: a pass at half resolution, then refinement at full
 resolution from it; and the ``two_pass="auto"`` rule, which reads a quick quarter-resolution pass
-of each pair and computes it in two passes where its disparities are above LARGE_DISPARITY_PX,
-enlarged (one pass at up to 1.5x its size) where they are small, in one pass at its size between."""
+of each pair and computes it in two passes where its disparities are above LARGE_DISPARITY_PX, in
+one elsewhere, either way on the pair enlarged up to 1.5x as far as the pass that finds the
+disparities still holds their range."""
 
 from __future__ import annotations
 
@@ -65,12 +66,12 @@ def large_disparity_percentile(left: Tensor, right: Tensor, iters: StageCounts, 
 
 ENLARGEMENTS = (1.25, 1.5)
 """The factors ``two_pass="auto"`` may enlarge a pair by (``auto_way``). Lite is more precise
-where the network sees a pair larger, as long as its disparities stay in the range one pass
-holds: on the 16 dev pairs (torch fp32) every pair with a quick-pass 99th percentile under 75 px
-is better enlarged 1.5x than at its size, and the mean over the pairs goes from bad-1 21.9 %,
-bad-2 10.9 %, EPE 1.26 px to 18.1 %, 9.3 %, 1.10 px (MODEL_CARD.md, "Enlarged where the
-disparities are small"). A few fixed factors, so that a camera's pairs meet a few shapes (each
-shape is a compile for OpenVINO and CUDA graphs)."""
+where the network sees a pair larger, as long as the pass that finds the disparities still holds
+their range: on the 16 dev pairs (torch fp32) every pair with a quick-pass 99th percentile under
+75 px is better enlarged 1.5x than at its size, the three in two passes gain too, and the mean
+over the pairs goes from bad-1 21.9 %, bad-2 10.9 %, EPE 1.26 px to 17.4 %, 8.9 %, 1.07 px
+(MODEL_CARD.md, "Enlarged as far as the disparities allow"). A few fixed factors, so that a
+camera's pairs meet a few shapes (each shape is a compile for OpenVINO and CUDA graphs)."""
 
 ENLARGED_DISPARITY_PX = 100.0
 """``two_pass="auto"`` enlarges a pair only as far as its quick pass's 99th percentile, times the
@@ -83,7 +84,7 @@ MAX_ENLARGED_PIXELS = 1_200_000
 large images are computed at their own size."""
 
 AutoWay = tuple[bool, float]
-"""How ``two_pass="auto"`` computes one pair: (two passes, enlargement factor)."""
+"""How ``two_pass="auto"`` computes one pair: (two passes, enlargement factor); ``way_maps``."""
 
 
 def largest_enlargement(height: int, width: int) -> float:
@@ -96,18 +97,21 @@ def largest_enlargement(height: int, width: int) -> float:
 
 
 def auto_way(
-    evidence_px: float, height: int, width: int, enlarge: bool = True, large_px: float = LARGE_DISPARITY_PX
+    evidence_px: float, height: int, width: int, enlarge: bool = True, large_px: float | None = None
 ) -> AutoWay:
     """How ``two_pass="auto"`` computes a ``height`` x ``width`` pair whose quick pass puts the
-    99th percentile of its disparity at ``evidence_px``: two passes above ``large_px``; else one
-    pass, enlarged by the largest of ENLARGEMENTS within ENLARGED_DISPARITY_PX and
-    ``largest_enlargement`` where ``enlarge`` (not for a pair the caller shrank: ``scale`` < 1).
-    ``large_px`` other than LARGE_DISPARITY_PX: the rule's measurement (``evaluation.two_pass_rule``)."""
-    if evidence_px > large_px:
-        return True, 1.0
+    99th percentile of its disparity at ``evidence_px``: two passes above ``large_px`` (default
+    LARGE_DISPARITY_PX; another: the rule's measurement, ``evaluation.two_pass_rule``), else one.
+    Where ``enlarge`` (not for a pair the caller shrank: ``scale`` < 1), the pair is enlarged by the
+    largest of ENLARGEMENTS within ``largest_enlargement`` that keeps the range the pass finding
+    the disparities sees within what one pass holds: in one pass the evidence times the factor
+    within ENLARGED_DISPARITY_PX; in two, the half-resolution pass's (half of it) within
+    LARGE_DISPARITY_PX."""
+    two_passes = evidence_px > (LARGE_DISPARITY_PX if large_px is None else large_px)
+    seen_px, limit_px = (evidence_px / 2, LARGE_DISPARITY_PX) if two_passes else (evidence_px, ENLARGED_DISPARITY_PX)
     bound = largest_enlargement(height, width) if enlarge else 1.0
-    fitting = [factor for factor in ENLARGEMENTS if factor <= bound and evidence_px * factor <= ENLARGED_DISPARITY_PX]
-    return False, max(fitting, default=1.0)
+    fitting = [factor for factor in ENLARGEMENTS if factor <= bound and seen_px * factor <= limit_px]
+    return two_passes, max(fitting, default=1.0)
 
 
 def cold_maps(

@@ -62,9 +62,10 @@ class DisparityOptions(BaseModel):
         "auto",
         description="Cascaded inference, a half-resolution pass initialising the full-resolution one "
         "(finds large disparities, coarser on fine detail): `true`, `false`, or `auto`: a quick "
-        "quarter-resolution pass decides: two passes where it finds disparities above about 90 px; "
-        "elsewhere one pass, on the pair enlarged 1.5x or 1.25x where its disparities stay within 100 px "
-        "so (finer matching, up to 2.25x the time; never past 1.2 M pixels, nor at `scale` < 1).",
+        "quarter-resolution pass decides: two passes where it finds disparities above about 90 px, one "
+        "elsewhere, either way on the pair enlarged 1.5x or 1.25x as far as the pass that finds the "
+        "disparities still holds their range (finer matching, up to 2.25x the time; never past 1.2 M "
+        "pixels, nor at `scale` < 1).",
     )
     iters: str | None = Field(
         None,

@@ -110,6 +110,8 @@ def test_auto_enlarges_a_pair_with_small_disparities_and_brings_its_maps_back_to
     evidence = lite.large_disparity_percentile(left, right)
     monkeypatch.setattr(two_pass_module, "LARGE_DISPARITY_PX", float(evidence.mean()))
     monkeypatch.setattr(two_pass_module, "ENLARGED_DISPARITY_PX", float(evidence[1]) * 1.5)
+    ways = [two_pass_module.auto_way(float(value), 192, 224) for value in evidence]
+    assert ways == [(True, 1.0), (False, 1.5)]  # the near scene's range is too wide to enlarge
     auto = lite.predict(left, right, two_pass="auto")
     assert auto.disparity.shape == auto.uncertainty.shape == (2, 192, 224)
     two_passes = lite.predict(left[:1], right[:1], two_pass=True)
@@ -133,16 +135,19 @@ def test_auto_never_enlarges_a_pair_shrunk_by_scale(lite):
     np.testing.assert_allclose(auto.disparity.numpy(), one_pass.disparity.numpy(), atol=1e-3)
 
 
-def test_auto_enlarges_within_the_single_passs_range_and_the_pixel_bound():
+def test_auto_enlarges_as_far_as_the_pass_that_finds_the_disparities_holds_their_range():
     """How "auto" computes a pair from its quick pass's 99th percentile (px) and its size."""
     way = two_pass_module.auto_way
-    assert way(95.0, 375, 1242) == (True, 1.0)  # above LARGE_DISPARITY_PX (90): two passes
-    assert way(60.0, 375, 1242) == (False, 1.5)  # 90 px enlarged, within ENLARGED_DISPARITY_PX (100)
+    assert way(60.0, 375, 1242) == (False, 1.5)  # one pass: 90 px enlarged, within ENLARGED_DISPARITY_PX (100)
     assert way(75.0, 375, 1242) == (False, 1.25)  # 1.5x would reach 112 px
     assert way(85.0, 375, 1242) == (False, 1.0)  # 1.25x would reach 106 px
+    assert way(95.0, 375, 1242) == (True, 1.5)  # above LARGE_DISPARITY_PX (90): two passes, whose
+    assert way(130.0, 375, 1242) == (True, 1.25)  # half-resolution pass sees 71 and 81 px enlarged
+    assert way(150.0, 375, 1242) == (True, 1.0)  # 1.25x: 94 px at half resolution
     assert way(20.0, 720, 1280) == (False, 1.0)  # 1.25x would be 1.44 M pixels, over MAX_ENLARGED_PIXELS
     assert way(20.0, 720, 960) == (False, 1.25)  # 1.08 M pixels; 1.5x would be 1.56 M
     assert way(20.0, 375, 1242, enlarge=False) == (False, 1.0)
+    assert way(95.0, 375, 1242, enlarge=False) == (True, 1.0)
 
 
 @pytest.mark.skipif(not STEREO_DEV.is_dir(), reason=f"no real stereo pairs at {STEREO_DEV}")
