@@ -106,8 +106,8 @@ def report(rules: Sequence[PairRule], threshold_px: float = LARGE_DISPARITY_PX) 
         "mean bad-2 of auto by threshold (two passes where p99 > threshold):",
     ]
     for threshold in thresholds_between(rules):
-        picked = sum(rule.way(threshold)[0] for rule in rules)
-        lines.append(f"  {threshold:7.1f} px: {mean([r.bad2(threshold) for r in rules]):6.2f} ({picked} pairs in two)")
+        in_two = sum(rule.way(threshold)[0] for rule in rules)
+        lines.append(f"  {threshold:7.1f} px: {mean([r.bad2(threshold) for r in rules]):6.2f} ({in_two} pairs in two)")
     return "\n".join(lines)
 
 
