@@ -23,9 +23,7 @@ def dev_pairs(given: Path | None) -> Path | None:
 def samples_for(data_dir: Path | None, count: int, height: int, width: int, device: Any) -> tuple[list[Any], str]:
     """`count` pairs with ground truth (StereoSample, host arrays): the dev pairs, or procedural
     scenes of height x width rendered on `device`. Returns them and what they are."""
-    import numpy as np
-
-    from crestereo_pp.stereo_data.readers import StereoSample, open_dataset
+    from crestereo_pp.stereo_data.readers import open_dataset
     from crestereo_pp.stereo_data.synthetic import SceneConfig, SceneGenerator
 
     if data_dir is not None:
@@ -33,9 +31,4 @@ def samples_for(data_dir: Path | None, count: int, height: int, width: int, devi
         return [dataset[i] for i in range(min(count, len(dataset)))], f"dev pairs ({data_dir.name})"
     generator = SceneGenerator(SceneConfig(height=height, width=width, max_disparity=width / 6.0), device=device)
     scenes = generator.generate(batch_size=count, seed=11)
-    samples = []
-    for i in range(count):
-        valid = scenes.valid[i, 0].cpu().numpy()
-        disparity = np.where(valid, scenes.disparity[i, 0].cpu().numpy(), np.inf).astype(np.float32)
-        samples.append(StereoSample(f"scene{i}", *scenes.pair(i), disparity, valid, None))
-    return samples, f"procedural scenes {height}x{width}"
+    return [scenes.sample(i, f"scene{i}") for i in range(count)], f"procedural scenes {height}x{width}"
