@@ -5,8 +5,10 @@ and the next stage runs), within one time budget:
     environment  torch, the device, nvidia-smi
     tests        the CUDA tests (tests/gpu, the CUDA test of stereo_data)
     bench        inference table: lite and full at 384x1248, batch 1 and 8, fp32 and
-                 bf16, eager and CUDA-graph replay (StereoPredictor.predict_batch, as the service
-                 runs it); then bf16 against fp32 and graph against eager on the dev pairs
+                 bf16, eager and CUDA-graph replay, in one pass at the pair's size (as the paper
+                 times the network), and the default inference at batch 1 in bf16
+                 (StereoPredictor.predict_batch, as the service runs it); then bf16 against fp32
+                 and graph against eager on the dev pairs
     service      `python -m crestereo_pp.service` on loopback with CRESTEREO_DEVICE=cuda: a real pair over HTTP,
                  concurrent requests (batches), both models; skipped when fastapi is missing
     probe        training throughput, lite and full: pairs/s and peak memory of the training step at

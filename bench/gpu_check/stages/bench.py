@@ -1,6 +1,6 @@
 """The bench stage: the inference table (`StereoPredictor.predict_batch` as the service calls it, per
-model, size, batch, precision and CUDA graphs), then bf16 against fp32 and graph replay against
-eager on the dev pairs."""
+model and size: one pass per batch, precision and CUDA graphs, and the default inference;
+`row_settings`), then bf16 against fp32 and graph replay against eager on the dev pairs."""
 
 from __future__ import annotations
 
@@ -45,13 +45,13 @@ def bench_stage(plan: Plan, deadline: float, args: argparse.Namespace, save: Cal
         graphed = load_model(name, device=device) if on_cuda else None
         for height, width in plan.sizes:
             samples, _ = samples_for(None, max(plan.batches), height, width, device)
-            for batch, graphs, precision in itertools.product(plan.batches, (False, True), ("fp32", "bf16")):
+            for batch, graphs, precision, two_pass in row_settings(plan, on_cuda):
                 row: dict[str, Any] = dict(model=name, size=f"{height}x{width}", batch=batch, precision=precision)
-                row["graphs"] = graphs
+                row.update(graphs=graphs, two_pass=two_pass)
                 if time.monotonic() > deadline - 20:
                     row["skipped"] = "not measured: out of time"
                 else:
-                    row.update(bench_row(plan, eager, graphed, graphs, precision, samples[:batch]))
+                    row.update(bench_row(plan, eager, graphed, graphs, precision, two_pass, samples[:batch]))
                 data["rows"].append(row)
                 print(json.dumps(row), flush=True)
                 save(StageResult("running", f"{len(data['rows'])} rows", data=data))
@@ -68,23 +68,39 @@ def bench_stage(plan: Plan, deadline: float, args: argparse.Namespace, save: Cal
     return StageResult("passed" if complete and measured else "failed", detail, data=data)
 
 
-def bench_row(plan: Plan, eager: Any, graphed: Any, graphs: bool, precision: str, samples: list[Any]) -> dict[str, Any]:
+def row_settings(plan: Plan, on_cuda: bool) -> list[tuple[int, bool, str, bool | str]]:
+    """The rows' (batch, CUDA graphs, precision, two_pass) for one model and size: every batch,
+    graphs or not and precision in one pass at the pair's size (``two_pass=False``: the network
+    once, as the paper times it), then the default inference (``two_pass="auto"``: a quick pass,
+    then one or two passes on the pair enlarged as far as its disparities allow) at batch 1 in bf16,
+    with graphs where there is CUDA: what a user's single request costs."""
+    one_pass = [
+        (batch, graphs, precision, False)
+        for batch, graphs, precision in itertools.product(plan.batches, (False, True), ("fp32", "bf16"))
+    ]
+    return [*one_pass, (1, on_cuda, "bf16", "auto")]
+
+
+def bench_row(
+    plan: Plan, eager: Any, graphed: Any, graphs: bool, precision: str, two_pass: bool | str, samples: list[Any]
+) -> dict[str, Any]:
     """One row's numbers (see time_predict_batch), or why there are none. A graphed row's graphs
     are dropped after it, so that each row's peak memory is its own."""
+    lefts, rights = [s.left for s in samples], [s.right for s in samples]
     if not graphs:
-        return time_predict_batch(eager, precision, [s.left for s in samples], [s.right for s in samples], plan)
+        return time_predict_batch(eager, precision, two_pass, lefts, rights, plan)
     if graphed is None:
         return {"skipped": "n/a: CUDA graphs need CUDA"}
-    numbers = time_predict_batch(graphed, precision, [s.left for s in samples], [s.right for s in samples], plan)
+    numbers = time_predict_batch(graphed, precision, two_pass, lefts, rights, plan)
     graphed.graphs.clear()
     return numbers
 
 
 def time_predict_batch(
-    predictor: Any, precision: str, lefts: list[Any], rights: list[Any], plan: Plan
+    predictor: Any, precision: str, two_pass: bool | str, lefts: list[Any], rights: list[Any], plan: Plan
 ) -> dict[str, Any]:
     """Median wall time of up to plan.timed_runs calls of predict_batch(lefts, rights) at
-    `precision` (after plan.warmup_calls; at least MIN_TIMED_CALLS, then while under
+    `precision` with `two_pass` (after plan.warmup_calls; at least MIN_TIMED_CALLS, then while under
     ROW_SECONDS; timing.py's `timed_calls`), peak device memory, and how many of the timed calls
     replayed a CUDA graph. lefts, rights: the batch's uint8 HxWx3 RGB views."""
     import torch
@@ -95,7 +111,7 @@ def time_predict_batch(
         torch.cuda.reset_peak_memory_stats(predictor.device)
 
     def call() -> None:
-        predictor.predict_batch(lefts, rights, iters=plan.iters)  # numpy out: the copy to the host waits
+        predictor.predict_batch(lefts, rights, iters=plan.iters, two_pass=two_pass)  # numpy out: the copy waits
 
     for _ in range(plan.warmup_calls):
         call()
