@@ -18,6 +18,10 @@ REPO = BENCH.parent
 STAGES = ("environment", "tests", "bench", "service", "probe", "train")
 MAX_FILES = 8
 MAX_FILE_BYTES = 16 * 2**20
+MAX_TRAVEL_BYTES = 64 * 2**20
+"""What the device tool carries to the GPU machine at most: the checkout's tracked files and the
+untracked ones git does not ignore, with the carried dev pairs (shared/data/stereo-dev). Over it,
+the run is refused before it starts."""
 
 
 @dataclass(frozen=True)

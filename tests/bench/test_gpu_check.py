@@ -12,6 +12,7 @@ from pathlib import Path
 import pytest
 
 from crestereo_pp.model.weights import read_weights
+from shared_data import STEREO_DEV
 
 REPO = Path(__file__).resolve().parents[2]
 STAGES = ("environment", "tests", "bench", "service", "probe", "train")
@@ -178,3 +179,25 @@ def test_adoption_takes_the_row_that_trains_the_most_pairs_in_the_time_left(benc
     assert adopted_row(rows, "lite", 300.0)["row"] == "batch64"  # 120 x 297 > 200 x 150
     assert adopted_row(rows, "lite", 600.0)["row"] == "compile"  # 200 x 450 > 120 x 597
     assert adopted_row(rows[3:4], "lite", 600.0) is None
+
+
+def test_the_checkout_and_the_dev_pairs_fit_in_what_travels_to_the_gpu_machine(bench_path):
+    """The prepared run carries the dev pairs beside the checkout; a weights file or an image added
+    to the tree can push both past the device's limit, and the lease is refused at its start."""
+    from gpu_check.plans import MAX_TRAVEL_BYTES
+
+    if not STEREO_DEV.is_dir():
+        pytest.skip(f"real pairs not available: {STEREO_DEV} does not exist (see tests/shared_data.py)")
+    listed = subprocess.run(
+        ["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard"],
+        cwd=REPO,
+        capture_output=True,
+        check=True,
+    ).stdout.split(b"\0")
+    files = [REPO / name.decode() for name in listed if name]
+    checkout = sum(path.stat().st_size for path in files if path.is_file())
+    dev_pairs = sum(path.stat().st_size for path in STEREO_DEV.rglob("*") if path.is_file())
+    left = MAX_TRAVEL_BYTES - checkout - dev_pairs
+    assert left >= 0, (
+        f"checkout {checkout / 2**20:.1f} MiB + dev pairs {dev_pairs / 2**20:.1f} MiB: {-left / 2**20:.1f} over"
+    )
