@@ -23,12 +23,14 @@ and the next stage runs), within one time budget:
                             [--model lite|full] [--weights FILE] [--train-set KEY=VALUE ...]
                             [--train-compile] [--adopt]
     python3 bench/gpu_check --cpu-smoke --out DIR    # the same stages on the CPU, tiny
+    python3 bench/gpu_check --pack-data [--data DIR]   # here, before a run: shared/stereo-dev.tar.gz
 
 DIR (or $GPU_CHECK_OUT, else $OUT) receives at most 8 files, each under 16 MiB: gpu_check.log
 (every stage's output), summary.md (stage results and tables), bench.json (the benchmark's
 numbers) and the training run's checkpoint.pt, log.csv, loss_curve.png (validation.csv with dev
 pairs). --data: the real dev pairs (NAME/{left.png,right.png,disp.pfm}); by default $STEREO_DEV,
-shared/data/stereo-dev in the checkout or beside it, else procedural scenes stand in. --wheels: a
+shared/data/stereo-dev in the checkout or beside it, then the pairs --pack-data packed (unpacked into
+a scratch folder), else procedural scenes stand in. --wheels: a
 folder of wheels (fastapi, uvicorn, ...) installed with pip --no-index for the service stage; by
 default .whl/ in the checkout when present. Needs only the standard library in this process; the
 stages need torch, numpy, OpenCV, httpx and the project. Exit status 0 when no stage failed.

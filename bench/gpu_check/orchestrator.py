@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from . import __doc__ as USAGE
-from .pairs import dev_pairs
+from .pairs import DEV_ARCHIVE, dev_pairs, pack_dev_pairs
 from .plans import BENCH, CPU_SMOKE, GPU, REPO, STAGES, Plan, StageResult
 from .report import write_summary
 from .runner import run_child
@@ -39,9 +39,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         plan = replace(plan, minutes=args.minutes)
     if args.stage is not None:
         return run_stage_here(args, plan)
+    if args.pack_data:
+        return pack_data(args.data)
     out = output_folder(args.out)
-    data = args.data if args.cpu_smoke else dev_pairs(args.data)  # the smoke run's pairs are tiny scenes
     with tempfile.TemporaryDirectory(prefix="gpu-check-") as scratch, (out / "gpu_check.log").open("w") as log:
+        # The smoke run's pairs are tiny scenes; packed dev pairs are unpacked into the scratch folder.
+        data = args.data if args.cpu_smoke else dev_pairs(args.data, Path(scratch))
         # The project importable as crestereo_pp, and bench/: this package and its sibling scripts.
         path = [package_tree(Path(scratch) / "package"), str(BENCH)]
         environment = {**os.environ, "PYTHONPATH": os.pathsep.join(path), "PYTHONUNBUFFERED": "1"}
@@ -53,6 +56,16 @@ def main(argv: Sequence[str] | None = None) -> int:
         results = run_stages(plan, args, out, data, Path(scratch), environments, log)
     print((out / "summary.md").read_text(), flush=True)
     return 0 if all(r.status in ("passed", "skipped") for r in results.values()) else 1
+
+
+def pack_data(given: Path | None) -> int:
+    """--pack-data: the dev pairs found here packed as DEV_ARCHIVE, to travel with the checkout."""
+    folder = dev_pairs(given)
+    if folder is None:
+        raise SystemExit("gpu_check: no dev pairs found to pack (--data DIR, or $STEREO_DEV)")
+    size = pack_dev_pairs(folder, DEV_ARCHIVE)
+    print(f"packed {folder} as {DEV_ARCHIVE} ({size / 2**20:.1f} MiB)")
+    return 0
 
 
 def package_tree(dest: Path) -> str:
@@ -124,7 +137,18 @@ def parse_arguments(argv: Sequence[str] | None) -> argparse.Namespace:
         default=STAGES,
         help=f"the stages to run, comma-separated, in this order [{','.join(STAGES)}]",
     )
-    parser.add_argument("--data", type=Path, help="dev pairs [$STEREO_DEV, shared/data/stereo-dev]")
+    parser.add_argument(
+        "--data",
+        type=Path,
+        help="dev pairs: a folder, or one packed by --pack-data [$STEREO_DEV, shared/data/stereo-dev, "
+        "then shared/stereo-dev.tar.gz]",
+    )
+    parser.add_argument(
+        "--pack-data",
+        action="store_true",
+        help="pack the dev pairs found (as --data) as shared/stereo-dev.tar.gz, which travels with the checkout "
+        "to the GPU machine, and exit",
+    )
     parser.add_argument("--wheels", type=Path, help="wheels to install for the service stage [.whl/]")
     parser.add_argument("--model", choices=("lite", "full"), default="lite", help="the network to train [lite]")
     parser.add_argument("--weights", type=Path, help="the weights to train from [model/weights/MODEL.pt]")

@@ -9,6 +9,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from crestereo_pp.model.weights import read_weights
@@ -181,13 +182,26 @@ def test_adoption_takes_the_row_that_trains_the_most_pairs_in_the_time_left(benc
     assert adopted_row(rows[3:4], "lite", 600.0) is None
 
 
-def test_the_checkout_and_the_dev_pairs_fit_in_what_travels_to_the_gpu_machine(bench_path):
-    """The prepared run carries the dev pairs beside the checkout; a weights file or an image added
-    to the tree can push both past the device's limit, and the lease is refused at its start."""
-    from gpu_check.plans import MAX_TRAVEL_BYTES
-
+@pytest.fixture(scope="module")
+def packed_dev_pairs(tmp_path_factory):
+    """The real dev pairs packed as the prepared GPU run carries them (`--pack-data`)."""
     if not STEREO_DEV.is_dir():
         pytest.skip(f"real pairs not available: {STEREO_DEV} does not exist (see tests/shared_data.py)")
+    sys.path.insert(0, str(REPO / "bench"))
+    try:
+        from gpu_check.pairs import pack_dev_pairs
+    finally:
+        sys.path.remove(str(REPO / "bench"))
+    archive = tmp_path_factory.mktemp("packed") / "stereo-dev.tar.gz"
+    pack_dev_pairs(STEREO_DEV, archive)
+    return archive
+
+
+def test_the_checkout_and_the_packed_dev_pairs_fit_in_what_travels_to_the_gpu_machine(bench_path, packed_dev_pairs):
+    """The prepared run carries the dev pairs packed beside the checkout; weights files or images
+    added to the tree can push both past the device's limit, and the lease is refused at its start."""
+    from gpu_check.plans import MAX_TRAVEL_BYTES
+
     listed = subprocess.run(
         ["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard"],
         cwd=REPO,
@@ -196,8 +210,24 @@ def test_the_checkout_and_the_dev_pairs_fit_in_what_travels_to_the_gpu_machine(b
     ).stdout.split(b"\0")
     files = [REPO / name.decode() for name in listed if name]
     checkout = sum(path.stat().st_size for path in files if path.is_file())
-    dev_pairs = sum(path.stat().st_size for path in STEREO_DEV.rglob("*") if path.is_file())
-    left = MAX_TRAVEL_BYTES - checkout - dev_pairs
+    packed = packed_dev_pairs.stat().st_size
+    left = MAX_TRAVEL_BYTES - checkout - packed
     assert left >= 0, (
-        f"checkout {checkout / 2**20:.1f} MiB + dev pairs {dev_pairs / 2**20:.1f} MiB: {-left / 2**20:.1f} over"
+        f"checkout {checkout / 2**20:.1f} MiB + packed dev pairs {packed / 2**20:.1f} MiB: {-left / 2**20:.1f} over"
     )
+
+
+def test_packed_dev_pairs_unpack_on_the_gpu_machine_to_the_same_pairs(bench_path, packed_dev_pairs, tmp_path):
+    from gpu_check.pairs import dev_pairs
+
+    from crestereo_pp.stereo_data.readers import open_dataset
+
+    folder = dev_pairs(packed_dev_pairs, tmp_path)
+    assert folder is not None and folder.parent == tmp_path
+    unpacked, original = open_dataset(folder), open_dataset(STEREO_DEV)
+    assert [files.name for files in unpacked.files] == [files.name for files in original.files]
+    assert len(unpacked) == 16
+    for index in (0, len(original) - 1):
+        a, b = unpacked[index], original[index]
+        assert np.array_equal(a.left, b.left) and np.array_equal(a.right, b.right)
+        assert np.array_equal(a.disparity, b.disparity) and np.array_equal(a.valid, b.valid)
