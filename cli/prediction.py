@@ -24,7 +24,7 @@ from crestereo_pp.stereo_data.formats import (
 )
 from crestereo_pp.stereo_data.output_maps import OutputOptions, PredictionOutputs
 from crestereo_pp.stereo_data.pointcloud import DepthRange, FocalBaseline
-from crestereo_pp.stereo_data.rig import Rectifier, read_rig
+from crestereo_pp.stereo_data.rig import Rectifier, focal_baseline_problem, read_rig
 from crestereo_pp.stereo_data.visualize import disparity_picture
 
 from .options import inference_options, load_predictor
@@ -192,6 +192,12 @@ def plan(args: argparse.Namespace) -> Job:
     inconsistent or an output could not be written."""
     if (args.focal_px is None) != (args.baseline_m is None):
         raise ValueError("give both --focal-px and --baseline-m, or neither")
+    if args.focal_px is not None:
+        if not (args.focal_px > 0 and args.baseline_m > 0):
+            raise ValueError("--focal-px and --baseline-m must be positive")
+        problem = focal_baseline_problem(args.focal_px, args.baseline_m, "--focal-px x --baseline-m")
+        if problem is not None:
+            raise ValueError(problem)
     if args.calibration is not None and args.focal_px is not None:
         raise ValueError("--calibration gives the focal length and baseline: leave out --focal-px and --baseline-m")
     if args.frame == "original" and args.calibration is None:

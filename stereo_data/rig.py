@@ -15,8 +15,8 @@ A ROS pair of ``sensor_msgs/CameraInfo`` files carries its rectification already
 camera): it is used as given. Disparity is in rectified pixels, positive: left x matches right
 x - d on the same rectified row. A rig is refused (RigError naming the entry) unless its images
 are 1 to MAX_IMAGE_SIDE px a side, R (ROS: each rectification matrix) is a rotation by at most
-MAX_TURN_DEGREES, and its focal length x baseline is positive and at most MAX_FOCAL_BASELINE, the
-bound of a query's focal_px x baseline_m.
+MAX_TURN_DEGREES, and its focal length x baseline is within MIN_FOCAL_BASELINE-MAX_FOCAL_BASELINE, the
+bounds of a query's focal_px x baseline_m.
 """
 
 from __future__ import annotations
@@ -36,12 +36,14 @@ from .pointcloud import FocalBaseline
 __all__ = [
     "MAX_FOCAL_BASELINE",
     "MAX_IMAGE_SIDE",
+    "MIN_FOCAL_BASELINE",
     "MAX_TURN_DEGREES",
     "RigError",
     "StereoRig",
     "Rectifier",
     "read_rig",
     "parse_rig",
+    "focal_baseline_problem",
 ]
 
 DISTORTION_LENGTHS = (4, 5, 8, 12, 14)
@@ -49,6 +51,9 @@ MAX_IMAGE_SIDE = 32766
 """Widest and highest image a rig may be for: OpenCV's remap (rectification) takes sides under 32767 px."""
 MAX_FOCAL_BASELINE = float(np.finfo(np.float32).max)
 """Largest focal length (px) x baseline (m), a rig's or a query's: depth f B / d is float32."""
+MIN_FOCAL_BASELINE = float(np.finfo(np.float32).tiny) * MAX_IMAGE_SIDE
+"""Smallest focal length (px) x baseline (m), a rig's or a query's: depth f B / d stays a normal
+float32 above 0 at the widest disparity (4e-34; below, every depth would read 0 m)."""
 MAX_TURN_DEGREES = 30.0
 """Largest turn of the right camera against the left (OpenCV's R), or of a camera into its rectified
 frame (ROS's rectification matrix): beyond it the rectified views barely overlap (none at 90)."""
@@ -137,7 +142,14 @@ def read_rig(paths: str | Path | Sequence[str | Path]) -> StereoRig:
 def parse_rig(text: str, right_text: str | None = None) -> StereoRig:
     """``read_rig`` on file contents: one OpenCV calibration, or the left and right camera_info."""
     if right_text is None:
-        return _opencv_rig(parse_entries(text, "calibration"))
+        entries = parse_entries(text, "calibration")
+        if "camera_matrix" in entries and "K1" not in entries:
+            raise RigError(
+                "calibration",
+                "this is one ROS camera_info, which describes one camera: give the left camera's and the right "
+                "camera's (two files, left first)",
+            )
+        return _opencv_rig(entries)
     return _ros_rig(
         parse_entries(text, "left camera_info", "left."), parse_entries(right_text, "right camera_info", "right.")
     )
@@ -285,18 +297,27 @@ def _rotation(field: str, matrix: np.ndarray, turned: str) -> None:
 
 def _with_depth(rig: StereoRig, field: str) -> StereoRig:
     """`rig`, once its rectified cameras give depth as a query's focal_px and baseline_m do: both
-    positive, their product at most MAX_FOCAL_BASELINE."""
+    positive, their product within MIN_FOCAL_BASELINE-MAX_FOCAL_BASELINE (``focal_baseline_problem``)."""
     focal, baseline = rig.focal_px, rig.baseline
     if not (focal > 0 and baseline > 0):
         raise RigError(
             field, f"the rectified cameras need a positive focal length and baseline, got {focal:.4g}, {baseline:.4g}"
         )
-    if focal * baseline > MAX_FOCAL_BASELINE:
-        raise RigError(
-            field,
-            f"focal length x baseline is {focal * baseline:.4g}, more than {MAX_FOCAL_BASELINE:.4g} (depth is float32)",
-        )
+    problem = focal_baseline_problem(focal, baseline, "focal length x baseline")
+    if problem is not None:
+        raise RigError(field, problem)
     return rig
+
+
+def focal_baseline_problem(focal_px: float, baseline: float, name: str) -> str | None:
+    """Why depth f B / d cannot be float32 for this focal length (px) and baseline (m), the
+    product called `name` in the message; None where it can."""
+    product = focal_px * baseline
+    if product > MAX_FOCAL_BASELINE:
+        return f"{name} is {product:.4g}, more than {MAX_FOCAL_BASELINE:.4g} (depth is float32)"
+    if product < MIN_FOCAL_BASELINE:
+        return f"{name} is {product:.4g}, less than {MIN_FOCAL_BASELINE:.4g} (depth is float32: every depth would be 0)"
+    return None
 
 
 def _opencv_rig(entries: dict[str, Value]) -> StereoRig:
@@ -310,7 +331,9 @@ def _opencv_rig(entries: dict[str, Value]) -> StereoRig:
         rotation = cv2.Rodrigues(rotation)[0]  # a rotation vector
     _rotation("R", rotation, "the right camera is turned against the left")
     translation = _entry(entries, "", "T", [(3,)])
-    if not translation.any():
+    with np.errstate(over="ignore"):  # a length past float64 is refused below, with focal x baseline
+        length = np.linalg.norm(translation)
+    if not length > 0:  # as OpenCV measures it: below about 1e-160 m the square underflows to 0
         raise RigError("T", "the baseline is zero: the two cameras are at one place")
     if abs(translation[0]) < 2 * max(abs(translation[1]), abs(translation[2])):
         raise RigError(
@@ -320,9 +343,12 @@ def _opencv_rig(entries: dict[str, Value]) -> StereoRig:
         raise RigError(
             "T", "the right camera is to the left of the left one (T[0] > 0): swap the images and the cameras"
         )
-    r1, r2, p1, p2, *_ = cv2.stereoRectify(
-        k1, d1, k2, d2, size, rotation, translation.reshape(3, 1), flags=cv2.CALIB_ZERO_DISPARITY, alpha=0.0
-    )
+    try:
+        r1, r2, p1, p2, *_ = cv2.stereoRectify(
+            k1, d1, k2, d2, size, rotation, translation.reshape(3, 1), flags=cv2.CALIB_ZERO_DISPARITY, alpha=0.0
+        )
+    except cv2.error:
+        raise RigError("calibration", "OpenCV cannot rectify these cameras") from None
     if not (np.isfinite(p1).all() and np.isfinite(p2).all()):
         raise RigError("calibration", "OpenCV cannot rectify these cameras")
     return _with_depth(StereoRig(size, k1, d1, k2, d2, r1, r2, p1, p2), "T")

@@ -181,6 +181,20 @@ def test_an_unknown_output_extension_is_refused(pairs_dir, tmp_path, capsys):
     assert "--output" in (err := capsys.readouterr().err) and "must end in .pfm, .png, .npy" in err
 
 
+@pytest.mark.parametrize(
+    ("focal", "baseline", "says"),
+    [("-700", "0.12", "must be positive"), ("1e-45", "1e-45", "every depth would be 0"), ("1e300", "1e300", "float32")],
+)
+def test_a_focal_length_and_baseline_that_give_no_usable_depth_are_refused(
+    pairs_dir, tmp_path, capsys, focal, baseline, says
+):
+    pair = pairs_dir / "shift4"
+    argv = ["predict", str(pair / "left.png"), str(pair / "right.png"), "-o", str(tmp_path / "d.pfm")]
+    argv += ["--depth", str(tmp_path / "z.pfm")]
+    assert main([*argv, "--focal-px", focal, "--baseline-m", baseline]) == 2
+    assert says in capsys.readouterr().err
+
+
 def test_predict_on_a_real_pair_keeps_its_size(small_stereo_dev, tmp_path):
     pair = next(small_stereo_dev.iterdir())
     out = tmp_path / "d.pfm"

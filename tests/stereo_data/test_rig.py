@@ -132,6 +132,8 @@ def test_a_pair_of_ros_camera_info_files_is_used_with_its_own_rectification(tmp_
         ({"image_width": None}, "image_size"),
         ({"image_width": -5}, "image_size"),
         ({"T": np.array([-1e300, 0.0, 0.0])}, "T"),  # focal x baseline beyond what a query may give
+        ({"T": np.array([-1e-300, 0.0, 0.0])}, "T"),  # its length underflows: OpenCV's rectification would assert
+        ({"T": np.array([-1e-150, 0.0, 0.0])}, "T"),  # depth below the smallest float32: every depth 0 m
         ({"R": 1e300 * np.eye(3)}, "R"),
         ({"R": cv2.Rodrigues(np.array([0.0, np.pi / 2, 0.0]))[0]}, "R"),  # turned 90 degrees: nothing overlaps
         ({"R": cv2.Rodrigues(np.array([0.0, np.radians(MAX_TURN_DEGREES + 5), 0.0]))[0]}, "R"),
@@ -154,6 +156,7 @@ def test_an_unusable_calibration_is_refused_naming_the_field(tmp_path, entries, 
         ),
         ("right", "data: [1, 0, 0, 0, 1, 0, 0, 0, 1]", "data: [0, 0, 1, 0, 1, 0, -1, 0, 0]", "rectification_matrix"),
         ("right", "-46.8,", "-3.9e302,", "projection_matrix"),  # a baseline of 1e300 m
+        ("right", "-46.8,", "-3.9e-298,", "projection_matrix"),  # a baseline of 1e-300 m
         ("right", "data: [390, 0, 160, -46.8, 0, 390,", "data: [0, 0, 160, -46.8, 0, 390,", "projection_matrix"),
     ],
 )
@@ -164,6 +167,11 @@ def test_a_degenerate_ros_camera_info_is_refused_naming_the_side_and_entry(side,
     with pytest.raises(RigError) as refused:
         parse_rig(texts["left"], texts["right"])
     assert refused.value.field == f"{side}.{field}"
+
+
+def test_one_ros_camera_info_alone_is_refused_asking_for_both_cameras():
+    with pytest.raises(RigError, match="one ROS camera_info, which describes one camera: give the left camera's and"):
+        parse_rig(ROS_LEFT)
 
 
 def test_every_form_opencv_writes_a_calibration_in_is_read_from_yaml_and_json(tmp_path):
