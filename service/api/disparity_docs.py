@@ -130,7 +130,8 @@ UPLOAD_BODY = {
                             "format": "binary",
                             "description": f"{name.capitalize()} image of the pair: PNG, JPEG, BMP or "
                             "TIFF, 8- or 16-bit, grayscale or colour; both images of equal size, at least "
-                            "32 px a side and at most 4,194,304 pixels (the server's defaults).",
+                            "32 px a side and at most 4,194,304 pixels (the server's defaults); the pixels "
+                            "as stored (an EXIF orientation tag is not applied).",
                         }
                         for name in IMAGE_FIELDS
                     },

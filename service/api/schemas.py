@@ -12,7 +12,7 @@ from crestereo_pp.inference.options import ITERATIONS_PATTERN, InferenceOptions,
 from crestereo_pp.inference.scaling import scaled_size
 from crestereo_pp.model.config import ModelName
 from crestereo_pp.stereo_data.pointcloud import MIN_DISPARITY, FocalBaseline
-from crestereo_pp.stereo_data.rig import MAX_FOCAL_BASELINE
+from crestereo_pp.stereo_data.rig import MAX_IMAGE_SIDE, focal_baseline_problem
 
 
 class OutputFormat(StrEnum):
@@ -88,10 +88,16 @@ class DisparityOptions(BaseModel):
         "instead of the calibrated probability of an error above 2 px (see `uncertainty`).",
     )
     color_min: FiniteFloat | None = Field(
-        None, description="`format=png`: disparity (px) at the bottom of the colour scale [the map's 1st percentile]."
+        None,
+        ge=-MAX_IMAGE_SIDE,
+        le=MAX_IMAGE_SIDE,
+        description="`format=png`: disparity (px) at the bottom of the colour scale [the map's 1st percentile].",
     )
     color_max: FiniteFloat | None = Field(
-        None, description="`format=png`: disparity (px) at the top of the colour scale [the map's 99th percentile]."
+        None,
+        ge=-MAX_IMAGE_SIDE,
+        le=MAX_IMAGE_SIDE,
+        description="`format=png`: disparity (px) at the top of the colour scale [the map's 99th percentile].",
     )
     cx_px: FiniteFloat | None = Field(None, description="`format=ply`: principal point x in px [the image centre].")
     cy_px: FiniteFloat | None = Field(None, description="`format=ply`: principal point y in px [the image centre].")
@@ -192,12 +198,10 @@ class DisparityOptions(BaseModel):
             raise ValueError("give both focal_px and baseline_m, or neither")
         if self.color_min is not None and self.color_max is not None and self.color_max <= self.color_min:
             raise ValueError("color_max must be above color_min")
-        if (
-            self.focal_px is not None
-            and self.baseline_m is not None
-            and (self.focal_px * self.baseline_m > MAX_FOCAL_BASELINE)
-        ):
-            raise ValueError(f"focal_px x baseline_m must be at most {MAX_FOCAL_BASELINE:.4g} (depth is float32)")
+        if self.focal_px is not None and self.baseline_m is not None:
+            problem = focal_baseline_problem(self.focal_px, self.baseline_m, "focal_px x baseline_m")
+            if problem is not None:
+                raise ValueError(problem)
         return self
 
 

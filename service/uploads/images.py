@@ -38,6 +38,8 @@ class ImageHeader:
 
 def read_header(data: bytes) -> ImageHeader:
     """Format and dimensions of a PNG, JPEG, BMP or TIFF file, without decoding pixels."""
+    if not data:
+        raise ImageError("the file is empty", unsupported=False)
     try:
         if data.startswith(b"\x89PNG\r\n\x1a\n"):
             return _png_header(data)

@@ -132,6 +132,7 @@ def _form(body: bytes, boundary: bytes) -> dict[str, list[tuple[bytes, bool]]]:
         )
     parts: list[tuple[dict[bytes, bytes], list[bytes]]] = []
     header_name = b""
+    closed = False  # the closing boundary was read
 
     def on_part_begin() -> None:
         if len(parts) == MAX_PARTS:
@@ -148,11 +149,16 @@ def _form(body: bytes, boundary: bytes) -> dict[str, list[tuple[bytes, bool]]]:
     def on_part_data(data: bytes, start: int, end: int) -> None:
         parts[-1][1].append(data[start:end])
 
+    def on_end() -> None:
+        nonlocal closed
+        closed = True
+
     callbacks = {
         "on_part_begin": on_part_begin,
         "on_header_field": on_header_field,
         "on_header_value": on_header_value,
         "on_part_data": on_part_data,
+        "on_end": on_end,
     }
     parser = MultipartParser(boundary, callbacks)  # type: ignore[arg-type]
     try:
@@ -160,6 +166,10 @@ def _form(body: bytes, boundary: bytes) -> dict[str, list[tuple[bytes, bool]]]:
         parser.finalize()
     except MultipartParseError as exc:
         raise UploadError(422, "invalid_multipart", f"malformed multipart body ({exc})") from None
+    if parts and not closed:  # a body cut short: its last part would pass for whole
+        raise UploadError(
+            422, "invalid_multipart", "the body ends before the closing boundary (`--BOUNDARY--`): it was cut short"
+        )
     form: dict[str, list[tuple[bytes, bool]]] = {}
     for headers, chunks in parts:
         _, options = parse_options_header(headers.get(b"content-disposition", b""))

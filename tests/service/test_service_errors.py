@@ -126,6 +126,38 @@ CASES: list[tuple[str, dict[str, Any], int, str, str]] = [
         "bad_input",
     ),
     (
+        "calibration whose depth underflows float32 (every depth would be 0 m)",
+        {"files": PAIR, "params": {"focal_px": 1e-45, "baseline_m": 1e-45}},
+        422,
+        "invalid_request",
+        "bad_input",
+    ),
+    (
+        "preview colour scale beyond any disparity",
+        {"files": PAIR, "params": {"format": "png", "color_min": -1e308, "color_max": 1e308}},
+        422,
+        "invalid_request",
+        "bad_input",
+    ),
+    (
+        "empty image file",
+        {"files": {"left": ("l.png", b""), "right": PAIR["right"]}},
+        422,
+        "undecodable_image",
+        "bad_input",
+    ),
+    (
+        "body cut short before its closing boundary",
+        {
+            "content": b'--cut\r\nContent-Disposition: form-data; name="left"; filename="l.png"\r\n\r\n'
+            + PAIR["left"][1],
+            "headers": {"Content-Type": "multipart/form-data; boundary=cut"},
+        },
+        422,
+        "invalid_multipart",
+        "bad_input",
+    ),
+    (
         "preview colour scale upside down",
         {"files": PAIR, "params": {"format": "png", "color_min": 50, "color_max": 10}},
         422,
