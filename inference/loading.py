@@ -22,6 +22,7 @@ from crestereo_pp.model.weights import (
 )
 
 from .backend_choice import BackendChoice, PrecisionChoice, resolve_backend, resolve_precision
+from .openvino_backend import MAX_COMPILED_BYTES
 from .options import Iterations
 from .predictor import StereoPredictor
 from .uncertainty_calibration import UncertaintyCalibration
@@ -36,6 +37,7 @@ def load_model(
     precision: PrecisionChoice = "auto",
     cuda_graphs: bool = True,
     cache_dir: str | Path | None = None,
+    compiled_bytes: int = MAX_COMPILED_BYTES,
     prepare_iters: Sequence[Iterations] = (),
 ) -> StereoPredictor:
     """Build the ``name`` network (``lite`` | ``full``) and load its weights.
@@ -44,8 +46,8 @@ def load_model(
     ``"config"``); None loads the bundled ``model/weights/{name}.pt`` if present, else the network is
     randomly initialised (seed 0, so every process gets the same one) with a warning.
     ``backend`` and ``precision``: see ``resolve_backend`` and ``resolve_precision``; the
-    predictor's ``backend`` and ``precision`` say what was picked. ``cuda_graphs`` and
-    ``cache_dir``: see ``StereoPredictor``. ``prepare_iters``: iteration settings whose fast
+    predictor's ``backend`` and ``precision`` say what was picked. ``cuda_graphs``, ``cache_dir``
+    and ``compiled_bytes``: see ``StereoPredictor``. ``prepare_iters``: iteration settings whose fast
     paths, for cold and warm starts, are made ready in the background at once (``prepare`` with
     ``wait=False``: OpenVINO reads their graphs from the cache or exports them).
     """
@@ -56,6 +58,7 @@ def load_model(
         "precision": resolve_precision(precision, chosen),
         "cuda_graphs": cuda_graphs,
         "cache_dir": None if cache_dir is None else Path(cache_dir),
+        "compiled_bytes": compiled_bytes,
     }
     path = Path(weights) if weights is not None else WEIGHTS_DIR / f"{name}.pt"
     if weights is None and not path.is_file():

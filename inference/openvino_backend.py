@@ -53,11 +53,15 @@ with the iterations it unrolls (1,1,1: 31-32 MiB, 0,0,6: 48 MiB, 2,4,6: 87-93 Mi
 its buffers, which grow with the input pixels (batch x height x width: 317 bytes a pixel in bf16,
 378 in fp32; 2,4,6 at 1x384x1248 in bf16: 240-259 MiB)."""
 
-MAX_COMPILED_BYTES = 768 << 20
-"""Default bound of the compiled shapes kept per model, by their estimated memory: a 1248x384
-camera's shapes with one pass (quick pass and pass, 395 MiB estimated) or two (quick, half and
-refining passes, 500 MiB) fit. Under a mix of many sizes the former bound, 8 shapes, held 0.9-1.2
-GiB, and 8 large ones (4 MP each) would have held about 12 GiB."""
+MAX_COMPILED_BYTES = 1536 << 20
+"""Default bound of the compiled shapes kept per model, by their estimated memory: the shapes of
+one camera's pairs computed by ``two_pass="auto"`` at the largest size it enlarges to (1.2 M
+pixels) fit, its quick pass, one pass and both of two passes (1.45 GiB estimated for 600x888
+pairs at 1.5x; a KITTI frame at 1.5x: 1.3 GiB). Under 768 MiB, the bound before pairs were
+enlarged, those shapes evicted one another and each request compiled again: a KITTI pair in two
+passes at 1.5x took 3.0 s against 1.3 s on a 2-core AVX512-BF16 CPU. Under a mix of many sizes the
+bound before that, 8 shapes, held 0.9-1.2 GiB, and 8 large ones (4 MP each) would have held about
+12 GiB."""
 
 MAX_BLOB_CACHE_BYTES = 512 << 20
 """Default bound of the disk cache of compiled shapes (OpenVINO's ``CACHE_DIR``, shared by the

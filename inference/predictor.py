@@ -29,7 +29,7 @@ from .backend_choice import Backend, Precision
 from .batching import PaddedBatch, PairMaps, batch_groups
 from .cuda_graphs import GraphedForward
 from .forward import Forward, Maps
-from .openvino_backend import OpenVINOForward
+from .openvino_backend import MAX_COMPILED_BYTES, OpenVINOForward
 from .options import InferenceOptions, Iterations, IterationsGiven, StageCounts, TwoPass
 from .padding import Padding
 from .prediction import Prediction, TensorPrediction, as_image_batch, image_size
@@ -54,7 +54,8 @@ class StereoPredictor:
     or "openvino" to run every forward through ``openvino`` (an
     ``OpenVINOForward``: its graphs are cached under the weights' hash in ``cache_dir``, by
     default ``$CRESTEREO_CACHE_DIR`` or ``~/.cache/crestereo-pp``; calls whose graph is not in
-    the cache run on torch, and only ``prepare`` exports one).
+    the cache run on torch, and only ``prepare`` exports one; the shapes it compiles are kept
+    within ``compiled_bytes`` of their estimated memory, default MAX_COMPILED_BYTES).
     graphs: on a CUDA device with ``cuda_graphs``, the CUDA-graph replay
     (``inference.cuda_graphs``) that ``predict_pairs`` (so ``predict_batch``) runs its forward
     through, one graph per padded shape; else None.
@@ -73,6 +74,7 @@ class StereoPredictor:
         precision: Precision = "fp32",
         cuda_graphs: bool = True,
         cache_dir: Path | None = None,
+        compiled_bytes: int = MAX_COMPILED_BYTES,
     ) -> None:
         self.device = torch.device(device)
         self.network = network.to(self.device).eval()
@@ -89,6 +91,7 @@ class StereoPredictor:
                 self.forward,
                 cache_key=None if weights_sha256 is None else f"{name}-{weights_sha256[:16]}-torch{torch.__version__}",
                 cache_dir=cache_dir,
+                max_bytes=compiled_bytes,
             )
             if self.backend == "openvino"
             else None

@@ -15,6 +15,7 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from crestereo_pp.inference.backend_choice import BackendChoice, PrecisionChoice
+from crestereo_pp.inference.openvino_backend import MAX_COMPILED_BYTES
 from crestereo_pp.inference.options import Iterations, parse_iterations
 from crestereo_pp.model.config import MODEL_NAMES, ModelName
 from crestereo_pp.service import DEFAULT_MAX_IMAGE_PIXELS
@@ -55,6 +56,14 @@ class Settings(BaseModel):
         None,
         description="Where OpenVINO keeps its compiled graphs, so that a restart does not compile again; "
         "(none): `$XDG_CACHE_HOME/crestereo-pp`, else `~/.cache/crestereo-pp`.",
+    )
+    compiled_mb: int = Field(
+        MAX_COMPILED_BYTES >> 20,
+        ge=1,
+        description="Memory (MiB, estimated) for OpenVINO's compiled image shapes, per model: each new padded shape "
+        "is compiled on first use (about a second) and kept, the least recently used dropped first. The default "
+        "holds every shape one camera's pairs need at the largest size the default inference enlarges them to; "
+        "under less, a camera's shapes can evict one another and its requests compile again each time.",
     )
     export_iters: tuple[str, ...] | None = Field(
         None,

@@ -164,6 +164,7 @@ class ServiceRuntime:
                         backend=self.settings.backend,
                         precision=self.settings.precision,
                         cache_dir=self.settings.cache_dir,
+                        compiled_bytes=self.settings.compiled_mb << 20,
                         prepare_iters=self.settings.export_iterations(),
                     ),
                 )

@@ -33,6 +33,15 @@ from crestereo_pp.inference.openvino_backend import (
     prune_oldest,
 )
 from crestereo_pp.inference.openvino_export import GraphKind
+from crestereo_pp.inference.two_pass import (
+    ENLARGEMENTS,
+    MAX_ENLARGED_PIXELS,
+    large_disparity_percentile,
+    largest_enlargement,
+    way_maps,
+)
+from crestereo_pp.model.config import ModelConfig
+from crestereo_pp.model.network import padded_size
 from shared_data import STEREO_DEV
 
 REPO = Path(__file__).resolve().parents[2]
@@ -286,6 +295,29 @@ def test_compiled_shapes_are_kept_within_their_estimated_memory_and_the_estimate
         assert [shape for _, shape, _ in backend.compiled] == shapes[:1]
     finally:
         backend.max_shapes, backend.max_bytes = 8, MAX_COMPILED_BYTES
+
+
+@pytest.mark.parametrize("model", ["lite", "full"])
+def test_the_compiled_shapes_bound_holds_every_shape_of_a_cameras_pairs_at_the_largest_enlargement(model):
+    """The shapes ``two_pass="auto"`` compiles for one camera's pairs at the largest size it
+    enlarges to (quick pass, one pass, the half and refining passes of two) fit in the bound
+    together; under a smaller one they evict one another and every request compiles again."""
+    shapes: set[tuple[GraphKind, tuple[int, int, int, int]]] = set()
+
+    def forward(left, right, iters, init):  # records what OpenVINO would compile, padded as it pads
+        batch, _, height, width = left.shape
+        shapes.add((GraphKind(iters, init is not None), (batch, 3, padded_size(height), padded_size(width))))
+        return torch.zeros(batch, 1, height, width), torch.zeros(batch, 1, height, width)
+
+    iters = ModelConfig.preset(model).iters
+    pair = torch.zeros(1, 3, 600, 888)  # 1.5x is just within MAX_ENLARGED_PIXELS
+    factor = largest_enlargement(600, 888)
+    assert factor == max(ENLARGEMENTS) and 600 * 888 * factor**2 > 0.99 * MAX_ENLARGED_PIXELS
+    large_disparity_percentile(pair, pair, iters, forward)
+    for two_passes in (False, True):
+        way_maps(pair, pair, iters, (two_passes, factor), forward)
+    assert len(shapes) == 4
+    assert sum(compiled_bytes(kind, shape) for kind, shape in shapes) <= MAX_COMPILED_BYTES
 
 
 def test_the_disk_cache_of_compiled_shapes_keeps_within_its_bound_dropping_the_oldest(first_call, tsukuba):
