@@ -59,10 +59,9 @@ one camera's pairs computed by ``two_pass="auto"`` at the largest size it enlarg
 pixels) fit, its quick pass, one pass and both of two passes (1.45 GiB estimated for 600x888
 pairs at 1.5x; a KITTI frame at 1.5x: 1.3 GiB). Under 768 MiB, the bound before pairs were
 enlarged, those shapes evicted one another and each request compiled again: a KITTI pair in two
-passes at 1.5x took 2.7 s against 1.2 s on a 2-core AVX512-BF16 CPU
-(``bench/camera_shapes.py``). Under a mix of many sizes the
-bound before that, 8 shapes, held 0.9-1.2 GiB, and 8 large ones (4 MP each) would have held about
-12 GiB."""
+passes at 1.5x took 2.7 s against 1.2 s on a 2-core AVX512-BF16 CPU (``bench/camera_shapes.py``).
+Under a mix of many sizes the bound before that, 8 shapes, held 0.9-1.2 GiB, and 8 large ones (4
+MP each) would have held about 12 GiB."""
 
 MAX_BLOB_CACHE_BYTES = 512 << 20
 """Default bound of the disk cache of compiled shapes (OpenVINO's ``CACHE_DIR``, shared by the
