@@ -19,7 +19,6 @@ from __future__ import annotations
 import argparse
 import statistics
 import time
-from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -68,7 +67,7 @@ def main() -> None:
 
 def request(predictor: StereoPredictor, left: np.ndarray, right: np.ndarray, way: AutoWay) -> float:
     """Milliseconds of one request computed `way`, after auto's quick pass, on the predictor's backend."""
-    forward = partial(predictor.forward_padded, backend=predictor.openvino)
+    forward = predictor.padded_forward()
     iters = predictor.config.iters
     left_batch, right_batch = (as_image_batch(image, predictor.device) for image in (left, right))
     started = time.perf_counter()

@@ -16,7 +16,6 @@ import statistics
 import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
-from functools import partial
 
 import numpy as np
 import torch
@@ -51,7 +50,7 @@ class PairRule:
 def measure(samples: Sequence[StereoSample], predictor: StereoPredictor) -> list[PairRule]:
     """Each pair computed each of WAYS (``two_pass.way_maps``, on the predictor's backend), with
     the evidence the auto rule reads."""
-    forward = partial(predictor.forward_padded, backend=predictor.openvino)
+    forward = predictor.padded_forward()
     rules = []
     for sample in samples:
         known = sample.valid & np.isfinite(sample.disparity)

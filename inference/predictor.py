@@ -35,7 +35,7 @@ from .padding import Padding
 from .prediction import Prediction, TensorPrediction, as_image_batch, image_size
 from .scaling import maps_at, resize_images, scaled_size
 from .torch_backend import autocast_bf16
-from .two_pass import cold_maps, large_disparity_percentile
+from .two_pass import PaddedForward, cold_maps, large_disparity_percentile
 from .uncertainty_calibration import UncertaintyCalibration
 from .warm_start import FrameStream
 
@@ -267,7 +267,7 @@ class StereoPredictor:
         if init_disparities is not None and len(init_disparities) != len(lefts):
             raise ValueError(f"need one warm start per pair, got {len(init_disparities)} for {len(lefts)}")
         iters = self.iterations(options.iters)
-        forward = partial(self.forward_padded, backend=self.openvino or (self.graphs if graphed else None))
+        forward = self.padded_forward(graphed)
         batches: list[tuple[list[int], PaddedBatch, Tensor, Tensor]] = []
         for group, two_pass in batch_groups(sizes, options.two_pass, init_disparities is not None, options.scale):
             batch = PaddedBatch.of([sizes[i] for i in group])
@@ -328,8 +328,14 @@ class StereoPredictor:
             left,
             right,
             self.config.iters if counts is None else counts,
-            partial(self.forward_padded, backend=forward or self.openvino),
+            self.padded_forward() if forward is None else partial(self.forward_padded, backend=forward),
         )
+
+    def padded_forward(self, graphed: bool = False) -> PaddedForward:
+        """``forward_padded`` with this predictor's backend bound (the ``PaddedForward`` that
+        ``two_pass`` computes through): OpenVINO where it runs, else torch, replayed from CUDA
+        graphs where `graphed` and the predictor has them."""
+        return partial(self.forward_padded, backend=self.openvino or (self.graphs if graphed else None))
 
     def served_uncertainty(self, raw: Tensor, disparity: Tensor, left: Tensor, right: Tensor) -> Tensor:
         """The uncertainty as served, (B, 1, H, W), from the paper's U `raw` (B, 1, H, W), the
@@ -349,7 +355,7 @@ class StereoPredictor:
         """Pad (B,3,H,W) inputs to multiples of 32, run `backend` (``self.graphs`` or
         ``self.openvino``; default ``self.forward``, torch eager), crop back. Returns disparity
         (clipped at 0) and uncertainty, each (B, 1, H, W). With its backend bound, the
-        ``PaddedForward`` the two-pass rule calls."""
+        ``PaddedForward`` the two-pass rule calls (``padded_forward``)."""
         padding = Padding.to_multiple(*left.shape[-2:])
         disparity, uncertainty = (backend or self.forward)(
             padding.pad(left),

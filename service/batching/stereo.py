@@ -135,7 +135,7 @@ class StereoBatches:
     def work(self, key: StereoKey) -> float:
         """Units of compute of one request of `key`: its padded pixels times `relative_cost`, and,
         where "auto" may enlarge the pair, times the square of the largest factor it may take (an
-        upper bound: a pair with large disparities is computed at its size)."""
+        upper bound: a pair whose disparities are too large for that factor is computed smaller)."""
         predictor = self.predictors[key.model]
         counts = predictor.iterations(key.options.iters)
         cost = relative_cost(counts, predictor.config.iters, key.options.scale, key.options.two_pass)
