@@ -75,9 +75,11 @@ class SceneConfig:
     - ``flat_probability``: surfaces (of those not thin; the background too) that are large weakly
       textured planes (walls, tables, floors): 0.5-1 frame widths across, texture std 1-4 grey
       levels, a brightness ramp of a third to all of ``shading`` across them, never curved.
-    - ``repetitive_probability``: surfaces (of those not flat) painted with a periodic pattern
-      (stripes, checkers, grid lines or dots) of period 4-40 px repeating along the rows (turned by
-      at most 10 degrees): ambiguous matches one period apart.
+    - ``repetitive_probability``: foreground surfaces (of those not flat) painted with a periodic
+      pattern (stripes, checkers, grid lines or dots) of period 4-40 px repeating along the rows
+      (turned by at most 10 degrees): ambiguous matches one period apart, which the surface's
+      outline resolves. Never the background: covering the frame, it would match itself a period
+      away everywhere but at the left border, and no matcher could find its disparity.
     - ``wide_range_probability``: scenes whose largest disparity is drawn uniformly in
       [max_disparity, wide_max_disparity] instead of max_disparity.
 

@@ -56,7 +56,7 @@ class SurfaceKinds:
         levels across the surface. Never thin.
     repetitive: surfaces showing repetitive pattern `repetitive_texture` in [0, REPETITIVE_TEXTURES)
         with a period of `repetitive_period` px, turned by `repetitive_tilt` radians from repeating
-        along the rows. Never flat.
+        along the rows. Never flat, never the background.
     """
 
     thin: torch.Tensor
@@ -89,6 +89,7 @@ class SurfaceKinds:
         repetitive, repetitive_texture, repetitive_period, repetitive_tilt = none, none.long(), zero, zero
         if cfg.repetitive_probability > 0:
             repetitive = draw.chance(shape, cfg.repetitive_probability) & ~flat
+            repetitive[:, 0] = False  # covering the frame, it would be ambiguous by whole periods everywhere
             repetitive_texture = draw.integers(shape, 0, REPETITIVE_TEXTURES - 1)
             repetitive_period = draw.log_uniform(shape, *REPETITIVE_PERIOD)
             repetitive_tilt = draw.uniform(shape, -REPETITIVE_TILT, REPETITIVE_TILT)

@@ -760,8 +760,9 @@ def test_flat_surfaces_are_large_weakly_textured_planes_with_slow_shading() -> N
 
 def secondary_peak(image: torch.Tensor, lags: int = 64) -> tuple[torch.Tensor, torch.Tensor]:
     """The autocorrelation along x of images (B, 3, H, W), normalised and averaged over rows: its
-    highest value past the central peak (after its first local minimum) and that value's lag in
-    px, each (B,)."""
+    highest value past the central peak (after its first local minimum), and the first lag past
+    that minimum where it comes within 0.05 of that value (a period, not a multiple of it), px;
+    each (B,)."""
     grey = image.mean(1)
     grey = grey - grey.mean(-1, keepdim=True)
     width = grey.shape[-1]
@@ -771,26 +772,49 @@ def secondary_peak(image: torch.Tensor, lags: int = 64) -> tuple[torch.Tensor, t
     for row in correlation:
         rising = torch.nonzero(row[1:] > row[:-1]).flatten()
         first_minimum = int(rising[0]) if len(rising) else lags - 1
-        lag = first_minimum + int(row[first_minimum:].argmax())
-        values.append(row[lag])
-        where.append(lag)
+        highest = row[first_minimum:].max()
+        values.append(highest)
+        where.append(first_minimum + int(torch.nonzero(row[first_minimum:] >= highest - 0.05)[0]))
     return torch.stack(values), torch.tensor(where)
 
 
 REPETITIVE = replace(CLEAN, height=96, width=192, repetitive_probability=1.0)
 
 
+def filling_the_frame(scene: Scene) -> Scene:
+    """The scenes with their first foreground surface alone, fronto-parallel in front of the
+    background and stretched over the whole frame (its shading ramp, drawn for its own extent,
+    taken off)."""
+    scene.present[:, 1], scene.present[:, 2:], scene.has_hole[:, 1] = True, False, False
+    scene.to_shape[:, 1] = 0.0  # a zero map to the shape frame: the surface covers the plane
+    assert REPETITIVE.max_disparity is not None
+    scene.plane[:, 1] = torch.tensor([0.0, 0.0, REPETITIVE.max_disparity])  # px: nearer than the background
+    scene.curvature[:, 1], scene.ramp[:, 1, :2] = 0.0, 0.0
+    return scene
+
+
 def test_repetitive_surfaces_repeat_every_4_to_40_px_along_the_rows() -> None:
     generator = SceneGenerator(REPETITIVE)
     scene = generator.sample_scene(batch_size=6, seed=9)
-    assert (scene.texture[scene.present] >= REPETITIVE.texture_count).all()  # the repetitive slots
-    period = repetitive_period_texels(REPETITIVE.texture_size) / scene.to_texture[..., 0, :2].norm(dim=-1)  # px
-    assert period.min() >= 4 - 1e-3 and period.max() <= 40 + 1e-3
+    foreground = scene.present.clone()
+    foreground[:, 0] = False
+    assert (scene.texture[foreground] >= REPETITIVE.texture_count).all()  # the repetitive slots
+    period = repetitive_period_texels(REPETITIVE.texture_size) / scene.to_texture[foreground][:, 0, :2].norm(dim=-1)
+    assert period.min() >= 4 - 1e-3 and period.max() <= 40 + 1e-3  # px
 
-    scene.present[:, 1:] = False  # the background alone fills the frame
-    peak, lag = secondary_peak(generator.render(scene).left)
+    peak, lag = secondary_peak(generator.render(filling_the_frame(scene)).left)
     assert (peak > 0.6).all()  # a shifted row matches itself again one period on: ambiguous matches
     assert ((lag >= 4) & (lag <= 41)).all()  # the period along the row, 40 px turned by up to 10 degrees
     plain = SceneGenerator(replace(REPETITIVE, repetitive_probability=0.0)).sample_scene(batch_size=6, seed=9)
-    plain.present[:, 1:] = False
+    plain.present[:, 1:] = False  # the background alone fills the frame
     assert secondary_peak(generator.render(plain).left)[0].median() < 0.3
+
+
+def test_the_background_is_never_repetitive_so_that_no_scene_is_ambiguous_everywhere() -> None:
+    """A pattern repeating along the rows over the whole frame matches itself a period away at
+    every pixel but the left border's: no disparity could be learnt from such a scene."""
+    scene = SceneGenerator(REPETITIVE).sample_scene(batch_size=6, seed=9)
+    assert (scene.texture[:, 0] < REPETITIVE.texture_count).all()
+    scene.present[:, 1:] = False  # the background alone
+    peak, _ = secondary_peak(SceneGenerator(REPETITIVE).render(scene).left)
+    assert peak.median() < 0.3
