@@ -12,8 +12,9 @@ from crestereo_pp.stereo_data.readers import LAYOUTS, StereoSample, open_dataset
 
 from .options import add_model_options, inference_options, load_predictor
 
-PROCEDURAL_SEED = 2**41
-"""First seed of `--procedural` scenes: far from any training seed and from the calibration's."""
+PROCEDURAL_SEED = 3 * 2**30
+"""First seed of `--procedural` scenes: above every training seed, a billion above the
+calibration's (``synthetic.draw.SEEDS``)."""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

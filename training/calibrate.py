@@ -24,8 +24,8 @@ from crestereo_pp.inference.uncertainty_calibration import (
 from crestereo_pp.model.weights import read_weights, write_weights
 from crestereo_pp.stereo_data.synthetic import SceneConfig, SceneGenerator
 
-CALIBRATION_SEED = 2**40
-"""First seed of the calibration scenes (far from any training seed)."""
+CALIBRATION_SEED = 2**31
+"""First seed of the calibration scenes: above every training seed (``synthetic.draw.SEEDS``)."""
 CALIBRATION_SCENES = SceneConfig(height=256, width=512, max_disparity=96.0)
 """Size and disparity range of the calibration scenes: about a fifth of the width at most, like
 the real pairs of KITTI and Middlebury at their native size."""

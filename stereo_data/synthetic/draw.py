@@ -6,6 +6,11 @@ import math
 
 import torch
 
+SEEDS = 2**32
+"""Seeds are in [0, SEEDS): torch's CPU generator keeps only a seed's low 32 bits (2**41 draws what
+0 draws), so a larger seed would silently repeat a smaller one's scenes. Training draws its scene
+seeds in [0, 2**31); the calibration's and the evaluation's lie above, in [2**31, 2**32)."""
+
 
 class Draw:
     """Random tensors on one device from one generator (the only source of randomness): each
@@ -15,6 +20,13 @@ class Draw:
     def __init__(self, generator: torch.Generator, device: torch.device) -> None:
         self.generator = generator
         self.device = device
+
+    @staticmethod
+    def seeded(seed: int, device: torch.device) -> Draw:
+        """A new generator on `device` seeded with `seed`, in [0, SEEDS) (ValueError otherwise)."""
+        if not 0 <= seed < SEEDS:
+            raise ValueError(f"scene seeds are in [0, 2**32) (a generator keeps 32 bits of a seed), got {seed}")
+        return Draw(torch.Generator(device=device).manual_seed(seed), device)
 
     def uniform(self, shape: tuple[int, ...], low: float, high: float | torch.Tensor) -> torch.Tensor:
         """Uniform float32 in [low, high) (`high` a number or a tensor broadcasting with `shape`)."""

@@ -30,7 +30,7 @@ class SceneGenerator:
 
     def generate(self, batch_size: int, seed: int) -> SyntheticBatch:
         """Draw, render and (if configured) photometrically augment ``batch_size`` pairs."""
-        draw = Draw(torch.Generator(device=self.device).manual_seed(seed), self.device)
+        draw = Draw.seeded(seed, self.device)
         batch = self.render(draw_scenes(batch_size, self.config, draw, self._photos))
         if self.config.photometric is not None:
             batch.left = apply_photometric(batch.left, self.config.photometric, draw)
@@ -56,7 +56,7 @@ class SceneGenerator:
 
     def sample_scene(self, batch_size: int, seed: int) -> Scene:
         """The scenes that ``generate(batch_size, seed)`` renders."""
-        draw = Draw(torch.Generator(device=self.device).manual_seed(seed), self.device)
+        draw = Draw.seeded(seed, self.device)
         return draw_scenes(batch_size, self.config, draw, self._photos)
 
     def render(self, scene: Scene) -> SyntheticBatch:

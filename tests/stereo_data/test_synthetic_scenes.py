@@ -130,6 +130,16 @@ def test_same_seed_reproduces_the_batch_bit_for_bit() -> None:
     assert torch.equal(SceneGenerator(SMALL).generate(batch_size=2, seed=7).left, first.left)
 
 
+@pytest.mark.parametrize("seed", [-1, 2**32, 2**41])
+def test_seeds_beyond_32_bits_are_refused_rather_than_repeating_a_smaller_seeds_scenes(seed: int) -> None:
+    """torch's CPU generator keeps a seed's low 32 bits: 2**41 would draw what 0 draws."""
+    generator = SceneGenerator(SMALL)
+    with pytest.raises(ValueError, match="seeds are in"):
+        generator.generate(batch_size=1, seed=seed)
+    with pytest.raises(ValueError, match="seeds are in"):
+        generator.sample_scene(batch_size=1, seed=seed)
+
+
 def test_different_seeds_give_different_scenes() -> None:
     generator = SceneGenerator(SMALL)
     first, second = generator.generate(batch_size=2, seed=7), generator.generate(batch_size=2, seed=8)

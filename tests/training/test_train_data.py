@@ -8,7 +8,10 @@ import pytest
 import torch
 
 import crestereo_pp.training.data
+from crestereo_pp.cli.evaluate import PROCEDURAL_SEED
 from crestereo_pp.stereo_data.readers import StereoSample
+from crestereo_pp.stereo_data.synthetic.draw import SEEDS
+from crestereo_pp.training.calibrate import CALIBRATION_SEED
 from crestereo_pp.training.config import SYNTHETIC, DataSource, TrainConfig
 from crestereo_pp.training.data import HostPartsByStep, TrainingData, augment_real_pair, plan_step
 
@@ -38,6 +41,16 @@ def test_a_step_plan_depends_only_on_seed_step_and_rank():
     assert plan_step(config, [10, 20], step=5, rank=0) == plan_step(config, [10, 20], step=5, rank=0)
     assert plan_step(config, [10, 20], step=5, rank=0) != plan_step(config, [10, 20], step=6, rank=0)
     assert plan_step(config, [10, 20], step=5, rank=0) != plan_step(config, [10, 20], step=5, rank=1)
+
+
+def test_training_never_draws_the_calibration_or_evaluation_scenes():
+    """Training's scene seeds stay below 2**31; the calibration's scenes and `eval --procedural`'s
+    lie above, apart from each other, within the 32 bits a generator keeps."""
+    config = mixture({SYNTHETIC: 1.0})
+    drawn = [plan_step(config, [], step, rank).synthetic_seed for step in range(2000) for rank in range(2)]
+    assert max(drawn) < 2**31 <= CALIBRATION_SEED
+    assert max(drawn) > 2**30  # the whole range below 2**31 is used
+    assert CALIBRATION_SEED + 10_000 < PROCEDURAL_SEED and PROCEDURAL_SEED + 10_000 < SEEDS
 
 
 def test_sources_are_drawn_in_proportion_to_their_weights():
