@@ -18,10 +18,15 @@ and the next stage runs), within one time budget:
                  probe run measures the step rate, then one run sized to end its flat-decay schedule
                  (and its weight average's horizon) within the time left; a checkpoint with an
                  optimiser state is resumed, a weights-only file starts a fresh optimiser
+    arms         (only when named in --stages, instead of train) a data candidate measured: the
+                 recipe (control) and the recipe with --arm's settings (candidate), each trained
+                 for the same steps from the same weights in half the time left, then scored with
+                 the default inference on the dev pairs (the Middlebury 2014 ones also apart) and
+                 on procedural scenes drawn as the candidate trains; each returned as arm-NAME.pt
 
     python3 bench/gpu_check --out DIR [--minutes 9] [--stages S,...] [--data DIR] [--wheels DIR]
                             [--model lite|full] [--weights FILE] [--train-set KEY=VALUE ...]
-                            [--train-compile] [--adopt]
+                            [--train-compile] [--adopt] [--arm KEY=VALUE ...]
     python3 bench/gpu_check --cpu-smoke --out DIR    # the same stages on the CPU, tiny
     python3 bench/gpu_check --pack-data [--data DIR]   # here, before a run: shared/stereo-dev.tar.gz
 

@@ -20,9 +20,10 @@ from typing import Any
 
 from . import __doc__ as USAGE
 from .pairs import DEV_ARCHIVE, dev_pairs, pack_dev_pairs
-from .plans import BENCH, CPU_SMOKE, GPU, REPO, STAGES, Plan, StageResult
+from .plans import BENCH, CPU_SMOKE, DEFAULT_STAGES, GPU, REPO, STAGES, Plan, StageResult
 from .report import write_summary
 from .runner import run_child
+from .stages.arms import arms_stage
 from .stages.bench import bench_stage
 from .stages.environment import environment_stage
 from .stages.probe import probe_stage
@@ -92,7 +93,7 @@ def run_stages(
     results: dict[str, StageResult] = {}
     for stage in args.stages:
         remaining = deadline - time.monotonic()
-        if stage == "train":
+        if stage in ("train", "arms"):
             seconds = remaining - 10.0
         else:
             seconds = min(plan.stage_seconds[stage], remaining - plan.reserve_seconds[stage])
@@ -110,6 +111,7 @@ def run_stages(
             command += ["--cpu-smoke"] * args.cpu_smoke + ["--train-compile"] * args.train_compile
             command += ["--model", args.model] + (["--weights", str(args.weights)] if args.weights else [])
             command += [f"--train-set={key}={json.dumps(value)}" for key, value in args.train_set]
+            command += [f"--arm={key}={json.dumps(value)}" for key, value in args.arm]
             command += ["--adopt"] * args.adopt + ["--probe-result", str(scratch / "probe.json")]
             command += ["--data", str(data)] if data is not None else []
             result = run_child(command, seconds, environments[stage], log, result_file)
@@ -134,8 +136,8 @@ def parse_arguments(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument(
         "--stages",
         type=stage_list,
-        default=STAGES,
-        help=f"the stages to run, comma-separated, in this order [{','.join(STAGES)}]",
+        default=DEFAULT_STAGES,
+        help=f"the stages to run, comma-separated, in this order: {','.join(STAGES)} [{','.join(DEFAULT_STAGES)}]",
     )
     parser.add_argument(
         "--data",
@@ -161,6 +163,15 @@ def parse_arguments(argv: Sequence[str] | None) -> argparse.Namespace:
         help="a TrainConfig field of the training stage (VALUE as JSON, else text), e.g. batch_size=64; repeatable",
     )
     parser.add_argument("--train-compile", action="store_true", help="torch.compile the training step")
+    parser.add_argument(
+        "--arm",
+        type=train_setting,
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="the arms stage's candidate: a TrainConfig field it sets on the recipe (as --train-set), e.g. "
+        "room_probability=0.5; repeatable. The control trains the recipe for as many pairs from the same weights",
+    )
     parser.add_argument(
         "--adopt",
         action="store_true",
@@ -216,6 +227,7 @@ def run_stage_here(args: argparse.Namespace, plan: Plan) -> int:
         "service": service_stage,
         "probe": probe_stage,
         "train": train_stage,
+        "arms": arms_stage,
     }
     deadline = time.monotonic() + args.seconds
     result = stages[args.stage](plan, deadline, args, save)

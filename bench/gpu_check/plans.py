@@ -15,7 +15,10 @@ if TYPE_CHECKING:
 BENCH = Path(__file__).resolve().parents[1]
 REPO = BENCH.parent
 
-STAGES = ("environment", "tests", "bench", "service", "probe", "train")
+STAGES = ("environment", "tests", "bench", "service", "probe", "train", "arms")
+DEFAULT_STAGES = STAGES[:-1]
+"""What runs without --stages: every stage but arms, which measures a data candidate (--arm) and,
+like train, takes the time left."""
 MAX_FILES = 8
 MAX_FILE_BYTES = 16 * 2**20
 MAX_TRAVEL_BYTES = 64 * 2**20
@@ -39,7 +42,8 @@ class Plan:
     validation, the checkpoint and the process's start; throughput_steps: timed steps per row of the
     throughput probe (of throughput_models, at throughput_factors times the recipe's batch, after
     throughput_warmup untimed steps), which stops a row after throughput_row_seconds and starts
-    none with less left.
+    none with less left. The arms stage keeps arm_score_seconds per arm for scoring it, on the dev
+    pairs and on arm_scenes procedural scenes of arm_scene_size drawn as the candidate trains.
     """
 
     device: str
@@ -66,6 +70,9 @@ class Plan:
     throughput_warmup: int
     throughput_steps: int
     throughput_row_seconds: float
+    arm_score_seconds: float
+    arm_scenes: int
+    arm_scene_size: tuple[int, int]
     label: str = ""
 
 
@@ -94,6 +101,9 @@ GPU = Plan(
     throughput_warmup=2,
     throughput_steps=8,
     throughput_row_seconds=8.0,
+    arm_score_seconds=45.0,
+    arm_scenes=16,
+    arm_scene_size=(256, 512),
     label="GPU",
 )
 CPU_SMOKE = Plan(
@@ -132,6 +142,9 @@ CPU_SMOKE = Plan(
     throughput_warmup=1,
     throughput_steps=1,
     throughput_row_seconds=2.0,
+    arm_score_seconds=40.0,
+    arm_scenes=1,
+    arm_scene_size=(64, 128),
     label="CPU smoke run (no GPU: no number here is a GPU number)",
 )
 

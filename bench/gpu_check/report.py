@@ -39,6 +39,8 @@ def write_summary(out: Path, plan: Plan, data: Path | None, results: dict[str, S
         lines += ["", *probe_table(results["probe"].data)]
     if "train" in results and results["train"].data:
         lines += ["", "## Training", "", "```", json.dumps(results["train"].data, indent=1), "```"]
+    if "arms" in results and results["arms"].data:
+        lines += ["", *arms_table(results["arms"].data)]
     lines += ["", *output_files_report(out)]
     (out / "summary.md").write_text("\n".join(lines) + "\n")
 
@@ -115,6 +117,37 @@ def probe_table(data: dict[str, Any]) -> list[str]:
         lines.append(
             f"{head} {row['pairs_per_s']:.1f} | {row['pairs_per_s'] / base:.2f}x | {1000 * row['step_s']:.0f} | "
             f"{1000 * row['data_s']:.0f} | {row['first_step_s']:.1f} | {peak} |"
+        )
+    return lines
+
+
+ARM_SCORES = ("dev", "apart", "family")
+"""The arms' scores, each as EPE px / bad-1 % / bad-2 %: the dev pairs, the Middlebury 2014 ones
+among them, the candidate's procedural scenes."""
+
+
+def arms_table(data: dict[str, Any]) -> list[str]:
+    """Markdown: one row per arm, its settings, steps and each of ARM_SCORES."""
+    lines = [
+        f"## Arms: {json.dumps(data.get('arm'))} against the recipe",
+        "",
+        f"{data.get('model')} from {data.get('weights')}, {data.get('steps')} steps ({data.get('pairs')} pairs) "
+        f"each; default inference, torch fp32; EPE px / bad-1 % / bad-2 %; family: {data.get('family')}.",
+        "",
+        "| arm | settings | steps | train s | " + " | ".join(ARM_SCORES) + " |",
+        "|---|---|---|---|" + "---|" * len(ARM_SCORES),
+    ]
+    for row in data.get("rows", []):
+        cells = [
+            f"{row[f'{name}_epe']:.3f} / {row[f'{name}_bad1']:.2f} / {row[f'{name}_bad2']:.2f} ({row[f'{name}_pairs']})"
+            if f"{name}_epe" in row
+            else "-"
+            for name in ARM_SCORES
+        ]
+        lines.append(
+            f"| {row['arm']} | {json.dumps(row['settings'])} | {row['steps']} | {row['train_s']} | "
+            + " | ".join(cells)
+            + " |"
         )
     return lines
 

@@ -13,10 +13,11 @@ import numpy as np
 import pytest
 
 from crestereo_pp.model.weights import read_weights
-from shared_data import STEREO_DEV
+from crestereo_pp.training.config import TrainConfig
+from shared_data import SMALL_STEREO_DEV_PAIR, STEREO_DEV
 
 REPO = Path(__file__).resolve().parents[2]
-STAGES = ("environment", "tests", "bench", "service", "probe", "train")
+STAGES = ("environment", "tests", "bench", "service", "probe", "train")  # what runs by default
 
 
 @pytest.fixture
@@ -87,6 +88,61 @@ def test_the_cpu_smoke_run_passes_every_stage_and_keeps_to_the_output_limits(tmp
     shipped = read_weights(REPO / "model/weights/lite.pt")
     assert checkpoint["step"] == shipped["step"] + 2 and checkpoint["model_name"] == "lite"
     assert len(checkpoint["training"]["runs"]) == len(shipped["training"]["runs"]) + 1
+
+
+def test_the_arms_stage_trains_a_candidate_and_the_recipe_for_equal_steps_and_scores_both(tmp_path):
+    """Two dev pairs, one of them named as the Middlebury 2014 pairs are (scored apart too)."""
+    if not STEREO_DEV.is_dir():
+        pytest.skip(f"real pairs not available: {STEREO_DEV} does not exist (see tests/shared_data.py)")
+    data = tmp_path / "dev"
+    data.mkdir()
+    (data / SMALL_STEREO_DEV_PAIR).symlink_to(STEREO_DEV / SMALL_STEREO_DEV_PAIR)
+    (data / "middlebury2014q_as_tsukuba").symlink_to(STEREO_DEV / SMALL_STEREO_DEV_PAIR)
+    out = tmp_path / "out"
+    arm = ["--arm", "thin_probability=1", "--arm", "flat_probability=0.5"]
+    completed = subprocess.run(
+        [
+            sys.executable,
+            "bench/gpu_check",
+            "--cpu-smoke",
+            "--stages",
+            "arms",
+            *arm,
+            "--data",
+            str(data),
+            "--out",
+            str(out),
+        ],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=420,
+    )
+    summary = (out / "summary.md").read_text()
+    assert completed.returncode == 0, summary + completed.stderr[-3000:]
+    assert "| arms | passed |" in summary, summary
+    assert '## Arms: {"thin_probability": 1, "flat_probability": 0.5} against the recipe' in summary
+    rows = re.findall(r"^\| (control|candidate) \| (\{.*?\}) \| (\d+) \| [0-9.]+ \| (.*) \|$", summary, re.MULTILINE)
+    assert [row[0] for row in rows] == ["control", "candidate"], summary
+    recipe = TrainConfig.from_dict(read_weights(REPO / "model/weights/lite.pt")["train_config"])
+    assert json.loads(rows[0][1]) == {key: getattr(recipe, key) for key in ("thin_probability", "flat_probability")}
+    assert json.loads(rows[1][1]) == {"thin_probability": 1, "flat_probability": 0.5}
+    assert rows[0][2] == rows[1][2] == "2"  # equal steps, so equal pairs
+    for row in rows:  # dev (2 pairs), apart (1), family (1 scene): EPE / bad-1 / bad-2 each
+        assert re.fullmatch(
+            r"[0-9.]+ / [0-9.]+ / [0-9.]+ \(2\) \| [0-9.]+ / [0-9.]+ / [0-9.]+ \(1\) \| "
+            r"[0-9.]+ / [0-9.]+ / [0-9.]+ \(1\)",
+            row[3],
+        ), row[3]
+    for name in ("control", "candidate"):
+        checkpoint = read_weights(out / f"arm-{name}.pt")
+        assert checkpoint["step"] == read_weights(REPO / "model/weights/lite.pt")["step"] + 2
+    assert {path.name for path in out.iterdir()} == {
+        "gpu_check.log",
+        "summary.md",
+        "arm-control.pt",
+        "arm-candidate.pt",
+    }
 
 
 def test_the_training_run_is_sized_to_end_its_decay_and_average_within_the_time_left(bench_path):

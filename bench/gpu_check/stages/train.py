@@ -11,10 +11,13 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from ..plans import MAX_FILE_BYTES, Plan, StageResult
 from ..recipe import recipe_of, weights_for
+
+if TYPE_CHECKING:
+    from crestereo_pp.model.weights import WeightsFile
 
 
 @dataclass(frozen=True)
@@ -57,94 +60,148 @@ def adopted_row(rows: list[dict[str, Any]], model: str, seconds: float) -> dict[
     return max(measured, key=lambda row: row["pairs_per_s"] * max(0.0, seconds - row["first_step_s"]))
 
 
-def train_stage(plan: Plan, deadline: float, args: argparse.Namespace, save: Callable[..., None]) -> StageResult:
-    """Train --model from `weights_for` (resumed where the file holds an optimiser state) into --out:
-    a probe run's step rate sizes the run (`size_run`); with --adopt, the probe stage's best row
-    (`adopted_row`) sets the step. Its numbers: steps, pairs/s, losses, peak memory, dev curve."""
-    import torch
+@dataclass(frozen=True)
+class Start:
+    """Where a stage's training starts: the weights file `path` (`weights_for`), its contents
+    `saved`, the keyword that `training.trainer.train` takes it by (resume where the file holds
+    an optimiser state, else init_weights: a fresh optimiser from step 0) and the step it is at."""
 
-    from crestereo_pp.model.weights import network_from_weights, read_weights, weights_of, write_weights
-    from crestereo_pp.training.config import TrainConfig
-    from crestereo_pp.training.records import read_csv
-    from crestereo_pp.training.trainer import STABLE_NAME, train, validate
+    path: Path
+    saved: WeightsFile
+    source: dict[str, Path]
+    first_step: int
 
-    shipped = weights_for(args.model, args)
-    saved = read_weights(shipped)
+    @property
+    def resumed(self) -> bool:
+        return "resume" in self.source
+
+
+def starting_point(args: argparse.Namespace) -> Start:
+    """The weights --model trains from (`weights_for`); ValueError where the file holds another model."""
+    from crestereo_pp.model.weights import read_weights
+
+    path = weights_for(args.model, args)
+    saved = read_weights(path)
     if saved.get("model_name") != args.model:
-        return StageResult("failed", f"{shipped} holds {saved.get('model_name')!r} weights, not {args.model!r}")
-    resumable = "optimizer" in saved  # else a weights-only file: a fresh optimiser from step 0
-    source = {"resume": shipped} if resumable else {"init_weights": shipped}
-    first_step = int(saved["step"]) if resumable else 0
-    recipe = recipe_of(args.model, plan, args)
-    adopted = None
-    if args.adopt and args.probe_result is not None and args.probe_result.is_file():
-        probe_rows_seen = json.loads(args.probe_result.read_text())["data"].get("rows", [])
-        adopted = adopted_row(probe_rows_seen, args.model, deadline - time.monotonic())
-        if adopted is not None:
-            recipe = replace(recipe, **adopted["overrides"])
-            print(f"adopted the probe's row {adopted['row']}: {adopted['setting']}", flush=True)
+        raise ValueError(f"{path} holds {saved.get('model_name')!r} weights, not {args.model!r}")
+    if "optimizer" in saved:
+        return Start(path, saved, {"resume": path}, int(saved["step"]))
+    return Start(path, saved, {"init_weights": path}, 0)
 
-    def rate_run(config: TrainConfig) -> float:
-        """Train plan.probe_steps steps into a scratch folder; the step rate after the first window."""
+
+def stage_recipe(plan: Plan, args: argparse.Namespace, deadline: float) -> tuple[Any, dict[str, Any] | None]:
+    """The TrainConfig a stage trains --model with (`recipe_of`), and with --adopt the probe
+    stage's best row (`adopted_row`), whose settings it then holds; None where none was adopted."""
+    recipe = recipe_of(args.model, plan, args)
+    if not (args.adopt and args.probe_result is not None and args.probe_result.is_file()):
+        return recipe, None
+    probe_rows_seen = json.loads(args.probe_result.read_text())["data"].get("rows", [])
+    adopted = adopted_row(probe_rows_seen, args.model, deadline - time.monotonic())
+    if adopted is None:
+        return recipe, None
+    print(f"adopted the probe's row {adopted['row']}: {adopted['setting']}", flush=True)
+    return replace(recipe, **adopted["overrides"]), adopted
+
+
+def step_rate(config: Any, start: Start, plan: Plan) -> tuple[Any, float]:
+    """Train plan.probe_steps steps of `config` from `start` into a scratch folder: the steps per
+    second after the first window. A lent GPU is minutes long: where that fails, the same again in
+    the plainest setting (fp32, plain AdamW), not never. Returns the config that ran and its rate."""
+    from crestereo_pp.training.records import read_csv
+    from crestereo_pp.training.trainer import train
+
+    def rate(trial_config: Any) -> float:
         folder = Path(tempfile.mkdtemp(prefix="probe-"))
-        log_every = max(1, plan.probe_steps // 4)
         trial = replace(
-            config,
+            trial_config,
             out_dir=str(folder),
-            max_steps=first_step + plan.probe_steps,
-            schedule_steps=first_step + plan.probe_steps + 1,
+            max_steps=start.first_step + plan.probe_steps,
+            schedule_steps=start.first_step + plan.probe_steps + 1,
             decay_steps=1,
             max_minutes=1.5,
-            log_every=log_every,
+            log_every=max(1, plan.probe_steps // 4),
             checkpoint_every=10**9,
             val_data=None,
         )
-        train(trial, **source, progress=False)
-        return median_rate(read_csv(folder / "log.csv")) / config.batch_size
+        train(trial, **start.source, progress=False)
+        return median_rate(read_csv(folder / "log.csv")) / float(trial_config.batch_size)
 
-    start = time.monotonic()
     try:
-        steps_per_second = rate_run(recipe)
-    except Exception as error:  # a lent GPU is minutes long: retry once in the plainest setting, not never
+        return config, rate(config)
+    except Exception as error:
         print(f"probe failed ({type(error).__name__}: {error}); again in fp32 with plain AdamW", flush=True)
-        recipe = replace(recipe, precision="fp32", fused_adamw="off")
-        steps_per_second = rate_run(recipe)
-    probe_seconds = time.monotonic() - start
-    seconds = deadline - time.monotonic() - plan.train_tail_seconds
-    size = size_run(steps_per_second, seconds, plan, recipe.ema_decay)
-    last_step = first_step + size.steps
-    config = replace(
-        recipe,
-        out_dir=str(args.out),
+        plainest = replace(config, precision="fp32", fused_adamw="off")
+        return plainest, rate(plainest)
+
+
+def sized_config(config: Any, out_dir: Path, start: Start, size: RunSize, seconds: float, val_data: Any) -> Any:
+    """`config` as one run of `size` from `start` into `out_dir`, within `seconds`, validating on
+    `val_data` (None: no validation) at each checkpoint."""
+    last_step = start.first_step + size.steps
+    return replace(
+        config,
+        out_dir=str(out_dir),
         max_steps=last_step,
         schedule_steps=last_step,
         decay_steps=size.decay_steps,
         checkpoint_every=size.checkpoint_every,
         ema_decay=size.ema_decay,
         max_minutes=max(0.05, seconds / 60.0),
-        val_data=str(args.data) if args.data is not None else None,
+        val_data=val_data,
     )
+
+
+def returned_weights(path: Path) -> bool:
+    """Keep the checkpoint at `path` within the output limit: a file of MAX_FILE_BYTES or more
+    (full's training state) is rewritten as float16 weights only. Whether it was."""
+    from crestereo_pp.model.weights import read_weights, weights_of, write_weights
+
+    if not path.is_file() or path.stat().st_size < MAX_FILE_BYTES:
+        return False
+    write_weights(weights_of(read_weights(path), half=True), path)
+    return True
+
+
+def train_stage(plan: Plan, deadline: float, args: argparse.Namespace, save: Callable[..., None]) -> StageResult:
+    """Train --model from `weights_for` (resumed where the file holds an optimiser state) into --out:
+    a probe run's step rate sizes the run (`size_run`); with --adopt, the probe stage's best row
+    (`adopted_row`) sets the step. Its numbers: steps, pairs/s, losses, peak memory, dev curve."""
+    import torch
+
+    from crestereo_pp.model.weights import network_from_weights, read_weights
+    from crestereo_pp.training.records import read_csv
+    from crestereo_pp.training.trainer import STABLE_NAME, train, validate
+
+    try:
+        start = starting_point(args)
+    except ValueError as error:
+        return StageResult("failed", str(error))
+    recipe, adopted = stage_recipe(plan, args, deadline)
+    began = time.monotonic()
+    recipe, steps_per_second = step_rate(recipe, start, plan)
+    probe_seconds = time.monotonic() - began
+    seconds = deadline - time.monotonic() - plan.train_tail_seconds
+    size = size_run(steps_per_second, seconds, plan, recipe.ema_decay)
+    config = sized_config(recipe, args.out, start, size, seconds, str(args.data) if args.data is not None else None)
     print(
-        f"probe: {steps_per_second:.2f} steps/s in {probe_seconds:.0f} s; training {args.model} from {shipped} "
-        f"(step {first_step}) for {size.steps} steps, at most {seconds / 60.0:.2f} min: {json.dumps(config.to_dict())}",
+        f"probe: {steps_per_second:.2f} steps/s in {probe_seconds:.0f} s; training {args.model} from {start.path} "
+        f"(step {start.first_step}) for {size.steps} steps, at most {seconds / 60.0:.2f} min: "
+        f"{json.dumps(config.to_dict())}",
         flush=True,
     )
     start_dev = None
     if config.val_data is not None:  # the starting point, as the run's validations measure it
-        start_dev = validate(network_from_weights(saved, args.model).to(plan.device), config, torch.device(plan.device))
-    result = train(config, **source, progress=False)
+        network = network_from_weights(start.saved, args.model).to(plan.device)
+        start_dev = validate(network, config, torch.device(plan.device))
+    result = train(config, **start.source, progress=False)
     rows = read_csv(args.out / "log.csv")
-    compacted = []
-    for path in (result.checkpoint, args.out / STABLE_NAME):
-        if path.is_file() and path.stat().st_size >= MAX_FILE_BYTES:  # full's training state does not fit
-            write_weights(weights_of(read_weights(path), half=True), path)
-            compacted.append(path.name)
+    compacted = [path.name for path in (result.checkpoint, args.out / STABLE_NAME) if returned_weights(path)]
     data: dict[str, Any] = dict(
         model=args.model,
-        weights=str(shipped),
+        weights=str(start.path),
         adopted=None if adopted is None else adopted["row"],
-        resumed=resumable,
-        steps=result.step - first_step,
+        resumed=start.resumed,
+        steps=result.step - start.first_step,
         planned_steps=size.steps,
         probe_steps_per_s=round(steps_per_second, 2),
         pairs_per_s_median=round(median_rate(rows), 1),
