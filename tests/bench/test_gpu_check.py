@@ -36,17 +36,19 @@ def test_without_fastapi_the_service_stage_is_skipped_saying_so(bench_path, monk
     assert (result.status, result.detail) == ("skipped", "skipped: fastapi not installed (carry wheels: --wheels)")
 
 
-def test_the_cpu_smoke_run_passes_every_stage_and_keeps_to_the_output_limits(tmp_path):
-    out = tmp_path / "out"
-    completed = subprocess.run(
-        [sys.executable, "bench/gpu_check", "--cpu-smoke", "--adopt", "--out", str(out)],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        timeout=420,
-    )
+def smoke_run(out: Path, *options: str) -> str:
+    """`bench/gpu_check --cpu-smoke OPTIONS --out OUT` run as a GPU machine runs it: its summary.md,
+    once it has exited 0."""
+    command = [sys.executable, "bench/gpu_check", "--cpu-smoke", *options, "--out", str(out)]
+    completed = subprocess.run(command, cwd=REPO, capture_output=True, text=True, timeout=420)
     summary = (out / "summary.md").read_text()
     assert completed.returncode == 0, summary + completed.stderr[-3000:]
+    return summary
+
+
+def test_the_cpu_smoke_run_passes_every_stage_and_keeps_to_the_output_limits(tmp_path):
+    out = tmp_path / "out"
+    summary = smoke_run(out, "--adopt")
     assert summary.startswith("# GPU check: CPU smoke run (no GPU: no number here is a GPU number)")
     for stage in STAGES:
         assert f"| {stage} | passed |" in summary, summary
@@ -100,26 +102,7 @@ def test_the_arms_stage_trains_a_candidate_and_the_recipe_for_equal_steps_and_sc
     (data / "middlebury2014q_as_tsukuba").symlink_to(STEREO_DEV / SMALL_STEREO_DEV_PAIR)
     out = tmp_path / "out"
     arm = ["--arm", "thin_probability=1", "--arm", "flat_probability=0.5"]
-    completed = subprocess.run(
-        [
-            sys.executable,
-            "bench/gpu_check",
-            "--cpu-smoke",
-            "--stages",
-            "arms",
-            *arm,
-            "--data",
-            str(data),
-            "--out",
-            str(out),
-        ],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        timeout=420,
-    )
-    summary = (out / "summary.md").read_text()
-    assert completed.returncode == 0, summary + completed.stderr[-3000:]
+    summary = smoke_run(out, "--stages", "arms", *arm, "--data", str(data))
     assert "| arms | passed |" in summary, summary
     assert '## Arms: {"thin_probability": 1, "flat_probability": 0.5} against the recipe' in summary
     rows = re.findall(r"^\| (control|candidate) \| (\{.*?\}) \| (\d+) \| [0-9.]+ \| (.*) \|$", summary, re.MULTILINE)
