@@ -185,7 +185,7 @@ class StereoClient:
         """Disparity and uncertainty of a rectified pair, or of a raw pair with its `calibration`
         (raises `ServiceError` on an error answer). `two_pass`: True, False or "auto" (a quick pass
         decides: two passes where it finds large disparities, one elsewhere, the pair enlarged up
-        to 1.5x as far as their range allows)."""
+        to 1.5x as far as their range allows, or shrunk where two passes could not hold it)."""
         request = _request(
             left,
             right,

@@ -27,7 +27,8 @@ from crestereo_pp.inference.two_pass import ENLARGEMENTS, LARGE_DISPARITY_PX, Au
 from crestereo_pp.stereo_data.readers import StereoSample, open_dataset
 
 WAYS: tuple[AutoWay, ...] = tuple((two, factor) for two in (False, True) for factor in (1.0, *ENLARGEMENTS))
-"""Every way auto may compute a pair: one pass or two, at its size or enlarged."""
+"""Every way auto may compute a pair of the sizes it enlarges: one pass or two, at its size or
+enlarged (a pair it shrinks is also measured the way auto shrinks it, ``measure``)."""
 
 
 @dataclass(frozen=True)
@@ -39,30 +40,31 @@ class PairRule:
     size: tuple[int, int]
     ways: dict[AutoWay, DisparityMetrics]
 
-    def way(self, threshold_px: float = LARGE_DISPARITY_PX, enlarge: bool = True) -> AutoWay:
+    def way(self, threshold_px: float = LARGE_DISPARITY_PX, resize: bool = True) -> AutoWay:
         """What auto computes with two passes above `threshold_px` (``auto_way``)."""
-        return auto_way(self.evidence_px, *self.size, enlarge=enlarge, large_px=threshold_px)
+        return auto_way(self.evidence_px, *self.size, resize=resize, large_px=threshold_px)
 
-    def bad2(self, threshold_px: float, enlarge: bool = True) -> float:
-        return self.ways[self.way(threshold_px, enlarge)].bad2
+    def bad2(self, threshold_px: float, resize: bool = True) -> float:
+        return self.ways[self.way(threshold_px, resize)].bad2
 
 
 def measure(samples: Sequence[StereoSample], predictor: StereoPredictor) -> list[PairRule]:
-    """Each pair computed each of WAYS (``two_pass.way_maps``, on the predictor's backend), with
-    the evidence the auto rule reads."""
+    """Each pair computed each of WAYS (``two_pass.way_maps``, on the predictor's backend), and
+    shrunk in two passes where auto would shrink it at every threshold below its evidence
+    (``auto_way``), with the evidence the auto rule reads."""
     forward = predictor.padded_forward()
     rules = []
     for sample in samples:
         known = sample.valid & np.isfinite(sample.disparity)
         left, right = (as_image_batch(image, predictor.device) for image in (sample.left, sample.right))
-        evidence = predictor.large_disparity_percentile(left, right)
+        evidence = float(predictor.large_disparity_percentile(left, right)[0])
+        height, width = sample.left.shape[:2]
         ways = {}
-        for way in WAYS:
+        for way in dict.fromkeys((*WAYS, auto_way(evidence, height, width, large_px=0.0))):
             with torch.inference_mode():
                 disparity, _ = way_maps(left, right, predictor.config.iters, way, forward)
             ways[way] = compute_metrics(disparity[0, 0].cpu().numpy(), sample.disparity, known)
-        height, width = sample.left.shape[:2]
-        rules.append(PairRule(sample.name, float(evidence[0]), (height, width), ways))
+        rules.append(PairRule(sample.name, evidence, (height, width), ways))
     return rules
 
 
@@ -101,7 +103,7 @@ def report(rules: Sequence[PairRule], threshold_px: float = LARGE_DISPARITY_PX) 
         + ", ".join(f"{way_name(way)} {mean([r.ways[way].bad2 for r in rules]):.2f}" for way in ways),
         f"auto at {threshold_px:g} px: bad-2 {mean([m.bad2 for m in chosen]):.2f}, bad-1 "
         f"{mean([m.bad1 for m in chosen]):.2f}, EPE {mean([m.epe for m in chosen]):.3f}; "
-        f"without enlarging: bad-2 {mean([r.bad2(threshold_px, enlarge=False) for r in rules]):.2f}",
+        f"without resizing: bad-2 {mean([r.bad2(threshold_px, resize=False) for r in rules]):.2f}",
         "mean bad-2 of auto by threshold (two passes where p99 > threshold):",
     ]
     for threshold in thresholds_between(rules):

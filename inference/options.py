@@ -25,7 +25,7 @@ TwoPass = bool | Literal["auto"]
 """Whether a cold pair is computed in two passes (a half-resolution pass, then refinement at full
 resolution from it): True, False, or "auto": a quick quarter-resolution pass decides, two passes
 where it finds large disparities, one elsewhere, either way on the pair enlarged up to 1.5x as far
-as their range allows (``inference.two_pass.auto_way``)."""
+as their range allows, or shrunk where two passes could not hold it (``inference.two_pass.auto_way``)."""
 
 TWO_PASS_CHOICES = ("auto", "on", "off")
 """``TwoPass`` as the command line and other text spell it (``parse_two_pass``)."""

@@ -192,7 +192,8 @@ class StereoPredictor:
             (better for large disparities, coarser on fine detail): True, False, or "auto" (a quick
             quarter-resolution pass decides: two passes where it finds disparities above
             LARGE_DISPARITY_PX, one elsewhere, either way on the pair enlarged up to 1.5x as
-            far as their range allows, at scale 1; see ``two_pass.auto_way``). Ignored when
+            far as their range allows, or shrunk where two passes could not hold it, at scale 1;
+            see ``two_pass.auto_way``). Ignored when
             init_disparity is given.
         scale: in (0, 1]: the network sees the pair resized by this factor (fewer pixels, so
             faster, and disparities shrunk by it); the maps come back at the input's size, the
@@ -278,7 +279,7 @@ class StereoPredictor:
             if size != (height, width):
                 left, right = resize_images(left, size), resize_images(right, size)
             if init_disparities is None:
-                disparity, uncertainty = cold_maps(left, right, iters, two_pass, forward, enlarge=options.scale == 1.0)
+                disparity, uncertainty = cold_maps(left, right, iters, two_pass, forward, resize=options.scale == 1.0)
             else:
                 init = batch.stack(
                     [

@@ -6,6 +6,7 @@ disparities still holds their range."""
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 
 import torch
@@ -96,39 +97,70 @@ def largest_enlargement(height: int, width: int) -> float:
     return max((factor for factor in ENLARGEMENTS if height * width * factor**2 <= MAX_ENLARGED_PIXELS), default=1.0)
 
 
+SHRINK_ABOVE_PX = 120.0
+"""``two_pass="auto"`` shrinks a pair it computes in two passes where the half-resolution pass
+would see more than this (px: half the quick pass's 99th percentile). A pass misses disparities
+beyond about 110-120 px (MODEL_CARD.md, "Enlarged as far as the disparities allow"); a pair
+computed smaller is found (``shrink_factor``). On dev pairs enlarged 3x (bicubic; 300-380 px)
+this took EPE from 7.5-47 px to 3.1-10 px; at 2x (200-250 px), below or near this, shrinking
+helped one pair of three (MODEL_CARD.md, "Shrunk where two passes cannot hold the range")."""
+
+SHRINK_STEP = 0.125
+"""Shrink factors are multiples of this, so that a camera's pairs meet a few shapes (each shape
+is a compile for OpenVINO and CUDA graphs)."""
+
+MIN_SHRUNK_SIDE = 96
+"""A shrunk pair keeps at least this many px per side (its half-resolution pass 48)."""
+
+
+def shrink_factor(seen_px: float, height: int, width: int) -> float:
+    """The factor ``two_pass="auto"`` shrinks a ``height`` x ``width`` pair by when its
+    half-resolution pass would see ``seen_px`` (above SHRINK_ABOVE_PX): the one that brings that
+    to about LARGE_DISPARITY_PX, LARGE_DISPARITY_PX / seen_px rounded to a multiple of SHRINK_STEP,
+    no smaller than keeps MIN_SHRUNK_SIDE px a side."""
+    factor = max(1, round(LARGE_DISPARITY_PX / seen_px / SHRINK_STEP)) * SHRINK_STEP
+    keeps_side = math.ceil(MIN_SHRUNK_SIDE / min(height, width) / SHRINK_STEP) * SHRINK_STEP
+    return min(1.0, max(factor, keeps_side))
+
+
 def auto_way(
-    evidence_px: float, height: int, width: int, enlarge: bool = True, large_px: float | None = None
+    evidence_px: float, height: int, width: int, resize: bool = True, large_px: float | None = None
 ) -> AutoWay:
     """How ``two_pass="auto"`` computes a ``height`` x ``width`` pair whose quick pass puts the
     99th percentile of its disparity at ``evidence_px``: two passes above ``large_px`` (default
     LARGE_DISPARITY_PX; another: the rule's measurement, ``evaluation.two_pass_rule``), else one.
-    Where ``enlarge`` (not for a pair the caller shrank: ``scale`` < 1), the pair is enlarged by the
+    Where ``resize`` (not for a pair the caller shrank: ``scale`` < 1), the pair is enlarged by the
     largest of ENLARGEMENTS within ``largest_enlargement`` that keeps the range the pass finding
     the disparities sees within what one pass holds: in one pass the evidence times the factor
     within ENLARGED_DISPARITY_PX; in two, the half-resolution pass's (half of it) within
-    LARGE_DISPARITY_PX."""
+    LARGE_DISPARITY_PX. A pair in two passes whose half-resolution pass would see more than
+    SHRINK_ABOVE_PX is shrunk instead (``shrink_factor``)."""
     two_passes = evidence_px > (LARGE_DISPARITY_PX if large_px is None else large_px)
     seen_px, limit_px = (evidence_px / 2, LARGE_DISPARITY_PX) if two_passes else (evidence_px, ENLARGED_DISPARITY_PX)
-    bound = largest_enlargement(height, width) if enlarge else 1.0
+    if not resize:
+        return two_passes, 1.0
+    if two_passes and seen_px > SHRINK_ABOVE_PX:
+        return two_passes, shrink_factor(seen_px, height, width)
+    bound = largest_enlargement(height, width)
     fitting = [factor for factor in ENLARGEMENTS if factor <= bound and seen_px * factor <= limit_px]
     return two_passes, max(fitting, default=1.0)
 
 
 def cold_maps(
-    left: Tensor, right: Tensor, iters: StageCounts, two_pass: TwoPass, forward: PaddedForward, *, enlarge: bool
+    left: Tensor, right: Tensor, iters: StageCounts, two_pass: TwoPass, forward: PaddedForward, *, resize: bool
 ) -> Maps:
     """The maps of (B, 3, H, W) pairs without a warm start, each (B, 1, H, W), computed by
     `forward` with `iters`: one pass, two passes (the second refining at 1/4 only from a
     half-resolution one), or, with "auto", each pair the way ``auto_way`` gives for its
     ``large_disparity_percentile`` (one pass for all where ``two_pass_possible`` says the pairs are
-    too small); `enlarge`: whether "auto" may enlarge them. The one place "auto" is decided."""
+    too small); `resize`: whether "auto" may enlarge or shrink them. The one place "auto" is decided."""
     if two_pass != "auto":
         return way_maps(left, right, iters, (two_pass, 1.0), forward)
     height, width = left.shape[-2:]
     if not two_pass_possible(height, width):
         return forward(left, right, iters, None)
     evidence = large_disparity_percentile(left, right, iters, forward)
-    ways = [auto_way(value, height, width, enlarge=enlarge) for value in evidence.tolist()]
+    ways = [auto_way(value, height, width, resize=resize) for value in evidence.tolist()]
     if len(set(ways)) == 1:
         return way_maps(left, right, iters, ways[0], forward)
     disparity, uncertainty = torch.empty_like(left[:, :1]), torch.empty_like(left[:, :1])
@@ -139,7 +171,7 @@ def cold_maps(
 
 
 def way_maps(left: Tensor, right: Tensor, iters: StageCounts, way: AutoWay, forward: PaddedForward) -> Maps:
-    """The maps of (B, 3, H, W) pairs computed one ``AutoWay``: enlarged by its factor (the maps
+    """The maps of (B, 3, H, W) pairs computed one ``AutoWay``: resized by its factor (the maps
     brought back to H x W), in one pass or in two."""
     two_passes, factor = way
     height, width = left.shape[-2:]

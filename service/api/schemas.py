@@ -65,7 +65,8 @@ class DisparityOptions(BaseModel):
         "quarter-resolution pass decides: two passes where it finds disparities above about 90 px, one "
         "elsewhere, either way on the pair enlarged 1.5x or 1.25x as far as the pass that finds the "
         "disparities still holds their range (finer matching, up to 2.25x the time; never past 1.2 M "
-        "pixels, nor at `scale` < 1).",
+        "pixels, nor at `scale` < 1), or shrunk where they are too large even for two passes (above "
+        "about 240 px).",
     )
     iters: str | None = Field(
         None,

@@ -29,10 +29,10 @@ def test_auto_takes_the_way_of_its_evidence_and_the_sweep_tries_every_split():
     # one pass: enlarged while evidence x factor <= 100; two: while half of it x factor <= 90
     assert [r.way(102.5) for r in (near, middle, far)] == [(False, 1.5), (False, 1.25), (True, 1.25)]
     assert (near.bad2(102.5), middle.bad2(102.5), far.bad2(102.5)) == (8.0, 19.0, 18.0)
-    assert (near.bad2(102.5, enlarge=False), far.bad2(102.5, enlarge=False)) == (10.0, 20.0)
+    assert (near.bad2(102.5, resize=False), far.bad2(102.5, resize=False)) == (10.0, 20.0)
     text = report(rules, threshold_px=102.5)
     assert "each way everywhere: one 1x 20.00, one 1.25x 26.00, one 1.5x 27.67, two 1x 18.00" in text
-    assert "auto at 102.5 px: bad-2 15.00" in text and "without enlarging: bad-2 16.67" in text
+    assert "auto at 102.5 px: bad-2 15.00" in text and "without resizing: bad-2 16.67" in text
     assert "131.0 px:  19.00 (0 pairs in two)" in text
 
 

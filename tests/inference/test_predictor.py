@@ -125,6 +125,25 @@ def test_auto_enlarges_a_pair_with_small_disparities_and_brings_its_maps_back_to
     assert not np.allclose(auto.disparity[1].numpy(), own_size.disparity[0].numpy(), atol=1e-2)
 
 
+def test_auto_shrinks_a_pair_whose_disparities_two_passes_cannot_hold_and_brings_its_maps_back(lite, monkeypatch):
+    """Where even the half-resolution pass would see more than SHRINK_ABOVE_PX, "auto" computes
+    the pair smaller in two passes, as ``scale`` would (its disparity in the pair's own pixels);
+    the other pair of the batch is computed as before."""
+    left, right = near_and_far_scenes()
+    evidence = lite.large_disparity_percentile(left, right)
+    assert evidence[0] > 3 * evidence[1]
+    monkeypatch.setattr(two_pass_module, "LARGE_DISPARITY_PX", float(evidence[0]) / 3)  # the near in two passes
+    monkeypatch.setattr(two_pass_module, "SHRINK_ABOVE_PX", float(evidence[0]) / 2 - 1)  # and shrunk by 2/3
+    ways = [two_pass_module.auto_way(float(value), 192, 224) for value in evidence]
+    assert ways[0][0] and ways[0][1] < 1 and not ways[1][0]
+    auto = lite.predict(left, right, two_pass="auto")
+    assert auto.disparity.shape == auto.uncertainty.shape == (2, 192, 224)
+    shrunk = lite.predict(left[:1], right[:1], two_pass=True, scale=ways[0][1])
+    np.testing.assert_allclose(auto.disparity[0].numpy(), shrunk.disparity[0].numpy(), atol=1e-3)
+    at_its_size = lite.predict(left[:1], right[:1], two_pass=True)
+    assert not np.allclose(auto.disparity[0].numpy(), at_its_size.disparity[0].numpy(), atol=1e-2)
+
+
 def test_auto_never_enlarges_a_pair_shrunk_by_scale(lite):
     left, right = near_and_far_scenes(512, 576)  # the far scene at scale 0.5: 256 x 288
     shrunk = [resize_images(image[1:], (256, 288)) for image in (left, right)]
@@ -146,8 +165,21 @@ def test_auto_enlarges_as_far_as_the_pass_that_finds_the_disparities_holds_their
     assert way(150.0, 375, 1242) == (True, 1.0)  # 1.25x: 94 px at half resolution
     assert way(20.0, 720, 1280) == (False, 1.0)  # 1.25x would be 1.44 M pixels, over MAX_ENLARGED_PIXELS
     assert way(20.0, 720, 960) == (False, 1.25)  # 1.08 M pixels; 1.5x would be 1.56 M
-    assert way(20.0, 375, 1242, enlarge=False) == (False, 1.0)
-    assert way(95.0, 375, 1242, enlarge=False) == (True, 1.0)
+    assert way(20.0, 375, 1242, resize=False) == (False, 1.0)
+    assert way(95.0, 375, 1242, resize=False) == (True, 1.0)
+
+
+def test_auto_shrinks_a_pair_whose_half_resolution_pass_would_see_more_than_a_pass_holds():
+    """Two passes whose half-resolution pass would see more than SHRINK_ABOVE_PX (120 px): the
+    pair shrunk so that it sees about LARGE_DISPARITY_PX (90), by a multiple of 1/8."""
+    way = two_pass_module.auto_way
+    assert way(240.0, 375, 1242) == (True, 1.0)  # 120 px: within what a pass holds
+    assert way(250.0, 375, 1242) == (True, 0.75)  # 125 px: 90 / 125 = 0.72
+    assert way(300.0, 375, 1242) == (True, 0.625)  # 150 px: 0.6
+    assert way(380.0, 1080, 1920) == (True, 0.5)  # 190 px: 0.47
+    assert way(1000.0, 375, 1242) == (True, 0.375)  # 0.18, but a side keeps 96 px (375 x 0.375 = 141)
+    assert way(1000.0, 2000, 3000) == (True, 0.125)  # 0.18, rounded to the nearest 1/8
+    assert way(300.0, 375, 1242, resize=False) == (True, 1.0)  # the caller's scale is kept
 
 
 @pytest.mark.skipif(not STEREO_DEV.is_dir(), reason=f"no real stereo pairs at {STEREO_DEV}")
