@@ -97,27 +97,30 @@ def largest_enlargement(height: int, width: int) -> float:
     return max((factor for factor in ENLARGEMENTS if height * width * factor**2 <= MAX_ENLARGED_PIXELS), default=1.0)
 
 
-SHRINK_ABOVE_PX = 120.0
+SHRINK_ABOVE_PX = 140.0
 """``two_pass="auto"`` shrinks a pair it computes in two passes where the half-resolution pass
 would see more than this (px: half the quick pass's 99th percentile). A pass misses disparities
-beyond about 110-120 px (MODEL_CARD.md, "Enlarged as far as the disparities allow"); a pair
+beyond about 110-120 px on real pairs, about 130 on procedural ones (LARGE_DISPARITY_PX); a pair
 computed smaller is found (``shrink_factor``). On dev pairs enlarged 3x (bicubic; 300-380 px)
-this took EPE from 7.5-47 px to 3.1-10 px; at 2x (200-250 px), below or near this, shrinking
-helped one pair of three (MODEL_CARD.md, "Shrunk where two passes cannot hold the range")."""
+this took EPE from 7.5-47 px to 2.6-11 px; just past 120 px, procedural scenes with disparities
+to half their width lost (MODEL_CARD.md, "Shrunk where two passes cannot hold the range")."""
 
 SHRINK_STEP = 0.125
 """Shrink factors are multiples of this, so that a camera's pairs meet a few shapes (each shape
 is a compile for OpenVINO and CUDA graphs)."""
 
-MIN_SHRUNK_SIDE = 96
-"""A shrunk pair keeps at least this many px per side (its half-resolution pass 48)."""
+MIN_SHRUNK_SIDE = 384
+"""A shrunk pair keeps at least this many px per side (its half-resolution pass 192): where the
+disparities pass half the image's width, shrinking does not help (a procedural scene of 256x512
+with disparities to 256 px went from 39 to 89 % bad-2 at 0.625x), and such a pair is computed at
+its size."""
 
 
 def shrink_factor(seen_px: float, height: int, width: int) -> float:
     """The factor ``two_pass="auto"`` shrinks a ``height`` x ``width`` pair by when its
     half-resolution pass would see ``seen_px`` (above SHRINK_ABOVE_PX): the one that brings that
     to about LARGE_DISPARITY_PX, LARGE_DISPARITY_PX / seen_px rounded to a multiple of SHRINK_STEP,
-    no smaller than keeps MIN_SHRUNK_SIDE px a side."""
+    no smaller than keeps MIN_SHRUNK_SIDE px a side (1: not shrunk, where the pair has fewer)."""
     factor = max(1, round(LARGE_DISPARITY_PX / seen_px / SHRINK_STEP)) * SHRINK_STEP
     keeps_side = math.ceil(MIN_SHRUNK_SIDE / min(height, width) / SHRINK_STEP) * SHRINK_STEP
     return min(1.0, max(factor, keeps_side))

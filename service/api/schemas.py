@@ -66,7 +66,7 @@ class DisparityOptions(BaseModel):
         "elsewhere, either way on the pair enlarged 1.5x or 1.25x as far as the pass that finds the "
         "disparities still holds their range (finer matching, up to 2.25x the time; never past 1.2 M "
         "pixels, nor at `scale` < 1), or shrunk where they are too large even for two passes (above "
-        "about 240 px).",
+        "about 280 px).",
     )
     iters: str | None = Field(
         None,

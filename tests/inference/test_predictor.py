@@ -134,6 +134,7 @@ def test_auto_shrinks_a_pair_whose_disparities_two_passes_cannot_hold_and_brings
     assert evidence[0] > 3 * evidence[1]
     monkeypatch.setattr(two_pass_module, "LARGE_DISPARITY_PX", float(evidence[0]) / 3)  # the near in two passes
     monkeypatch.setattr(two_pass_module, "SHRINK_ABOVE_PX", float(evidence[0]) / 2 - 1)  # and shrunk by 2/3
+    monkeypatch.setattr(two_pass_module, "MIN_SHRUNK_SIDE", 96)  # of its 192 px
     ways = [two_pass_module.auto_way(float(value), 192, 224) for value in evidence]
     assert ways[0][0] and ways[0][1] < 1 and not ways[1][0]
     auto = lite.predict(left, right, two_pass="auto")
@@ -170,16 +171,16 @@ def test_auto_enlarges_as_far_as_the_pass_that_finds_the_disparities_holds_their
 
 
 def test_auto_shrinks_a_pair_whose_half_resolution_pass_would_see_more_than_a_pass_holds():
-    """Two passes whose half-resolution pass would see more than SHRINK_ABOVE_PX (120 px): the
+    """Two passes whose half-resolution pass would see more than SHRINK_ABOVE_PX (140 px): the
     pair shrunk so that it sees about LARGE_DISPARITY_PX (90), by a multiple of 1/8."""
     way = two_pass_module.auto_way
-    assert way(240.0, 375, 1242) == (True, 1.0)  # 120 px: within what a pass holds
-    assert way(250.0, 375, 1242) == (True, 0.75)  # 125 px: 90 / 125 = 0.72
-    assert way(300.0, 375, 1242) == (True, 0.625)  # 150 px: 0.6
+    assert way(280.0, 1080, 1920) == (True, 1.0)  # 140 px: not beyond what a pass may hold
+    assert way(290.0, 1080, 1920) == (True, 0.625)  # 145 px: 90 / 145 = 0.62
     assert way(380.0, 1080, 1920) == (True, 0.5)  # 190 px: 0.47
-    assert way(1000.0, 375, 1242) == (True, 0.375)  # 0.18, but a side keeps 96 px (375 x 0.375 = 141)
-    assert way(1000.0, 2000, 3000) == (True, 0.125)  # 0.18, rounded to the nearest 1/8
-    assert way(300.0, 375, 1242, resize=False) == (True, 1.0)  # the caller's scale is kept
+    assert way(1000.0, 1080, 1920) == (True, 0.375)  # 0.18, but a side keeps 384 px (1080 x 0.375 = 405)
+    assert way(1000.0, 3000, 4000) == (True, 0.25)  # 0.18, rounded to the nearest 1/8 above 384 / 3000
+    assert way(300.0, 375, 1242) == (True, 1.0)  # a side under 384 px: never shrunk
+    assert way(300.0, 1080, 1920, resize=False) == (True, 1.0)  # the caller's scale is kept
 
 
 @pytest.mark.skipif(not STEREO_DEV.is_dir(), reason=f"no real stereo pairs at {STEREO_DEV}")
