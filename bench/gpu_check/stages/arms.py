@@ -34,7 +34,7 @@ def arms_stage(plan: Plan, deadline: float, args: argparse.Namespace, save: Call
         start = starting_point(args)
     except ValueError as error:
         return StageResult("failed", str(error))
-    recipe, adopted = stage_recipe(plan, args, deadline)
+    recipe, adopted = stage_recipe(plan, args, deadline, runs=len(ARMS))
     configs, rates = {}, {}
     for name, config in zip(ARMS, (recipe, replace(recipe, **dict(args.arm))), strict=True):
         configs[name], rates[name] = step_rate(config, start, plan)

@@ -89,14 +89,17 @@ def starting_point(args: argparse.Namespace) -> Start:
     return Start(path, saved, {"init_weights": path}, 0)
 
 
-def stage_recipe(plan: Plan, args: argparse.Namespace, deadline: float) -> tuple[Any, dict[str, Any] | None]:
+def stage_recipe(
+    plan: Plan, args: argparse.Namespace, deadline: float, runs: int = 1
+) -> tuple[Any, dict[str, Any] | None]:
     """The TrainConfig a stage trains --model with (`recipe_of`), and with --adopt the probe
-    stage's best row (`adopted_row`), whose settings it then holds; None where none was adopted."""
+    stage's best row for `runs` runs sharing the time left (`adopted_row`: each pays its first
+    step), whose settings it then holds; None where none was adopted."""
     recipe = recipe_of(args.model, plan, args)
     if not (args.adopt and args.probe_result is not None and args.probe_result.is_file()):
         return recipe, None
     probe_rows_seen = json.loads(args.probe_result.read_text())["data"].get("rows", [])
-    adopted = adopted_row(probe_rows_seen, args.model, deadline - time.monotonic())
+    adopted = adopted_row(probe_rows_seen, args.model, (deadline - time.monotonic()) / runs)
     if adopted is None:
         return recipe, None
     print(f"adopted the probe's row {adopted['row']}: {adopted['setting']}", flush=True)
