@@ -85,6 +85,7 @@ def test_the_cpu_smoke_run_passes_every_stage_and_keeps_to_the_output_limits(tmp
 
     adopted = re.search(r'"adopted": "([\w-]+)"', summary)
     assert adopted is not None and f"| lite | {adopted.group(1)} |" in summary  # the training took a probe row
+    assert re.search(r"^adopted row: [0-9.]+ steps/s", (out / "gpu_check.log").read_text(), re.MULTILINE)  # its rate
 
     checkpoint = read_weights(out / "checkpoint.pt")
     shipped = read_weights(REPO / "model/weights/lite.pt")

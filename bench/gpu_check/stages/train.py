@@ -168,7 +168,8 @@ def returned_weights(path: Path) -> bool:
 def train_stage(plan: Plan, deadline: float, args: argparse.Namespace, save: Callable[..., None]) -> StageResult:
     """Train --model from `weights_for` (resumed where the file holds an optimiser state) into --out:
     a probe run's step rate sizes the run (`size_run`); with --adopt, the probe stage's best row
-    (`adopted_row`) sets the step. Its numbers: steps, pairs/s, losses, peak memory, dev curve."""
+    (`adopted_row`) sets the step, and its measured pairs/s and first step size the run without a
+    probe run. Its numbers: steps, pairs/s, losses, peak memory, dev curve."""
     import torch
 
     from crestereo_pp.model.weights import network_from_weights, read_weights
@@ -181,13 +182,19 @@ def train_stage(plan: Plan, deadline: float, args: argparse.Namespace, save: Cal
         return StageResult("failed", str(error))
     recipe, adopted = stage_recipe(plan, args, deadline)
     began = time.monotonic()
-    recipe, steps_per_second = step_rate(recipe, start, plan)
+    if adopted is None:
+        recipe, steps_per_second = step_rate(recipe, start, plan)
+        first_step_s = 0.0  # paid in the rate's own run
+    else:  # the probe stage measured this setting on this GPU: no second probe run (nor compile)
+        steps_per_second = adopted["pairs_per_s"] / recipe.batch_size
+        first_step_s = adopted["first_step_s"]
     probe_seconds = time.monotonic() - began
     seconds = deadline - time.monotonic() - plan.train_tail_seconds
-    size = size_run(steps_per_second, seconds, plan, recipe.ema_decay)
+    size = size_run(steps_per_second, seconds - first_step_s, plan, recipe.ema_decay)
     config = sized_config(recipe, args.out, start, size, seconds, str(args.data) if args.data is not None else None)
     print(
-        f"probe: {steps_per_second:.2f} steps/s in {probe_seconds:.0f} s; training {args.model} from {start.path} "
+        f"{'probe' if adopted is None else 'adopted row'}: {steps_per_second:.2f} steps/s ({probe_seconds:.0f} s); "
+        f"training {args.model} from {start.path} "
         f"(step {start.first_step}) for {size.steps} steps, at most {seconds / 60.0:.2f} min: "
         f"{json.dumps(config.to_dict())}",
         flush=True,
