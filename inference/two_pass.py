@@ -2,7 +2,7 @@
 resolution from it; and the ``two_pass="auto"`` rule, which reads a quick quarter-resolution pass
 of each pair and computes it in two passes where its disparities are above LARGE_DISPARITY_PX, in
 one elsewhere, either way on the pair enlarged up to 1.5x as far as the pass that finds the
-disparities still holds their range."""
+disparities still holds their range, or shrunk where even two passes could not hold it."""
 
 from __future__ import annotations
 
