@@ -65,13 +65,14 @@ def arms_stage(plan: Plan, deadline: float, args: argparse.Namespace, save: Call
 
 
 def scratch(name: str) -> Path:
+    """A new scratch folder for arm `name`'s training run (only its checkpoint is returned)."""
     return Path(tempfile.mkdtemp(prefix=f"arm-{name}-"))
 
 
 def family_scenes(candidate: Any, plan: Plan) -> list[Any]:
     """plan.arm_scenes procedural scenes drawn as `candidate` (a TrainConfig) draws its crops, at
     plan.arm_scene_size with the disparities scaled to that width, from `--procedural`'s seeds."""
-    from crestereo_pp.cli.evaluate import PROCEDURAL_SEED
+    from crestereo_pp.cli.evaluate import PROCEDURAL_SEED  # what `crestereo-pp eval --procedural` draws
     from crestereo_pp.stereo_data.synthetic import SceneGenerator
 
     height, width = plan.arm_scene_size
