@@ -149,6 +149,16 @@ def arms_table(data: dict[str, Any]) -> list[str]:
             + " | ".join(cells)
             + " |"
         )
+    rows = {row["arm"]: row for row in data.get("rows", [])}
+    if {"control", "candidate"} <= set(rows):
+        control, candidate = rows["control"], rows["candidate"]
+        changes = [
+            f"{name} {candidate[f'{name}_bad2'] - control[f'{name}_bad2']:+.2f} points "
+            f"(EPE {candidate[f'{name}_epe'] - control[f'{name}_epe']:+.3f} px)"
+            for name in ARM_SCORES
+            if f"{name}_bad2" in control and f"{name}_bad2" in candidate
+        ]
+        lines += ["", "Candidate against control, bad-2: " + ", ".join(changes) + "."]
     return lines
 
 

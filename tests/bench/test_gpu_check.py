@@ -118,6 +118,11 @@ def test_the_arms_stage_trains_a_candidate_and_the_recipe_for_equal_steps_and_sc
             r"[0-9.]+ / [0-9.]+ / [0-9.]+ \(1\)",
             row[3],
         ), row[3]
+    assert re.search(
+        r"^Candidate against control, bad-2: dev [+-][0-9.]+ points \(EPE [+-][0-9.]+ px\), apart .*, family .*\.$",
+        summary,
+        re.MULTILINE,
+    ), summary
     for name in ("control", "candidate"):
         checkpoint = read_weights(out / f"arm-{name}.pt")
         assert checkpoint["step"] == read_weights(REPO / "model/weights/lite.pt")["step"] + 2
