@@ -23,6 +23,7 @@ and the next stage runs), within one time budget:
                  for the same steps from the same weights in half the time left, then scored with
                  the default inference on the dev pairs (the Middlebury 2014 ones also apart) and
                  on procedural scenes drawn as the candidate trains; each returned as arm-NAME.pt
+                 (to serve) and arm-NAME-stable.pt (to resume)
 
     python3 bench/gpu_check --out DIR [--minutes 9] [--stages S,...] [--data DIR] [--wheels DIR]
                             [--model lite|full] [--weights FILE] [--train-set KEY=VALUE ...]

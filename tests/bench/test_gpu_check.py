@@ -126,11 +126,11 @@ def test_the_arms_stage_trains_a_candidate_and_the_recipe_for_equal_steps_and_sc
     for name in ("control", "candidate"):
         checkpoint = read_weights(out / f"arm-{name}.pt")
         assert checkpoint["step"] == read_weights(REPO / "model/weights/lite.pt")["step"] + 2
+        assert read_weights(out / f"arm-{name}-stable.pt")["step"] < checkpoint["step"]  # where the decay began
     assert {path.name for path in out.iterdir()} == {
         "gpu_check.log",
         "summary.md",
-        "arm-control.pt",
-        "arm-candidate.pt",
+        *(f"arm-{name}{part}.pt" for name in ("control", "candidate") for part in ("", "-stable")),
     }
 
 

@@ -90,21 +90,26 @@ def family_scenes(candidate: Any, plan: Plan) -> list[Any]:
 def train_arm(
     name: str, config: Any, start: Start, args: argparse.Namespace, plan: Plan, family: Sequence[Any]
 ) -> dict[str, Any]:
-    """Train one arm, return its checkpoint as --out/arm-NAME.pt, and score it: mean EPE, bad-1
-    and bad-2 with the default inference on the dev pairs (all; APART_PREFIX's apart) and on the
-    `family` scenes."""
-    from crestereo_pp.training.trainer import train
+    """Train one arm, return its checkpoint as --out/arm-NAME.pt (the decayed end, to serve) and
+    its stable branch as --out/arm-NAME-stable.pt (to resume, as a train stage's stable.pt), and
+    score it: mean EPE, bad-1 and bad-2 with the default inference on the dev pairs (all;
+    APART_PREFIX's apart) and on the `family` scenes."""
+    from crestereo_pp.training.trainer import STABLE_NAME, train
 
     began = time.monotonic()
     result = train(config, **start.source, progress=False)
     returned = args.out / f"arm-{name}.pt"
     shutil.copyfile(result.checkpoint, returned)
+    stable = Path(config.out_dir) / STABLE_NAME
+    if stable.is_file():
+        shutil.copyfile(stable, args.out / f"arm-{name}-stable.pt")
+    compacted = [path.name for path in (returned, args.out / f"arm-{name}-stable.pt") if returned_weights(path)]
     row: dict[str, Any] = dict(
         arm=name,
         settings={key: getattr(config, key) for key, _ in args.arm},
         steps=result.step - start.first_step,
         train_s=round(time.monotonic() - began, 1),
-        weights_only_fp16=returned_weights(returned),
+        weights_only_fp16=compacted,
     )
     predictor = arm_predictor(returned, args.model, plan)
     if args.data is not None:
