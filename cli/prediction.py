@@ -193,8 +193,6 @@ def plan(args: argparse.Namespace) -> Job:
     if (args.focal_px is None) != (args.baseline_m is None):
         raise ValueError("give both --focal-px and --baseline-m, or neither")
     if args.focal_px is not None:
-        if not (args.focal_px > 0 and args.baseline_m > 0):
-            raise ValueError("--focal-px and --baseline-m must be positive")
         problem = focal_baseline_problem(args.focal_px, args.baseline_m, "--focal-px x --baseline-m")
         if problem is not None:
             raise ValueError(problem)

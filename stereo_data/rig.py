@@ -298,12 +298,7 @@ def _rotation(field: str, matrix: np.ndarray, turned: str) -> None:
 def _with_depth(rig: StereoRig, field: str) -> StereoRig:
     """`rig`, once its rectified cameras give depth as a query's focal_px and baseline_m do: both
     positive, their product within MIN_FOCAL_BASELINE-MAX_FOCAL_BASELINE (``focal_baseline_problem``)."""
-    focal, baseline = rig.focal_px, rig.baseline
-    if not (focal > 0 and baseline > 0):
-        raise RigError(
-            field, f"the rectified cameras need a positive focal length and baseline, got {focal:.4g}, {baseline:.4g}"
-        )
-    problem = focal_baseline_problem(focal, baseline, "focal length x baseline")
+    problem = focal_baseline_problem(rig.focal_px, rig.baseline, "focal length x baseline")
     if problem is not None:
         raise RigError(field, problem)
     return rig
@@ -311,7 +306,10 @@ def _with_depth(rig: StereoRig, field: str) -> StereoRig:
 
 def focal_baseline_problem(focal_px: float, baseline: float, name: str) -> str | None:
     """Why depth f B / d cannot be float32 for this focal length (px) and baseline (m), the
-    product called `name` in the message; None where it can."""
+    product called `name` in the message: either is not positive, or the product is out of
+    MIN_FOCAL_BASELINE-MAX_FOCAL_BASELINE; None where it can."""
+    if not (focal_px > 0 and baseline > 0):
+        return f"the focal length and baseline ({name}) must be positive, got {focal_px:.4g} and {baseline:.4g}"
     product = focal_px * baseline
     if product > MAX_FOCAL_BASELINE:
         return f"{name} is {product:.4g}, more than {MAX_FOCAL_BASELINE:.4g} (depth is float32)"
