@@ -94,7 +94,8 @@ def test_the_cpu_smoke_run_passes_every_stage_and_keeps_to_the_output_limits(tmp
 
 
 def test_the_arms_stage_trains_a_candidate_and_the_recipe_for_equal_steps_and_scores_both(tmp_path):
-    """Two dev pairs, one of them named as the Middlebury 2014 pairs are (scored apart too)."""
+    """Two dev pairs, one of them named as the Middlebury 2014 pairs are (scored apart too); the
+    control is the probe row adopted, the candidate that row with its settings."""
     if not STEREO_DEV.is_dir():
         pytest.skip(f"real pairs not available: {STEREO_DEV} does not exist (see tests/shared_data.py)")
     data = tmp_path / "dev"
@@ -103,7 +104,7 @@ def test_the_arms_stage_trains_a_candidate_and_the_recipe_for_equal_steps_and_sc
     (data / "middlebury2014q_as_tsukuba").symlink_to(STEREO_DEV / SMALL_STEREO_DEV_PAIR)
     out = tmp_path / "out"
     arm = ["--arm", "thin_probability=1", "--arm", "flat_probability=0.5"]
-    summary = smoke_run(out, "--stages", "arms", *arm, "--data", str(data))
+    summary = smoke_run(out, "--stages", "probe,arms", "--adopt", *arm, "--data", str(data))
     assert "| arms | passed |" in summary, summary
     assert '## Arms: {"thin_probability": 1, "flat_probability": 0.5} against the recipe' in summary
     rows = re.findall(r"^\| (control|candidate) \| (\{.*?\}) \| (\d+) \| [0-9.]+ \| (.*) \|$", summary, re.MULTILINE)

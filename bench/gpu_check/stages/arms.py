@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from ..plans import Plan, StageResult
-from .train import Start, returned_weights, size_run, sized_config, stage_recipe, starting_point, step_rate
+from .train import Start, returned_weights, run_rate, size_run, sized_config, stage_recipe, starting_point
 
 ARMS = ("control", "candidate")
 APART_PREFIX = "middlebury2014"
@@ -35,12 +35,14 @@ def arms_stage(plan: Plan, deadline: float, args: argparse.Namespace, save: Call
     except ValueError as error:
         return StageResult("failed", str(error))
     recipe, adopted = stage_recipe(plan, args, deadline, runs=len(ARMS))
-    configs, rates = {}, {}
-    for name, config in zip(ARMS, (recipe, replace(recipe, **dict(args.arm))), strict=True):
-        configs[name], rates[name] = step_rate(config, start, plan)
+    configs, rates, first_steps = {}, {}, {}
+    # The control is the adopted row itself; the candidate's data may cost more: its rate is measured.
+    for name, config, row in zip(ARMS, (recipe, replace(recipe, **dict(args.arm))), (adopted, None), strict=True):
+        configs[name], rates[name], first_steps[name] = run_rate(config, start, plan, row)
     scoring = len(ARMS) * plan.arm_score_seconds
     seconds = (deadline - time.monotonic() - plan.train_tail_seconds - scoring) / len(ARMS)
-    size = size_run(min(rates.values()), seconds, plan, recipe.ema_decay)
+    # Each arm's run compiles again where the setting compiles: the adopted row's first step, in both.
+    size = size_run(min(rates.values()), seconds - max(first_steps.values()), plan, recipe.ema_decay)
     family = family_scenes(configs["candidate"], plan)
     print(f"arms: {size.steps} steps each from {start.path} (step {start.first_step}); rates {rates}", flush=True)
     rows = []

@@ -137,6 +137,17 @@ def step_rate(config: Any, start: Start, plan: Plan) -> tuple[Any, float]:
         return plainest, rate(plainest)
 
 
+def run_rate(config: Any, start: Start, plan: Plan, adopted: dict[str, Any] | None) -> tuple[Any, float, float]:
+    """What a run of `config` is sized by: its steps per second and the seconds of its first step
+    (a compile; paid inside the run). With `adopted` (the probe row whose settings `config`
+    holds), that row's measured pairs/s and first step: the probe stage ran this setting on this
+    GPU through the real trainer. Else `step_rate`'s own probe run (its compile paid there)."""
+    if adopted is None:
+        ran, steps_per_second = step_rate(config, start, plan)
+        return ran, steps_per_second, 0.0
+    return config, adopted["pairs_per_s"] / config.batch_size, adopted["first_step_s"]
+
+
 def sized_config(config: Any, out_dir: Path, start: Start, size: RunSize, seconds: float, val_data: Any) -> Any:
     """`config` as one run of `size` from `start` into `out_dir`, within `seconds`, validating on
     `val_data` (None: no validation) at each checkpoint."""
@@ -182,12 +193,7 @@ def train_stage(plan: Plan, deadline: float, args: argparse.Namespace, save: Cal
         return StageResult("failed", str(error))
     recipe, adopted = stage_recipe(plan, args, deadline)
     began = time.monotonic()
-    if adopted is None:
-        recipe, steps_per_second = step_rate(recipe, start, plan)
-        first_step_s = 0.0  # paid in the rate's own run
-    else:  # the probe stage measured this setting on this GPU: no second probe run (nor compile)
-        steps_per_second = adopted["pairs_per_s"] / recipe.batch_size
-        first_step_s = adopted["first_step_s"]
+    recipe, steps_per_second, first_step_s = run_rate(recipe, start, plan, adopted)
     probe_seconds = time.monotonic() - began
     seconds = deadline - time.monotonic() - plan.train_tail_seconds
     size = size_run(steps_per_second, seconds - first_step_s, plan, recipe.ema_decay)
