@@ -183,6 +183,40 @@ def test_auto_shrinks_a_pair_whose_half_resolution_pass_would_see_more_than_a_pa
     assert way(300.0, 1080, 1920, resize=False) == (True, 1.0)  # the caller's scale is kept
 
 
+def test_the_quick_pass_reads_again_at_eighth_resolution_the_pairs_whose_range_it_cannot_hold(lite, monkeypatch):
+    """Where the quarter-resolution pass sees more than QUICK_PASS_HOLDS_PX, the pair's evidence
+    is an eighth-resolution pass's reading; the other pair of the batch keeps its quarter one, and
+    a pair too small for an eighth-resolution pass (under 384 px a side) keeps its own."""
+    iters, forward = lite.config.iters, lite.padded_forward()
+    for height, width, reads_again in ((384, 448, True), (192, 224, False)):
+        left, right = near_and_far_scenes(height, width)
+        with torch.inference_mode():
+            quarter = two_pass_module.quick_pass_percentile(left, right, iters, forward, 4)
+            eighth = two_pass_module.quick_pass_percentile(left[:1], right[:1], iters, forward, 8)
+        assert quarter[0] > quarter[1] + 5 and abs(float(eighth[0] - quarter[0])) > 0.1
+        monkeypatch.setattr(two_pass_module, "QUICK_PASS_HOLDS_PX", float(quarter.mean()) / 4)  # the near one only
+        evidence = lite.large_disparity_percentile(left, right)
+        assert float(evidence[0]) == pytest.approx(float((eighth if reads_again else quarter)[0]), abs=1e-3)
+        assert float(evidence[1]) == pytest.approx(float(quarter[1]), abs=1e-3)
+
+
+@pytest.mark.skipif(not STEREO_DEV.is_dir(), reason=f"no real stereo pairs at {STEREO_DEV}")
+def test_auto_reads_the_range_of_a_real_pair_whose_disparities_pass_what_the_quarter_pass_sees(lite):
+    """SceneFlow A0032 enlarged 6x (5760 x 3240, disparities to about 770 px): auto's evidence is
+    within 3 % of the 99th percentile, where the quarter-resolution pass alone read 569 px for 766."""
+    import cv2
+
+    dataset = open_dataset(STEREO_DEV)
+    sample = next(dataset[i] for i in range(len(dataset)) if dataset[i].name == "sceneflow_ft3d_A0032_0006")
+    truth = 6 * float(np.percentile(sample.disparity[sample.valid], 99))
+    size = (6 * sample.left.shape[1], 6 * sample.left.shape[0])
+    left, right = (
+        torch.from_numpy(cv2.resize(image, size, interpolation=cv2.INTER_CUBIC)).permute(2, 0, 1)[None].float()
+        for image in (sample.left, sample.right)
+    )
+    assert float(lite.large_disparity_percentile(left, right)[0]) == pytest.approx(truth, rel=0.03)
+
+
 @pytest.mark.skipif(not STEREO_DEV.is_dir(), reason=f"no real stereo pairs at {STEREO_DEV}")
 def test_the_quick_pass_reads_a_real_pairs_largest_disparities_and_auto_enlarges_a_near_scene_to_its_gain(lite):
     from crestereo_pp.evaluation.metrics import compute_metrics
