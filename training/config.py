@@ -129,6 +129,12 @@ class TrainConfig:
         "procedural scenes: fraction whose largest disparity is drawn between max_disparity and wide_max_disparity "
         "instead of max_disparity (wider disparity ranges)",
     )
+    reflective_probability: float = _knob(
+        0.0,
+        "procedural scenes: fraction of the foreground surfaces that reflect a farther scene over their own texture "
+        "(car bodies and windows, glossy floors, glass: a second layer moving between the views by less than the "
+        "surface)",
+    )
     wide_max_disparity: float | None = _knob(
         None,
         "largest disparity (px) of the wide-range procedural scenes [256 * crop_width / 512, at least max_disparity]",
@@ -241,6 +247,7 @@ class TrainConfig:
             repetitive_probability=self.repetitive_probability,
             wide_range_probability=self.wide_range_probability,
             wide_max_disparity=self.wide_max_disparity,
+            reflective_probability=self.reflective_probability,
         )
 
     @property

@@ -82,6 +82,11 @@ class SceneConfig:
       away everywhere but at the left border, and no matcher could find its disparity.
     - ``wide_range_probability``: scenes whose largest disparity is drawn uniformly in
       [max_disparity, wide_max_disparity] instead of max_disparity.
+    - ``reflective_probability``: foreground surfaces (of those not thin) that reflect a farther
+      scene (car bodies and windows, glossy floors, glass): a second texture of std 4-40 grey
+      levels laid over their own, whose disparity is a share of 0-0.8 of theirs, so that it moves
+      between the views less than the surface does. The ground truth stays the surface's; its
+      outline tells it apart. Never the background, which no outline would tell apart.
 
     Scale/crop augmentation: each scene is magnified by a random ``s = 2**U(log2_scale)``: every
     length (shape sizes, bar widths, texel sizes) is its unscaled length times s. A random crop of a
@@ -122,6 +127,7 @@ class SceneConfig:
     flat_probability: float = 0.0  # surfaces that are large weakly textured planes with slow shading
     repetitive_probability: float = 0.0  # surfaces painted with a pattern repeating every 4-40 px along the rows
     wide_range_probability: float = 0.0  # scenes whose largest disparity is drawn up to wide_max_disparity
+    reflective_probability: float = 0.0  # foreground surfaces reflecting a farther scene over their own texture
     supersample: int = 1  # anti-aliasing: images are the mean of supersample x supersample samples per pixel
     photometric: PhotometricConfig | None = field(default_factory=PhotometricConfig)
 
@@ -155,6 +161,7 @@ class SceneConfig:
             "flat_probability",
             "repetitive_probability",
             "wide_range_probability",
+            "reflective_probability",
         ):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)}")

@@ -1,6 +1,7 @@
 """What the procedural scenes draw for the cases stereo networks get wrong on cluttered real scenes
-(Middlebury-2014-like rooms): thin structures in front of far backgrounds, large weakly textured
-planes with slow shading, repetitive patterns and wide disparity ranges (see `SceneConfig`).
+(Middlebury-2014-like rooms) and on driving scenes: thin structures in front of far backgrounds,
+large weakly textured planes with slow shading, repetitive patterns, wide disparity ranges and
+surfaces that reflect a farther scene (see `SceneConfig`).
 
 Each option is off by default, and an option that is off draws nothing from the scene's random
 generator: a seed then gives the same batch, bit for bit, as before these options existed.
@@ -33,6 +34,12 @@ REPETITIVE_TILT = math.radians(10.0)
 epipolar lines, where their ambiguity bites."""
 REPETITIVE_TEXTURES = 2
 """Repetitive patterns in each scene's texture bank, after the `SceneConfig.texture_count` others."""
+REFLECTION_CONTRAST = (4.0, 40.0)
+"""Grey-level std of a reflective surface's reflection, log-uniform: from a faint sheen to a car's
+window (a surface's own texture: `SceneConfig.contrast`)."""
+REFLECTION_DEPTH = (0.0, 0.8)
+"""The reflected scene's disparity as a share of the reflecting surface's, uniform: 0 is the sky at
+infinity; what a mirror, or a car's convex body, shows lies behind it, so the share stays below 1."""
 _REPETITIVE_CYCLE = 16
 """Texels per period of the repetitive patterns, nominal (see `repetitive_period_texels`)."""
 
@@ -57,6 +64,9 @@ class SurfaceKinds:
     repetitive: surfaces showing repetitive pattern `repetitive_texture` in [0, REPETITIVE_TEXTURES)
         with a period of `repetitive_period` px, turned by `repetitive_tilt` radians from repeating
         along the rows. Never flat, never the background.
+    reflective: foreground surfaces that reflect a farther scene: a texture of std
+        `reflection_contrast` grey levels over their own, at `reflection_depth` times their
+        disparity (`REFLECTION_DEPTH`). Never thin, never the background.
     """
 
     thin: torch.Tensor
@@ -69,6 +79,9 @@ class SurfaceKinds:
     repetitive_texture: torch.Tensor
     repetitive_period: torch.Tensor
     repetitive_tilt: torch.Tensor
+    reflective: torch.Tensor
+    reflection_contrast: torch.Tensor
+    reflection_depth: torch.Tensor
 
     @staticmethod
     def draw(shape: tuple[int, int], cfg: SceneConfig, draw: Draw) -> SurfaceKinds:
@@ -93,6 +106,12 @@ class SurfaceKinds:
             repetitive_texture = draw.integers(shape, 0, REPETITIVE_TEXTURES - 1)
             repetitive_period = draw.log_uniform(shape, *REPETITIVE_PERIOD)
             repetitive_tilt = draw.uniform(shape, -REPETITIVE_TILT, REPETITIVE_TILT)
+        reflective, reflection_contrast, reflection_depth = none, zero, zero
+        if cfg.reflective_probability > 0:
+            reflective = draw.chance(shape, cfg.reflective_probability) & ~thin
+            reflective[:, 0] = False  # covering the frame, no outline would tell it from its reflection
+            reflection_contrast = draw.log_uniform(shape, *REFLECTION_CONTRAST)
+            reflection_depth = draw.uniform(shape, *REFLECTION_DEPTH)
         return SurfaceKinds(
             thin,
             thin_width,
@@ -104,6 +123,9 @@ class SurfaceKinds:
             repetitive_texture,
             repetitive_period,
             repetitive_tilt,
+            reflective,
+            reflection_contrast,
+            reflection_depth,
         )
 
 

@@ -45,6 +45,10 @@ def draw_scenes(batch_size: int, cfg: SceneConfig, draw: Draw, photos: list[torc
         base=look.base,
         contrast=look.contrast,
         ramp=look.ramp,
+        reflection=look.reflection,
+        reflection_depth=look.reflection_depth,
+        reflection_texture=look.reflection_texture,
+        to_reflection=look.to_reflection,
         specular=lighting.specular,
         shininess=lighting.shininess,
         light=lighting.light,
@@ -213,7 +217,7 @@ def _disparity_planes(
 @dataclass
 class _Appearance:
     """What each surface shows (see `Scene`): its texture and how it is mapped, its colour,
-    contrast and shading ramp."""
+    contrast and shading ramp, and the farther scene it reflects."""
 
     texture: torch.Tensor
     to_texture: torch.Tensor
@@ -222,6 +226,10 @@ class _Appearance:
     base: torch.Tensor
     contrast: torch.Tensor
     ramp: torch.Tensor
+    reflection: torch.Tensor
+    reflection_depth: torch.Tensor
+    reflection_texture: torch.Tensor
+    to_reflection: torch.Tensor
 
     @staticmethod
     def draw(
@@ -235,13 +243,7 @@ class _Appearance:
         texel = torch.where(kinds.repetitive, repetitive_texel, texel)
         texture_angle = draw.uniform(shape, 0, 2 * math.pi)
         texture_angle = torch.where(kinds.repetitive, kinds.repetitive_tilt, texture_angle)  # the pattern's u along x
-        cos, sin = torch.cos(texture_angle) / texel, torch.sin(texture_angle) / texel
-        to_texture = _affine(
-            torch.stack([torch.stack([cos, sin], -1), torch.stack([-sin, cos], -1)], -2),
-            centre_x,
-            centre_y,
-        )
-        to_texture[..., 2] += draw.uniform((*shape, 2), 0, cfg.texture_size)
+        to_texture = _texture_map(texel, texture_angle, centre_x, centre_y, cfg, draw)
         projective = torch.zeros(shape, dtype=torch.bool, device=draw.device)
         fade_disparity = torch.zeros(shape, device=draw.device)
         grey = draw.uniform((*shape, 1), 20, 235)
@@ -254,12 +256,31 @@ class _Appearance:
         ramp = torch.stack([ramp_x, ramp_y, -ramp_x * centre_x - ramp_y * centre_y], dim=-1)
         texture = draw.integers(shape, 0, cfg.texture_count - 1)
         texture = torch.where(kinds.repetitive, cfg.texture_count + kinds.repetitive_texture, texture)
+        reflection_texture, to_reflection = torch.zeros_like(texture), torch.zeros_like(to_texture)
+        if cfg.reflective_probability > 0:  # another texture of the bank, mapped as a surface's own is
+            reflection_texture = draw.integers(shape, 0, cfg.texture_count - 1)
+            reflection_texel = scale * draw.log_uniform(shape, *cfg.texel_size)
+            reflection_angle = draw.uniform(shape, 0, 2 * math.pi)
+            to_reflection = _texture_map(reflection_texel, reflection_angle, centre_x, centre_y, cfg, draw)
+        reflection = torch.where(kinds.reflective, kinds.reflection_contrast, 0.0)
         if road is not None:
             to_texture[:, 1] = torch.where(road.present[:, None, None], road.to_texture, to_texture[:, 1])
             projective[:, 1] = road.present
             fade_disparity[:, 1] = road.fade_disparity
             contrast[:, 0] = torch.where(road.sky, road.sky_contrast, contrast[:, 0])
-        return _Appearance(texture, to_texture, projective, fade_disparity, base, contrast, ramp)
+        return _Appearance(
+            texture,
+            to_texture,
+            projective,
+            fade_disparity,
+            base,
+            contrast,
+            ramp,
+            reflection,
+            kinds.reflection_depth,
+            reflection_texture,
+            to_reflection,
+        )
 
 
 @dataclass
@@ -360,6 +381,25 @@ def _fit_plane(
     gradient = torch.minimum(gradient, (high - low) / (2 * extent))
     reach = gradient * extent
     return gradient, low + reach + position * (high - low - 2 * reach)
+
+
+def _texture_map(
+    texel: torch.Tensor,
+    angle: torch.Tensor,
+    centre_x: torch.Tensor,
+    centre_y: torch.Tensor,
+    cfg: SceneConfig,
+    draw: Draw,
+) -> torch.Tensor:
+    """(B, S, 2, 3) affine maps from (x, y) px to texel coordinates: `texel` px per texel, the
+    texture's u axis turned by `angle` radians, about each surface's centre, at a random place of
+    the (wrapping) texture; each (B, S)."""
+    cos, sin = torch.cos(angle) / texel, torch.sin(angle) / texel
+    to_texture = _affine(
+        torch.stack([torch.stack([cos, sin], -1), torch.stack([-sin, cos], -1)], -2), centre_x, centre_y
+    )
+    to_texture[..., 2] += draw.uniform((*texel.shape, 2), 0, cfg.texture_size)
+    return to_texture
 
 
 def _affine(linear: torch.Tensor, centre_x: torch.Tensor, centre_y: torch.Tensor) -> torch.Tensor:

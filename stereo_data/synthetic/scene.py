@@ -44,6 +44,13 @@ class Scene:
     base: (B, S, 3) float, mean RGB colour, grey levels.
     contrast: (B, S) float, grey levels per unit of (standardised) texture.
     ramp: (B, S, 3) float, (gx, gy, g0): gx*x + gy*y + g0 grey levels are added (shading).
+    reflection: (B, S) float, grey-level std of the farther scene the surface reflects (0: none);
+        reflection_depth: (B, S), that scene's disparity as a share of the surface's, in [0, 1);
+        reflection_texture: (B, S) int64, which of the K textures it shows; to_reflection: (B, S,
+        2, 3) float, affine map from where it is seen, (x, y) px of the left view, to texel
+        coordinates (wrapping). The right view sees at x what the left view sees at
+        x + reflection_depth * d, d the surface's disparity there: the reflection moves between
+        the views by its own disparity, not by the surface's.
     specular: (B, S) float grey levels of a full highlight (0: matte); shininess: (B, S) its
         Blinn-Phong exponent.
     light: (B, 3) float, unit vector from the surfaces towards the light (camera frame: x right,
@@ -71,6 +78,10 @@ class Scene:
     base: torch.Tensor
     contrast: torch.Tensor
     ramp: torch.Tensor
+    reflection: torch.Tensor
+    reflection_depth: torch.Tensor
+    reflection_texture: torch.Tensor
+    to_reflection: torch.Tensor
     specular: torch.Tensor
     shininess: torch.Tensor
     light: torch.Tensor
@@ -97,6 +108,7 @@ class Scene:
             to_shape=shifted(self.to_shape),
             to_texture=shifted(self.to_texture),
             ramp=shifted(self.ramp),
+            to_reflection=shifted(self.to_reflection),
         )
 
     def surfaces(self, part: slice) -> Scene:

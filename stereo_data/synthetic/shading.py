@@ -1,4 +1,5 @@
-"""The colour a view sees of a surface point: its texture, shading ramp, light and highlight."""
+"""The colour a view sees of a surface point: its texture, shading ramp, light, highlight and
+the farther scene it reflects."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ from .scene import Scene
 
 def shade(scene: Scene, surface: torch.Tensor, x_left: torch.Tensor, y: torch.Tensor, view: str) -> torch.Tensor:
     """Colour of the given surfaces at left-view points, as the ``view`` camera ("left" or
-    "right") sees them (they differ only in highlights).
+    "right") sees them (they differ only in highlights and reflections).
 
     surface: (B, 1, H, W) int64 surface index; x_left: (B, 1, H, W) px; y: (1, 1, H, 1) px.
     Returns (B, 3, H, W) float32 RGB in [0, 255].
@@ -44,6 +45,8 @@ def shade(scene: Scene, surface: torch.Tensor, x_left: torch.Tensor, y: torch.Te
     if (scene.ambient < 1).any() or scene.specular.any():
         color = _lit(scene, at_pixels, batch_index.flatten(), x, y, color, view)
     color = color + shading
+    if scene.reflection.any():
+        color = color + _reflected(scene, at_pixels, batch_index.flatten(), x, y, view)
     return color.clamp(0, 255).view(batch, *surface.shape[2:], 3).permute(0, 3, 1, 2).contiguous()
 
 
@@ -75,6 +78,26 @@ def _lit(
     highlight = (at_pixels(scene.specular) * gloss)[:, None]
     lit: torch.Tensor = color * (ambient + (1 - ambient) * diffuse) + highlight
     return lit
+
+
+def _reflected(
+    scene: Scene,
+    at_pixels: Callable[[torch.Tensor], torch.Tensor],
+    scene_index: torch.Tensor,
+    x: torch.Tensor,
+    y: torch.Tensor,
+    view: str,
+) -> torch.Tensor:
+    """(N, 3) grey levels that the surface points at left-view (x, y) (N,) px add from the farther
+    scene they reflect, as the ``view`` camera sees it: the right camera sees at the point's
+    x - d the reflection's texel that the left sees at x - d + reflection_depth * d."""
+    if view == "right":
+        plane, curvature, apex = (at_pixels(value) for value in (scene.plane, scene.curvature, scene.apex))
+        x = x - (1 - at_pixels(scene.reflection_depth)) * surface_disparity(plane, curvature, apex, x, y)
+    point = torch.stack([x, y, torch.ones_like(x)], dim=-1)
+    texel_u, texel_v = (at_pixels(scene.to_reflection) * point[:, None, :]).sum(-1).unbind(-1)
+    slot = scene_index * scene.textures.shape[1] + at_pixels(scene.reflection_texture)
+    return at_pixels(scene.reflection)[:, None] * _sample_wrapped(scene.textures.flatten(0, 1), slot, texel_u, texel_v)
 
 
 def _sample_wrapped(textures: torch.Tensor, slot: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:

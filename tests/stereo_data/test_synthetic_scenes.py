@@ -11,8 +11,9 @@ import torch.nn.functional as F
 
 from crestereo_pp.stereo_data.photos import PHOTOS, load_photos
 from crestereo_pp.stereo_data.synthetic import MAX_SIDES, PhotometricConfig, Scene, SceneConfig, SceneGenerator
+from crestereo_pp.stereo_data.synthetic.draw import Draw
 from crestereo_pp.stereo_data.synthetic.geometry import covers, seen_from_right, surface_disparity
-from crestereo_pp.stereo_data.synthetic.hard_cases import repetitive_period_texels
+from crestereo_pp.stereo_data.synthetic.hard_cases import SurfaceKinds, repetitive_period_texels
 from crestereo_pp.stereo_data.synthetic.visibility import nearest_surface, view_bounds
 
 
@@ -74,6 +75,7 @@ def test_default_max_disparity_is_192_at_512_px_and_scales_with_width() -> None:
         {"flat_probability": -0.1},
         {"repetitive_probability": 2.0},
         {"wide_range_probability": -1.0},
+        {"reflective_probability": 1.5},
         {"max_disparity": 100.0, "wide_max_disparity": 90.0, "wide_range_probability": 0.5},  # narrower
     ],
 )
@@ -412,6 +414,10 @@ def one_square_scene(background: float = 10.0, square: float = 30.0, first_colum
         base=pair([50] * 3, [200] * 3),
         contrast=torch.zeros(1, 2),
         ramp=torch.zeros(1, 2, 3),
+        reflection=torch.zeros(1, 2),
+        reflection_depth=torch.zeros(1, 2),
+        reflection_texture=torch.zeros(1, 2, dtype=torch.long),
+        to_reflection=torch.zeros(1, 2, 2, 3),
         specular=torch.zeros(1, 2),
         shininess=torch.ones(1, 2),
         light=torch.tensor([[0.0, 0.0, -1.0]]),
@@ -488,8 +494,9 @@ def test_scenes_with_photo_textures_are_reproducible_and_warp_consistent() -> No
 
 
 def test_a_panned_scene_is_the_same_scene_shifted_in_both_views_with_its_disparity() -> None:
-    generator = SceneGenerator(replace(CLEAN, height=96, width=192, curve_probability=0.5))
+    generator = SceneGenerator(replace(CLEAN, height=96, width=192, curve_probability=0.5, reflective_probability=0.5))
     scene = generator.sample_scene(batch_size=2, seed=8)
+    assert (scene.reflection > 0).any()  # reflections move with the scene too
     before, after = generator.render(scene), generator.render(scene.translated(8.0, 3.0))
     for name in ("left", "right", "disparity"):
         moved, still = getattr(after, name)[..., :-3, :-8], getattr(before, name)[..., 3:, 8:]
@@ -652,7 +659,7 @@ RECIPE_SUMS = {
 )
 def test_hard_case_options_at_their_defaults_leave_every_batch_as_it_was(name: str, config: SceneConfig) -> None:
     assert (config.thin_probability, config.flat_probability, config.repetitive_probability) == (0, 0, 0)
-    assert config.wide_range_probability == 0
+    assert config.wide_range_probability == config.reflective_probability == 0
     batch = SceneGenerator(config).generate(batch_size=2, seed=0)
     sums = [float(getattr(batch, view).double().sum()) for view in ("left", "right", "disparity", "occluded")]
     # Any extra random draw would change whole scenes (sums by percents); allow only float rounding.
@@ -828,3 +835,47 @@ def test_the_background_is_never_repetitive_so_that_no_scene_is_ambiguous_everyw
     scene.present[:, 1:] = False  # the background alone
     peak, _ = secondary_peak(SceneGenerator(REPETITIVE).render(scene).left)
     assert peak.median() < 0.3
+
+
+REFLECTIVE = replace(CLEAN, height=96, width=192, reflective_probability=1.0)
+
+
+def test_a_reflection_moves_between_the_views_by_its_own_disparity_and_leaves_the_ground_truth_alone() -> None:
+    """A reflective surface shows a farther scene over its own texture. With its own texture and
+    shading taken off, the right view warped by reflection_depth times the surface's disparity
+    gives the left view, where warping it by the surface's disparity does not; the ground truth
+    stays the surface's."""
+    generator = SceneGenerator(REFLECTIVE)
+    scene = generator.sample_scene(batch_size=4, seed=15)
+    foreground = scene.present.clone()
+    foreground[:, 0] = False
+    strength, share = scene.reflection[foreground], scene.reflection_depth[foreground]
+    assert strength.min() >= 4 - 1e-3 and strength.max() <= 40 + 1e-3  # grey levels (std)
+    assert share.min() >= 0 and share.max() <= 0.8
+    mirrored = generator.render(
+        replace(scene, contrast=torch.zeros_like(scene.contrast), ramp=torch.zeros_like(scene.ramp))
+    )
+    matte = generator.render(replace(scene, reflection=torch.zeros_like(scene.reflection)))
+    assert torch.equal(mirrored.disparity, matte.disparity) and torch.equal(mirrored.occluded, matte.occluded)
+
+    x, y = pixel_grid(REFLECTIVE)
+    _, surface, _ = nearest_surface(scene, x, y, "left")
+    reflected_disparity = mirrored.disparity * scene.reflection_depth.gather(1, surface.flatten(1)).view_as(surface)
+    # where the right view shows the same (foreground, reflective) surface at x - that disparity too
+    _, seen_there, _ = nearest_surface(scene, x - reflected_disparity, y, "right")
+    reflecting = ((surface > 0) & (seen_there == surface) & ~mirrored.occluded).expand_as(mirrored.left)
+    assert reflecting.float().mean() > 0.1
+    by_reflection = (warp_right_to_left(mirrored.right, reflected_disparity) - mirrored.left).abs()[reflecting]
+    by_surface = (warp_right_to_left(mirrored.right, mirrored.disparity) - mirrored.left).abs()[reflecting]
+    assert by_reflection.median() < 0.5  # exact up to bilinear sampling and the surfaces' edges
+    assert by_surface.mean() > 3 * by_reflection.mean()
+
+
+def test_neither_the_background_nor_thin_structures_reflect() -> None:
+    """A reflective background covers the frame: no outline would tell it from its reflection."""
+    config = replace(REFLECTIVE, thin_probability=0.5)
+    kinds = SurfaceKinds.draw((6, config.surfaces + 1), config, Draw.seeded(16, torch.device("cpu")))
+    assert kinds.thin.any() and kinds.reflective.any()
+    assert not (kinds.reflective & kinds.thin).any() and not kinds.reflective[:, 0].any()
+    scene = SceneGenerator(config).sample_scene(batch_size=6, seed=16)
+    assert (scene.reflection[:, 0] == 0).all() and (scene.reflection[:, 1:] > 0).any()
