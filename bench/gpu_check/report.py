@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import datetime as dt
 import json
+import math
 import platform
 from pathlib import Path
 from typing import Any
@@ -159,7 +160,33 @@ def arms_table(data: dict[str, Any]) -> list[str]:
             if f"{name}_bad2" in control and f"{name}_bad2" in candidate
         ]
         lines += ["", "Candidate against control, bad-2: " + ", ".join(changes) + "."]
+        each = [
+            f"{name} {pair_by_pair(control[f'{name}_bad2_each'], candidate[f'{name}_bad2_each'])}"
+            for name in ARM_SCORES
+            if f"{name}_bad2_each" in control and f"{name}_bad2_each" in candidate
+        ]
+        lines += ["", "Pair by pair, the candidate's bad-2 against the control's: " + "; ".join(each) + "."]
     return lines
+
+
+def pair_by_pair(control: list[float], candidate: list[float]) -> str:
+    """How often the candidate's bad-2 (%, per pair, rounded to 0.01) is below the control's on
+    the same pairs, and the two-sided sign test's p of that count (`sign_test`): whether a change
+    of the mean is carried by the pairs or by one of them."""
+    better = sum(b < a for a, b in zip(control, candidate, strict=True))
+    worse = sum(b > a for a, b in zip(control, candidate, strict=True))
+    return (
+        f"better on {better}, worse on {worse}, level on {len(control) - better - worse} of {len(control)} "
+        f"(sign test p = {sign_test(better, worse):.2f})"
+    )
+
+
+def sign_test(better: int, worse: int) -> float:
+    """The two-sided exact sign test: the chance of a split at least as uneven as `better` against
+    `worse` where each pair were as likely to go either way (ties left out); 1 without pairs."""
+    pairs = better + worse
+    tail: float = sum(math.comb(pairs, k) for k in range(min(better, worse) + 1)) / 2**pairs
+    return min(1.0, 2 * tail)
 
 
 def output_files_report(out: Path) -> list[str]:

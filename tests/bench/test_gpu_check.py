@@ -124,6 +124,17 @@ def test_the_arms_stage_trains_a_candidate_and_the_recipe_for_equal_steps_and_sc
         summary,
         re.MULTILINE,
     ), summary
+    split = r"better on (\d), worse on (\d), level on (\d) of {} \(sign test p = [0-9.]+\)"
+    each = re.search(
+        r"^Pair by pair, the candidate's bad-2 against the control's: "
+        + "; ".join(f"{name} {split.format(count)}" for name, count in (("dev", 2), ("apart", 1), ("family", 1)))
+        + r"\.$",
+        summary,
+        re.MULTILINE,
+    )
+    assert each is not None, summary
+    counts = [int(n) for n in each.groups()]
+    assert [sum(counts[i : i + 3]) for i in (0, 3, 6)] == [2, 1, 1]
     for name in ("control", "candidate"):
         checkpoint = read_weights(out / f"arm-{name}.pt")
         assert checkpoint["step"] == read_weights(REPO / "model/weights/lite.pt")["step"] + 2
@@ -133,6 +144,16 @@ def test_the_arms_stage_trains_a_candidate_and_the_recipe_for_equal_steps_and_sc
         "summary.md",
         *(f"arm-{name}{part}.pt" for name in ("control", "candidate") for part in ("", "-stable")),
     }
+
+
+def test_the_arms_are_compared_pair_by_pair_with_an_exact_sign_test(bench_path):
+    from gpu_check.report import pair_by_pair, sign_test
+
+    assert sign_test(9, 1) == pytest.approx(22 / 1024)  # 2 * (C(10, 0) + C(10, 1)) / 2^10
+    assert sign_test(5, 5) == sign_test(0, 0) == 1.0
+    assert sign_test(16, 0) == pytest.approx(2 / 2**16)
+    control, candidate = [10.0, 5.0, 7.5, 3.0], [9.0, 5.0, 8.0, 2.5]
+    assert pair_by_pair(control, candidate) == "better on 2, worse on 1, level on 1 of 4 (sign test p = 1.00)"
 
 
 def test_the_training_run_is_sized_to_end_its_decay_and_average_within_the_time_left(bench_path):

@@ -133,17 +133,20 @@ def arm_predictor(weights: Path, model: str, plan: Plan) -> Any:
     return load_model(model, weights, plan.device, backend="torch", precision="fp32", cuda_graphs=False)
 
 
-def scores(prefix: str, samples: Sequence[Any], predictor: Any) -> dict[str, float]:
+def scores(prefix: str, samples: Sequence[Any], predictor: Any) -> dict[str, Any]:
     """{PREFIX_epe, PREFIX_bad1, PREFIX_bad2, PREFIX_pairs}: the mean over `samples` with the
-    default inference; empty where there are none."""
+    default inference, and PREFIX_bad2_each: each sample's bad-2, in order (the arms are compared
+    pair by pair too); empty where there are none."""
     from crestereo_pp.evaluation.evaluate import evaluate
 
     if not samples:
         return {}
-    metrics = evaluate(samples, predictor, dataset_name=prefix, progress=False).mean(predictor.name).metrics
+    report = evaluate(samples, predictor, dataset_name=prefix, progress=False)
+    metrics = report.mean(predictor.name).metrics
     return {
         f"{prefix}_epe": round(metrics.epe, 3),
         f"{prefix}_bad1": round(metrics.bad1, 2),
         f"{prefix}_bad2": round(metrics.bad2, 2),
         f"{prefix}_pairs": len(samples),
+        f"{prefix}_bad2_each": [round(pair.methods[predictor.name].metrics.bad2, 2) for pair in report.pairs],
     }
