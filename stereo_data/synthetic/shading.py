@@ -45,8 +45,15 @@ def shade(scene: Scene, surface: torch.Tensor, x_left: torch.Tensor, y: torch.Te
     if (scene.ambient < 1).any() or scene.specular.any():
         color = _lit(scene, at_pixels, batch_index.flatten(), x, y, color, view)
     color = color + shading
-    if scene.reflection.any():
-        color = color + _reflected(scene, at_pixels, batch_index.flatten(), x, y, view)
+    if scene.reflection.any():  # computed on the points of reflective surfaces only
+        reflecting = torch.nonzero(at_pixels(scene.reflection)).squeeze(1)
+
+        def at_reflecting(values: torch.Tensor) -> torch.Tensor:
+            """(B, S, ...) per-surface values -> (n, ...) values of each reflecting point's surface."""
+            return values.flatten(0, 1).index_select(0, flat_surface[reflecting])
+
+        seen = (batch_index.flatten()[reflecting], x[reflecting], y[reflecting])
+        color = color.index_add(0, reflecting, _reflected(scene, at_reflecting, *seen, view))
     return color.clamp(0, 255).view(batch, *surface.shape[2:], 3).permute(0, 3, 1, 2).contiguous()
 
 
