@@ -14,7 +14,8 @@ Copies get identical gradients forever unless they differ: `noise` adds a little
 weight, relative to its tensor's spread, so that training can pull them apart.
 
     python -m crestereo_pp.training.widening model/weights/lite.pt model/weights/full.pt \
-        --val-data ../shared/data/stereo-dev
+        --val-data ../shared/data/stereo-dev --fp16
+    crestereo-pp calibrate model/weights/full.pt
 """
 
 from __future__ import annotations
@@ -31,7 +32,14 @@ from torch import Tensor
 from crestereo_pp.model.config import ModelConfig
 from crestereo_pp.model.network import CREStereoPP
 from crestereo_pp.model.upsample import UPSAMPLE_FACTOR
-from crestereo_pp.model.weights import WeightsFile, file_sha256, model_config_of, read_weights, write_weights
+from crestereo_pp.model.weights import (
+    WeightsFile,
+    file_sha256,
+    model_config_of,
+    read_weights,
+    weights_of,
+    write_weights,
+)
 
 from .config import TrainConfig
 from .history import RunRecord, TrainingHistory
@@ -174,17 +182,19 @@ def widen(lite_state: dict[str, Tensor], lite: ModelConfig, full: ModelConfig, n
     return wide
 
 
-def widened_weights(lite_path: Path, noise: float, seed: int, val_data: str | None) -> WeightsFile:
+def widened_weights(lite_path: Path, noise: float, seed: int, val_data: str | None, half: bool = False) -> WeightsFile:
     """A full weights file from the lite one at `lite_path`: its widened network, lite's training
     record with a run recording the widening (and, with `val_data`, its validation there, as a
-    training run records one), lite's training config for full."""
+    training run records one), lite's training config for full; with `half`, stored as float16
+    (`weights_of`), and validated so."""
     from .trainer import validate
 
     lite_file = read_weights(lite_path)
     lite, full = model_config_of(lite_file, "lite"), ModelConfig.preset("full")
     torch.manual_seed(seed)
     network = CREStereoPP(full)
-    network.load_state_dict(widen(lite_file["model"], lite, full, noise))
+    state = widen(lite_file["model"], lite, full, noise)
+    network.load_state_dict({name: t.half().float() for name, t in state.items()} if half else state)
     train_config = replace(TrainConfig.from_dict(lite_file["train_config"]), model="full", train_iters=None)
     history = TrainingHistory.from_dict(lite_file.get("training"))
     record = RunRecord(
@@ -199,7 +209,7 @@ def widened_weights(lite_path: Path, noise: float, seed: int, val_data: str | No
     if val_data is not None:
         record.validation = validate(network, replace(train_config, val_data=val_data), torch.device("cpu"))
     history.runs.append(record)
-    return WeightsFile(
+    payload = WeightsFile(
         model=network.state_dict(),
         config=full.to_dict(),
         model_name="full",
@@ -207,6 +217,7 @@ def widened_weights(lite_path: Path, noise: float, seed: int, val_data: str | No
         step=0,
         training=history.to_dict(),
     )
+    return weights_of(payload, half=half)
 
 
 def main(argv: Sequence[str] | None = None) -> None:
@@ -216,8 +227,9 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--noise", type=float, default=0.01, help="noise per weight, times its tensor's std [0.01]")
     parser.add_argument("--seed", type=int, default=0, help="the noise's seed [0]")
     parser.add_argument("--val-data", help="real pairs to validate the widened network on (one pass), recorded")
+    parser.add_argument("--fp16", action="store_true", help="store the weights as float16 (half the size)")
     args = parser.parse_args(argv)
-    payload = widened_weights(args.lite, args.noise, args.seed, args.val_data)
+    payload = widened_weights(args.lite, args.noise, args.seed, args.val_data, half=args.fp16)
     write_weights(payload, args.out)
     validation = payload["training"]["runs"][-1]["validation"]
     print(f"wrote {args.out}" + (f": {validation}" if validation else ""))

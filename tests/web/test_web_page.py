@@ -24,6 +24,7 @@ from crestereo_pp.service.api.routes.page import STATIC_DIR
 from crestereo_pp.service.api.schemas import OutputFormat
 from crestereo_pp.stereo_data.visualize import DISPARITY_COLORMAP, PREVIEW_GAP, colorize, robust_range
 from service_helpers import Server, run_uvicorn
+from tests.untrained_weights import write_untrained
 from web_helpers import WebPage
 
 expect = pytest.importorskip(
@@ -313,8 +314,9 @@ def test_missing_image_is_said_before_sending(web: WebPage) -> None:
 
 
 @pytest.mark.slow
-def test_choosing_the_untrained_model_shows_a_warning(browser: Any, tmp_path: Path) -> None:
-    with run_uvicorn(tmp_path, models="lite,full") as server:
+def test_choosing_an_untrained_model_shows_a_warning(browser: Any, tmp_path: Path) -> None:
+    untrained = write_untrained(tmp_path / "full.pt")
+    with run_uvicorn(tmp_path, models="lite,full", weights=f"full={untrained}") as server:
         context = browser.new_context(viewport={"width": 1280, "height": 900})
         try:
             page = context.new_page()
