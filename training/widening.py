@@ -74,7 +74,7 @@ def same(channels: int) -> Space:
     return list(range(channels))
 
 
-def widened(weight: Tensor, out_space: Space, in_space: Space) -> Tensor:
+def widened_conv(weight: Tensor, out_space: Space, in_space: Space) -> Tensor:
     """A conv weight (O, I, ...) of lite widened to (len(out_space), len(in_space), ...): each
     full output channel copies its source's weights, each input channel's divided by the number
     of its source's copies; new channels zero."""
@@ -88,6 +88,7 @@ def widened(weight: Tensor, out_space: Space, in_space: Space) -> Tensor:
 
 
 def widened_bias(bias: Tensor, out_space: Space) -> Tensor:
+    """A conv bias (O,) of lite widened to (len(out_space),): copied, new channels zero."""
     return torch.stack([bias[s] if s is not None else bias.new_zeros(()) for s in out_space])
 
 
@@ -176,7 +177,7 @@ def widen(lite_state: dict[str, Tensor], lite: ModelConfig, full: ModelConfig, n
         state["update.gru.zr1.0.weight"], state["update.gru.zr1.0.bias"] = centre_taps(kernel, full_width), bias
     wide = {}
     for name, (out_space, in_space) in parameter_spaces(lite, full).items():
-        weight = widened(state[f"{name}.weight"], out_space, in_space)
+        weight = widened_conv(state[f"{name}.weight"], out_space, in_space)
         wide[f"{name}.weight"] = weight + noise * weight.std() * torch.randn_like(weight)
         wide[f"{name}.bias"] = widened_bias(state[f"{name}.bias"], out_space)
     return wide
