@@ -9,7 +9,8 @@ import torch
 from crestereo_pp.model.config import ModelConfig
 from crestereo_pp.model.network import CREStereoPP
 from crestereo_pp.model.weights import WEIGHTS_DIR, is_trained, network_from_weights
-from crestereo_pp.training.widening import centre_taps, combined_gate, copies, widen, widened_weights
+from crestereo_pp.stereo_data.synthetic import SceneConfig, SceneGenerator
+from crestereo_pp.training.widening import copies, fitted_gate, widen, widened_weights
 from tests.shared_data import SMALL_STEREO_DEV_PAIR, STEREO_DEV
 
 
@@ -49,19 +50,34 @@ def test_the_widened_network_computes_what_lite_computes_where_their_architectur
     assert 0 < differs < 0.1 * expected.disparity.abs().max()  # copies pulled apart, a little
 
 
-def test_lites_super_kernel_gate_is_one_convolution_of_the_two_combined_away_from_the_borders():
-    gate = CREStereoPP(ModelConfig.preset("lite")).update.gru.zr1
+def test_fulls_gate_is_the_1x5_convolution_that_best_reproduces_lites_super_kernel_on_its_inputs():
+    """Fitted on four small procedural scenes, scored on the gate inputs of another scene: the 1x5
+    conv reproduces most of the variation of lite's chained 1x15 + 1x5 gate there."""
+    from crestereo_pp.model.weights import read_weights
+
+    lite = network_from_weights(read_weights(WEIGHTS_DIR / "lite.pt"), "lite")
+    weight, bias = fitted_gate(lite, 5, scenes=4, size=(96, 192))
+    gate = lite.update.gru.zr1
+    assert weight.shape == (gate[-1].out_channels, gate[0].in_channels, 1, 5) and bias.shape == (weight.shape[0],)
+    inputs = []
+    hook = lite.update.gru.register_forward_pre_hook(lambda module, args: inputs.append(args))
+    terms = lite.update.context_terms
+    contexts = []
+    lite.update.context_terms = lambda context: contexts.append(context) or terms(context)
+    try:
+        scene = SceneGenerator(SceneConfig(height=64, width=128, max_disparity=24.0)).generate(1, seed=99)
+        with torch.no_grad():
+            lite.eval()(scene.left, scene.right)
+    finally:
+        hook.remove()
+        del lite.update.context_terms
+    h, motion = inputs[-1][:2]
+    x = torch.cat((h, motion, contexts[-1]), dim=1)  # the last (1/4) stage's last gate input
     with torch.no_grad():
-        for parameter in gate.parameters():
-            parameter.normal_()
-        x = torch.randn(1, gate[0].in_channels, 3, 40)
-        chained = gate(x)
-        kernel, bias = combined_gate(gate[0].weight, gate[0].bias, gate[1].weight, gate[1].bias)
-        combined = torch.nn.functional.conv2d(x, kernel, bias, padding=(0, kernel.shape[-1] // 2))
-    assert kernel.shape[-1] == 15 + 5 - 1
-    inner = slice(9, -9)  # zero padding reaches the chain's inner conv near the borders
-    torch.testing.assert_close(combined[..., inner], chained[..., inner], atol=1e-3, rtol=1e-4)
-    assert centre_taps(kernel, 5).shape[-1] == 5 and torch.equal(centre_taps(kernel, 5), kernel[..., 7:12])
+        target = gate(x)
+        fitted = torch.nn.functional.conv2d(x, weight, bias, padding=(0, 2))
+    relative = float((fitted - target).pow(2).mean() / target.var())
+    assert relative < 0.2, relative  # measured: 0.10
 
 
 @pytest.mark.skipif(not STEREO_DEV.is_dir(), reason=f"no real stereo pairs at {STEREO_DEV}")
