@@ -102,22 +102,19 @@ against 10.21 % dev bad-2)."""
 GATE_FIT_SIZE = (256, 512)
 
 
-def fitted_gate(
-    lite: CREStereoPP, width: int, scenes: int = GATE_FIT_SCENES, size: tuple[int, int] = GATE_FIT_SIZE
-) -> tuple[Tensor, Tensor]:
-    """The 1x`width` conv (2H, I, 1, width) and its bias (2H,) that best reproduce lite's
-    horizontal z/r gate (before the sigmoid; I = [h, motion, context]) in least squares, over the
-    inputs the gate meets at every iteration while `lite` computes `scenes` procedural scenes."""
-    from crestereo_pp.stereo_data.synthetic import SceneConfig, SceneGenerator
-
+def horizontal_gate(lite: CREStereoPP) -> tuple[nn.Sequential, nn.Conv2d, nn.Conv2d]:
+    """lite's horizontal z/r gate (the chain of convs), its first conv and its last."""
     gru = lite.update.gru
     assert isinstance(gru, SeparableConvGRU)  # lite's: a 3x3 ConvGRU has no horizontal gate
-    gate, first, last = gru.zr1, gru.zr1[0], gru.zr1[-1]
+    first, last = gru.zr1[0], gru.zr1[-1]
     assert isinstance(first, nn.Conv2d) and isinstance(last, nn.Conv2d)
-    inputs, outputs = first.in_channels, last.out_channels
-    features = inputs * width + 1  # each input channel at `width` columns, and the bias
-    normal = torch.zeros(features, features, dtype=torch.float64)
-    moments = torch.zeros(features, outputs, dtype=torch.float64)
+    return gru.zr1, first, last
+
+
+def gate_inputs(lite: CREStereoPP, left: Tensor, right: Tensor) -> list[Tensor]:
+    """The inputs [h, motion, context] (B, I, h, w) that lite's horizontal gate meets at every
+    iteration, in order, while `lite` computes the (B, 3, H, W) pair."""
+    inputs: list[Tensor] = []
     context: list[Tensor] = []
     context_terms = lite.update.context_terms
 
@@ -125,25 +122,43 @@ def fitted_gate(
         context[:] = [stage_context]
         return context_terms(stage_context)
 
-    def accumulate(_: nn.Module, args: tuple[Tensor, ...]) -> None:
-        x = torch.cat((args[0], args[1], context[0]), dim=1)  # the gate's input [h, motion, context]
-        columns = F.unfold(x, (1, width), padding=(0, width // 2))  # (B, I * width, h * w), channel-major
-        rows = torch.cat((columns, torch.ones_like(columns[:, :1])), 1).transpose(1, 2).reshape(-1, features)
-        target = gate(x).flatten(2).transpose(1, 2).reshape(-1, outputs)
-        normal.add_(rows.T.double() @ rows.double())
-        moments.add_(rows.T.double() @ target.double())
+    def record(_: nn.Module, args: tuple[Tensor, ...]) -> None:
+        inputs.append(torch.cat((args[0], args[1], context[0]), dim=1))
 
-    generator = SceneGenerator(SceneConfig(height=size[0], width=size[1], max_disparity=96.0 * size[1] / 512))
-    hook = gru.register_forward_pre_hook(accumulate)
+    hook = lite.update.gru.register_forward_pre_hook(record)
     setattr(lite.update, "context_terms", recording_context)  # noqa: B010 (the instance's, over the class's method)
     try:
         with torch.no_grad():
-            for start in range(0, scenes, 4):
-                batch = generator.generate(min(4, scenes - start), seed=start)
-                lite.eval()(batch.left, batch.right)
+            lite.eval()(left, right)
     finally:
         hook.remove()
         del lite.update.context_terms  # the class's method again
+    return inputs
+
+
+def fitted_gate(
+    lite: CREStereoPP, width: int, scenes: int = GATE_FIT_SCENES, size: tuple[int, int] = GATE_FIT_SIZE
+) -> tuple[Tensor, Tensor]:
+    """The 1x`width` conv (2H, I, 1, width) and its bias (2H,) that best reproduce lite's
+    horizontal z/r gate (before the sigmoid; I = [h, motion, context]) in least squares, over the
+    inputs the gate meets (`gate_inputs`) while `lite` computes `scenes` procedural scenes."""
+    from crestereo_pp.stereo_data.synthetic import SceneConfig, SceneGenerator
+
+    gate, first, last = horizontal_gate(lite)
+    inputs, outputs = first.in_channels, last.out_channels
+    features = inputs * width + 1  # each input channel at `width` columns, and the bias
+    normal = torch.zeros(features, features, dtype=torch.float64)
+    moments = torch.zeros(features, outputs, dtype=torch.float64)
+    generator = SceneGenerator(SceneConfig(height=size[0], width=size[1], max_disparity=96.0 * size[1] / 512))
+    for start in range(0, scenes, 4):
+        batch = generator.generate(min(4, scenes - start), seed=start)
+        for x in gate_inputs(lite, batch.left, batch.right):
+            columns = F.unfold(x, (1, width), padding=(0, width // 2))  # (B, I * width, h * w), channel-major
+            rows = torch.cat((columns, torch.ones_like(columns[:, :1])), 1).transpose(1, 2).reshape(-1, features)
+            with torch.no_grad():
+                target = gate(x).flatten(2).transpose(1, 2).reshape(-1, outputs)
+            normal.add_(rows.T.double() @ rows.double())
+            moments.add_(rows.T.double() @ target.double())
     ridge = 1e-6 * normal.diagonal().mean() * torch.eye(features, dtype=torch.float64)
     solution = torch.linalg.solve(normal + ridge, moments).float()  # (I * width + 1, 2H)
     return solution[:-1].T.reshape(outputs, inputs, 1, width).contiguous(), solution[-1].contiguous()

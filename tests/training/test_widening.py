@@ -10,7 +10,7 @@ from crestereo_pp.model.config import ModelConfig
 from crestereo_pp.model.network import CREStereoPP
 from crestereo_pp.model.weights import WEIGHTS_DIR, is_trained, network_from_weights
 from crestereo_pp.stereo_data.synthetic import SceneConfig, SceneGenerator
-from crestereo_pp.training.widening import copies, fitted_gate, widen, widened_weights
+from crestereo_pp.training.widening import copies, fitted_gate, gate_inputs, horizontal_gate, widen, widened_weights
 from tests.shared_data import SMALL_STEREO_DEV_PAIR, STEREO_DEV
 
 
@@ -57,22 +57,10 @@ def test_fulls_gate_is_the_1x5_convolution_that_best_reproduces_lites_super_kern
 
     lite = network_from_weights(read_weights(WEIGHTS_DIR / "lite.pt"), "lite")
     weight, bias = fitted_gate(lite, 5, scenes=4, size=(96, 192))
-    gate = lite.update.gru.zr1
-    assert weight.shape == (gate[-1].out_channels, gate[0].in_channels, 1, 5) and bias.shape == (weight.shape[0],)
-    inputs = []
-    hook = lite.update.gru.register_forward_pre_hook(lambda module, args: inputs.append(args))
-    terms = lite.update.context_terms
-    contexts = []
-    lite.update.context_terms = lambda context: contexts.append(context) or terms(context)
-    try:
-        scene = SceneGenerator(SceneConfig(height=64, width=128, max_disparity=24.0)).generate(1, seed=99)
-        with torch.no_grad():
-            lite.eval()(scene.left, scene.right)
-    finally:
-        hook.remove()
-        del lite.update.context_terms
-    h, motion = inputs[-1][:2]
-    x = torch.cat((h, motion, contexts[-1]), dim=1)  # the last (1/4) stage's last gate input
+    gate, first, last = horizontal_gate(lite)
+    assert weight.shape == (last.out_channels, first.in_channels, 1, 5) and bias.shape == (weight.shape[0],)
+    scene = SceneGenerator(SceneConfig(height=64, width=128, max_disparity=24.0)).generate(1, seed=99)
+    x = gate_inputs(lite, scene.left, scene.right)[-1]  # the last (1/4) stage's last gate input
     with torch.no_grad():
         target = gate(x)
         fitted = torch.nn.functional.conv2d(x, weight, bias, padding=(0, 2))
