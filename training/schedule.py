@@ -44,8 +44,24 @@ def build_scheduler(
 ) -> torch.optim.lr_scheduler.LambdaLR:
     """A LambdaLR applying `learning_rate_factor`; its state_dict holds only the step count, so a
     resumed run with a different `total_steps` follows the new horizon from where it stands."""
+    scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda step: 1.0)
+    set_horizon(scheduler, total_steps, schedule, warmup_fraction, decay_steps)
+    return scheduler
+
+
+def set_horizon(
+    scheduler: torch.optim.lr_scheduler.LambdaLR,
+    total_steps: int,
+    schedule: Schedule,
+    warmup_fraction: float,
+    decay_steps: int = 0,
+) -> None:
+    """Make `scheduler` follow `learning_rate_factor` over `total_steps` from the step it stands at:
+    the optimiser's lr is set at once to the new schedule's value for that step."""
 
     def factor(step: int) -> float:
         return learning_rate_factor(step, total_steps, schedule, warmup_fraction, decay_steps)
 
-    return torch.optim.lr_scheduler.LambdaLR(optimizer, factor)
+    scheduler.lr_lambdas = [factor] * len(scheduler.optimizer.param_groups)
+    for group, base_lr in zip(scheduler.optimizer.param_groups, scheduler.base_lrs, strict=True):
+        group["lr"] = base_lr * factor(scheduler.last_epoch)

@@ -6,7 +6,7 @@ import datetime as dt
 import random
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import torch
@@ -30,7 +30,7 @@ from .distributed import DistributedContext
 from .history import RunRecord, TrainingHistory
 from .loss import matching_loss, sequence_loss
 from .records import CsvLog, plot_curves, read_csv
-from .schedule import build_scheduler
+from .schedule import build_scheduler, set_horizon
 from .weight_average import WeightAverage
 
 CHECKPOINT_NAME = "checkpoint.pt"
@@ -181,6 +181,7 @@ class Trainer:
             dynamic_ncols=True,
         )
         run_start = window_start = time.monotonic()
+        first_step_end = run_start  # when this run's first step ended (a compile, autotuning: paid once)
         window_sums = torch.zeros(2, device=self.device)  # loss and train EPE, summed over the window's steps
         window_steps = 0
         step = self.start_step
@@ -193,7 +194,15 @@ class Trainer:
             step += 1
             bar.update(self.pairs_per_step)
 
-            run_minutes = (time.monotonic() - run_start) / 60.0
+            now = time.monotonic()
+            if step == self.start_step + 1:
+                first_step_end = now
+            elif step % config.log_every == 0 and config.max_minutes is not None:
+                seconds_per_step = (now - first_step_end) / (step - self.start_step - 1)
+                self.keep_in_time(step, seconds_per_step, 60.0 * config.max_minutes - (now - run_start))
+                config = self.config
+                bar.total = config.max_steps * self.pairs_per_step
+            run_minutes = (now - run_start) / 60.0
             out_of_time = self.context.any(
                 config.max_minutes is not None and run_minutes >= config.max_minutes, self.device
             )
@@ -222,10 +231,36 @@ class Trainer:
                 self.save(step, run_minutes)
             if step == self.decay_start and not finished and self.context.is_main:
                 write_weights(self.checkpoint(step, run_minutes), self.out_dir / STABLE_NAME)
-            if out_of_time:
+            if finished:
                 break
         bar.close()
         return TrainResult(step, self.out_dir / CHECKPOINT_NAME, out_of_time, self.network)
+
+    def keep_in_time(self, step: int, seconds_per_step: float, seconds_left: float) -> None:
+        """Where a flat-decay run that should end decayed (its schedule ends at max_steps) is at its
+        peak lr and its steps left no longer fit `seconds_left` (the time budget, max_minutes) at
+        `seconds_per_step`, bring its end forward to the last step that fits: the decay keeps its
+        length (or takes every step that fits, where fewer) and begins earlier, where the stable
+        branch is then written. A run sized by a step rate it does not reach (validations, another
+        GPU) so still ends decayed, instead of being cut at its peak lr by its time budget. All
+        processes take the same end (the mean of their estimates)."""
+        config = self.config
+        decay_start = self.decay_start
+        if decay_start is None or step >= decay_start or config.schedule_length != config.max_steps:
+            return
+        estimate = torch.tensor([seconds_left / max(seconds_per_step, 1e-9)], device=self.device)
+        steps_that_fit = int(self.context.mean(estimate).item())
+        if step + steps_that_fit >= config.max_steps:
+            return
+        end = step + max(1, steps_that_fit)
+        decay_steps = min(config.decay_steps, end - step)
+        self.config = replace(config, max_steps=end, schedule_steps=end, decay_steps=decay_steps)
+        set_horizon(self.scheduler, end, config.schedule, config.warmup_fraction, decay_steps)
+        if self.context.is_main:
+            tqdm.write(
+                f"train: {seconds_per_step:.3f} s per step leaves time for {steps_that_fit} more steps: "
+                f"the run now ends at step {end}, its decay begins at step {end - decay_steps}"
+            )
 
     @property
     def decay_start(self) -> int | None:

@@ -15,9 +15,11 @@ and the next stage runs), within one time budget:
                  batch 1x-8x the recipe's, plain AdamW, channels-last, torch.compile and CUDA graphs
                  (bench/train_speed.py's `measure` and `probe_rows`), at most two minutes
     train        --model (lite) from --weights (its shipped file) for the minutes left: a short
-                 probe run measures the step rate, then one run sized to end its flat-decay schedule
-                 (and its weight average's horizon) within the time left; a checkpoint with an
-                 optimiser state is resumed, a weights-only file starts a fresh optimiser
+                 probe run measures the step rate (with --adopt: the probe's best row, its rate
+                 measured), then one run sized to end its flat-decay schedule (and its weight
+                 average's horizon) within the time left, its decay brought forward where the run
+                 falls behind that rate; a checkpoint with an optimiser state is resumed, a
+                 weights-only file starts a fresh optimiser
     arms         (only when named in --stages, instead of train) a data candidate measured: the
                  recipe (control) and the recipe with --arm's settings (candidate), each trained
                  for the same steps from the same weights in half the time left, then scored with
@@ -27,13 +29,14 @@ and the next stage runs), within one time budget:
 
     python3 bench/gpu_check --out DIR [--minutes 9] [--stages S,...] [--data DIR] [--wheels DIR]
                             [--model lite|full] [--weights FILE] [--train-set KEY=VALUE ...]
-                            [--train-compile] [--adopt] [--arm KEY=VALUE ...]
+                            [--train-compile] [--adopt [--probe-from FILE]] [--arm KEY=VALUE ...]
     python3 bench/gpu_check --cpu-smoke --out DIR    # the same stages on the CPU, tiny
     python3 bench/gpu_check --pack-data [--data DIR]   # here, before a run: shared/stereo-dev.tar.gz
 
 DIR (or $GPU_CHECK_OUT, else $OUT) receives at most 8 files, each under 16 MiB: gpu_check.log
 (every stage's output), summary.md (stage results and tables), bench.json (the benchmark's
-numbers) and the training run's checkpoint.pt, log.csv, loss_curve.png (validation.csv with dev
+numbers, and the probe's under "probe": a later run's --probe-from FILE adopts from them without
+probing again) and the training run's checkpoint.pt, log.csv, loss_curve.png (validation.csv with dev
 pairs). --data: the real dev pairs (NAME/{left.png,right.png,disp.pfm}); by default $STEREO_DEV,
 shared/data/stereo-dev in the checkout or beside it, then the pairs --pack-data packed (unpacked into
 a scratch folder), else procedural scenes stand in. --wheels: a

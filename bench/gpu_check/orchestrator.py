@@ -91,6 +91,8 @@ def run_stages(
     summary after each."""
     deadline = time.monotonic() + 60.0 * plan.minutes
     results: dict[str, StageResult] = {}
+    if args.probe_from is not None:  # an earlier run's probe, in the shape the probe stage leaves (which replaces it)
+        (scratch / "probe.json").write_text(json.dumps({"data": args.probe_from}))
     for stage in args.stages:
         remaining = deadline - time.monotonic()
         if stage in ("train", "arms"):
@@ -120,10 +122,34 @@ def run_stages(
         print(line, flush=True)
         log.write(f"----- {line}\n")
         log.flush()
-        if stage == "bench" and result.data.get("rows"):
-            (out / "bench.json").write_text(json.dumps(result.data, indent=1))
+        numbers = returned_numbers(results)
+        if numbers:
+            (out / "bench.json").write_text(json.dumps(numbers, indent=1))
         write_summary(out, plan, data, results)
     return results
+
+
+def returned_numbers(results: dict[str, StageResult]) -> dict[str, Any]:
+    """bench.json: the bench stage's numbers, and under "probe" the probe stage's (what a later run's
+    --probe-from adopts from), each where its stage measured rows."""
+    numbers: dict[str, Any] = {}
+    if "bench" in results and results["bench"].data.get("rows"):
+        numbers |= results["bench"].data
+    if "probe" in results and results["probe"].data.get("rows"):
+        numbers["probe"] = results["probe"].data
+    return numbers
+
+
+def earlier_probe(text: str) -> dict[str, Any]:
+    """--probe-from FILE: the probe stage's numbers in an earlier run's bench.json (`returned_numbers`)."""
+    try:
+        probe = json.loads(Path(text).read_text())["probe"]
+        rows = probe["rows"]
+    except (OSError, ValueError, KeyError, TypeError) as error:
+        raise argparse.ArgumentTypeError(f"{text}: no probe rows there ({type(error).__name__}: {error})") from None
+    if not isinstance(rows, list) or not rows:
+        raise argparse.ArgumentTypeError(f"{text}: no probe rows there")
+    return dict(probe)
 
 
 def parse_arguments(argv: Sequence[str] | None) -> argparse.Namespace:
@@ -177,6 +203,13 @@ def parse_arguments(argv: Sequence[str] | None) -> argparse.Namespace:
         action="store_true",
         help="the training stage takes the probe's best setting for --model: the row that trains the most "
         "pairs in the time left (its pairs/s times that time less its first step, where compiling shows)",
+    )
+    parser.add_argument(
+        "--probe-from",
+        type=earlier_probe,
+        metavar="FILE",
+        help="an earlier run's bench.json: --adopt takes its probe rows where this run runs no probe stage "
+        "(the training's own decay moves forward where that rate is not reached)",
     )
     parser.add_argument("--probe-result", type=Path, help=argparse.SUPPRESS)
     parser.add_argument("--stage", choices=STAGES, help=argparse.SUPPRESS)  # child mode

@@ -92,6 +92,26 @@ def test_the_cpu_smoke_run_passes_every_stage_and_keeps_to_the_output_limits(tmp
     assert checkpoint["step"] == shipped["step"] + 2 and checkpoint["model_name"] == "lite"
     assert len(checkpoint["training"]["runs"]) == len(shipped["training"]["runs"]) + 1
 
+    # bench.json keeps the probe's rows: a later run adopts from them without probing again
+    probed = {(row["model"], row["row"]) for row in bench["probe"]["rows"] if "skipped" not in row}
+    assert ("lite", adopted.group(1)) in probed
+    later = tmp_path / "later"
+    later_summary = smoke_run(later, "--stages", "train", "--adopt", "--probe-from", str(out / "bench.json"))
+    assert "| train | passed |" in later_summary and "| probe |" not in later_summary
+    log = (later / "gpu_check.log").read_text()
+    assert f"adopted the probe's row {adopted.group(1)} (CPU" in log and re.search(r"^adopted row: ", log, re.M)
+    assert read_weights(later / "checkpoint.pt")["step"] == shipped["step"] + 2
+
+
+def test_a_probe_from_file_without_probe_rows_is_refused_before_anything_runs(tmp_path):
+    bench_only = tmp_path / "bench.json"
+    bench_only.write_text(json.dumps({"device": "CPU", "rows": []}))
+    out = tmp_path / "out"
+    command = [sys.executable, "bench/gpu_check", "--cpu-smoke", "--adopt", "--probe-from", str(bench_only)]
+    completed = subprocess.run([*command, "--out", str(out)], cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert completed.returncode == 2 and f"--probe-from: {bench_only}: no probe rows there" in completed.stderr
+    assert not out.exists()
+
 
 def test_the_arms_stage_trains_a_candidate_and_the_recipe_for_equal_steps_and_scores_both(tmp_path):
     """Two dev pairs, one of them named as the Middlebury 2014 pairs are (scored apart too); the

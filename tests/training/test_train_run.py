@@ -160,6 +160,46 @@ def test_the_time_budget_stops_after_the_current_step_and_saves_it(tmp_path, rea
     assert read_weights(result.checkpoint)["step"] == 1
 
 
+class StepClock:
+    """A stand-in for the trainer's clock on which every training step takes `seconds`."""
+
+    def __init__(self, seconds: float) -> None:
+        self.now, self.seconds = 0.0, seconds
+
+    def monotonic(self) -> float:
+        return self.now
+
+
+def test_a_flat_decay_run_slower_than_planned_brings_its_decay_forward_to_end_decayed_within_its_time(
+    tmp_path, real_pairs, monkeypatch
+):
+    clock = StepClock(10.0)
+    monkeypatch.setattr(crestereo_pp.training.trainer, "time", clock)
+    real_step = crestereo_pp.training.trainer.Trainer.train_step
+
+    def timed_step(self, *args, **kwargs):
+        clock.now += clock.seconds
+        return real_step(self, *args, **kwargs)
+
+    monkeypatch.setattr(crestereo_pp.training.trainer.Trainer, "train_step", timed_step)
+    # planned: 20 steps, the last 8 decaying; the budget (155 s at 10 s a step) holds 15
+    config = tiny(tmp_path, sources=(real_pairs,), max_steps=20, schedule="flat-decay", decay_steps=8, lr=1e-4)
+    config = replace(config, max_minutes=155 / 60)
+    result = train(config, progress=False)
+
+    assert result.step == 15 and not result.out_of_time
+    lrs = [float(row["lr"]) for row in read_csv(tmp_path / "log.csv")]
+    assert lrs[:8] == pytest.approx([1e-4] * 8)  # the peak until the decay, which now begins at step 7
+    assert lrs[7:] == pytest.approx([1e-4 * (15 - step) / 8 for step in range(7, 15)])
+    assert read_weights(tmp_path / "stable.pt")["step"] == 7
+    assert read_weights(result.checkpoint)["train_config"]["max_steps"] == 15
+
+    # where the steps fit, nothing moves
+    clock.seconds, clock.now = 5.0, 0.0
+    result = train(replace(config, out_dir=str(tmp_path / "in-time")), progress=False)
+    assert result.step == 20 and read_weights(tmp_path / "in-time" / "stable.pt")["step"] == 12
+
+
 def test_resume_options_override_the_checkpoint_config(tmp_path, real_pairs):
     train(tiny(tmp_path, sources=(real_pairs,), max_steps=1, schedule="constant"), progress=False)
     checkpoint = tmp_path / "checkpoint.pt"

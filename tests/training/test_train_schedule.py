@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from crestereo_pp.training.schedule import build_scheduler, learning_rate_factor
+from crestereo_pp.training.schedule import build_scheduler, learning_rate_factor, set_horizon
 
 
 def test_warmup_ramps_linearly_to_the_peak():
@@ -39,3 +39,19 @@ def test_scheduler_sets_the_optimiser_lr_step_by_step():
 def test_flat_decay_holds_the_peak_then_decays_linearly_over_the_last_steps():
     factors = [learning_rate_factor(s, 100, "flat-decay", 0.0, decay_steps=20) for s in (0, 79, 80, 90, 99, 100)]
     assert factors == pytest.approx([1.0, 1.0, 1.0, 0.5, 0.05, 0.0])
+
+
+def test_a_new_horizon_takes_effect_from_the_step_the_scheduler_stands_at():
+    weight = torch.nn.Parameter(torch.zeros(1))
+    optimizer = torch.optim.AdamW([weight], lr=1.0)
+    scheduler = build_scheduler(optimizer, 100, "flat-decay", 0.0, decay_steps=20)
+    for _ in range(10):
+        optimizer.step()
+        scheduler.step()
+    set_horizon(scheduler, 14, "flat-decay", 0.0, decay_steps=4)  # the decay now begins at step 10
+    lrs = []
+    for _ in range(4):
+        lrs.append(optimizer.param_groups[0]["lr"])
+        optimizer.step()
+        scheduler.step()
+    assert lrs == pytest.approx([1.0, 0.75, 0.5, 0.25])

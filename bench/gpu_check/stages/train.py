@@ -98,11 +98,11 @@ def stage_recipe(
     recipe = recipe_of(args.model, plan, args)
     if not (args.adopt and args.probe_result is not None and args.probe_result.is_file()):
         return recipe, None
-    probe_rows_seen = json.loads(args.probe_result.read_text())["data"].get("rows", [])
-    adopted = adopted_row(probe_rows_seen, args.model, (deadline - time.monotonic()) / runs)
+    probe = json.loads(args.probe_result.read_text())["data"]
+    adopted = adopted_row(probe.get("rows", []), args.model, (deadline - time.monotonic()) / runs)
     if adopted is None:
         return recipe, None
-    print(f"adopted the probe's row {adopted['row']}: {adopted['setting']}", flush=True)
+    print(f"adopted the probe's row {adopted['row']} ({probe.get('device')}): {adopted['setting']}", flush=True)
     return replace(recipe, **adopted["overrides"]), adopted
 
 
