@@ -318,3 +318,18 @@ def test_packed_dev_pairs_unpack_on_the_gpu_machine_to_the_same_pairs(bench_path
         a, b = unpacked[index], original[index]
         assert np.array_equal(a.left, b.left) and np.array_equal(a.right, b.right)
         assert np.array_equal(a.disparity, b.disparity) and np.array_equal(a.valid, b.valid)
+
+
+def test_the_probe_measures_every_models_eager_rows_before_any_compiled_row(bench_path):
+    """A compile takes minutes on a fresh machine: it must not leave full's rows unmeasured."""
+    from types import SimpleNamespace
+
+    from gpu_check.plans import GPU
+    from gpu_check.stages.probe import probe_order
+
+    recipe = SimpleNamespace(batch_size=16, lr=2e-4)
+    order = [(model, row.name) for model, row in probe_order(GPU, {"lite": recipe, "full": recipe}, compiled=True)]
+    compiled = [(model, name) for model in ("lite", "full") for name in ("compile", "cuda-graphs")]
+    eager = [(model, f"batch{16 * factor}") for model in ("lite", "full") for factor in (1, 2, 4, 8)]
+    eager[4:4] = [("lite", "foreach-adamw"), ("lite", "channels-last")]
+    assert order == eager + compiled
