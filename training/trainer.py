@@ -240,8 +240,8 @@ class Trainer:
         """Where a flat-decay run that should end decayed (its schedule ends at max_steps) is at its
         peak lr and its steps left no longer fit `seconds_left` (the time budget, max_minutes) at
         `seconds_per_step`, bring its end forward to the last step that fits: the decay keeps its
-        length (or takes every step that fits, where fewer) and begins earlier, where the stable
-        branch is then written. A run sized by a step rate it does not reach (validations, another
+        share of the run (or takes every step that fits, where fewer) and begins earlier, where
+        the stable branch is then written. A run sized by a step rate it does not reach (validations, another
         GPU) so still ends decayed, instead of being cut at its peak lr by its time budget. All
         processes take the same end (the mean of their estimates)."""
         config = self.config
@@ -253,7 +253,9 @@ class Trainer:
         if step + steps_that_fit >= config.max_steps:
             return
         end = step + max(1, steps_that_fit)
-        decay_steps = min(config.decay_steps, end - step)
+        # the decay's share of the run as planned, of the run as it now ends (at most all that is left)
+        share = config.decay_steps / (config.max_steps - self.start_step)
+        decay_steps = max(1, min(end - step, round(share * (end - self.start_step))))
         self.config = replace(config, max_steps=end, schedule_steps=end, decay_steps=decay_steps)
         set_horizon(self.scheduler, end, config.schedule, config.warmup_fraction, decay_steps)
         if self.context.is_main:

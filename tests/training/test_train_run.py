@@ -170,7 +170,7 @@ class StepClock:
         return self.now
 
 
-def test_a_flat_decay_run_slower_than_planned_brings_its_decay_forward_to_end_decayed_within_its_time(
+def test_a_flat_decay_run_slower_than_planned_brings_its_decay_forward_to_end_decayed_in_its_time(
     tmp_path, real_pairs, monkeypatch
 ):
     clock = StepClock(10.0)
@@ -189,9 +189,10 @@ def test_a_flat_decay_run_slower_than_planned_brings_its_decay_forward_to_end_de
 
     assert result.step == 15 and not result.out_of_time
     lrs = [float(row["lr"]) for row in read_csv(tmp_path / "log.csv")]
-    assert lrs[:8] == pytest.approx([1e-4] * 8)  # the peak until the decay, which now begins at step 7
-    assert lrs[7:] == pytest.approx([1e-4 * (15 - step) / 8 for step in range(7, 15)])
-    assert read_weights(tmp_path / "stable.pt")["step"] == 7
+    # the peak until the decay, which keeps its share of the run (0.4: 6 of 15 steps) and begins at step 9
+    assert lrs[:10] == pytest.approx([1e-4] * 10)
+    assert lrs[9:] == pytest.approx([1e-4 * (15 - step) / 6 for step in range(9, 15)])
+    assert read_weights(tmp_path / "stable.pt")["step"] == 9
     assert read_weights(result.checkpoint)["train_config"]["max_steps"] == 15
 
     # where the steps fit, nothing moves
