@@ -162,6 +162,7 @@ def test_the_arms_stage_trains_a_candidate_and_the_recipe_for_equal_steps_and_sc
     assert {path.name for path in out.iterdir()} == {
         "gpu_check.log",
         "summary.md",
+        "bench.json",  # the probe's rows, for a later run's --probe-from
         *(f"arm-{name}{part}.pt" for name in ("control", "candidate") for part in ("", "-stable")),
     }
 
