@@ -98,6 +98,7 @@ class Trainer:
         init_weights: Path | None,
     ) -> None:
         self.config, self.context, self.device = config, context, device
+        self.planned = config  # the run as configured; keep_in_time sizes self.config's end within it
         source_path = resume or init_weights
         source = read_weights(source_path) if source_path is not None else None
         if source is not None and source.get("model_name", config.model) != config.model:
@@ -237,24 +238,25 @@ class Trainer:
         return TrainResult(step, self.out_dir / CHECKPOINT_NAME, out_of_time, self.network)
 
     def keep_in_time(self, step: int, seconds_per_step: float, seconds_left: float) -> None:
-        """Where a flat-decay run that should end decayed (its schedule ends at max_steps) is at its
-        peak lr and its steps left no longer fit `seconds_left` (the time budget, max_minutes) at
-        `seconds_per_step`, bring its end forward to the last step that fits: the decay keeps its
-        share of the run (or takes every step that fits, where fewer) and begins earlier, where
-        the stable branch is then written. A run sized by a step rate it does not reach (validations, another
-        GPU) so still ends decayed, instead of being cut at its peak lr by its time budget. All
-        processes take the same end (the mean of their estimates)."""
-        config = self.config
+        """Size a flat-decay run that should end decayed (its schedule ends at max_steps) to its time
+        budget (max_minutes): while at its peak lr, at each log row, its end becomes the last step
+        that fits `seconds_left` at `seconds_per_step`, never past the planned end. The decay keeps
+        its planned share of the run (or takes every step that fits, where fewer) and begins where
+        the stable branch is then written. A run sized by a step rate it does not reach
+        (validations, another GPU) so still ends decayed instead of being cut at its peak lr, and
+        one whose first steps ran slow (warm-up, a busy machine) takes back the steps it can.
+        All processes take the same end (the mean of their estimates)."""
+        planned, config = self.planned, self.config
         decay_start = self.decay_start
-        if decay_start is None or step >= decay_start or config.schedule_length != config.max_steps:
+        if decay_start is None or step >= decay_start or planned.schedule_length != planned.max_steps:
             return
         estimate = torch.tensor([seconds_left / max(seconds_per_step, 1e-9)], device=self.device)
         steps_that_fit = int(self.context.mean(estimate).item())
-        if step + steps_that_fit >= config.max_steps:
+        end = min(planned.max_steps, step + max(1, steps_that_fit))
+        if end == config.max_steps:
             return
-        end = step + max(1, steps_that_fit)
         # the decay's share of the run as planned, of the run as it now ends (at most all that is left)
-        share = config.decay_steps / (config.max_steps - self.start_step)
+        share = planned.decay_steps / (planned.max_steps - self.start_step)
         decay_steps = max(1, min(end - step, round(share * (end - self.start_step))))
         self.config = replace(config, max_steps=end, schedule_steps=end, decay_steps=decay_steps)
         set_horizon(self.scheduler, end, config.schedule, config.warmup_fraction, decay_steps)

@@ -201,6 +201,32 @@ def test_a_flat_decay_run_slower_than_planned_brings_its_decay_forward_to_end_de
     assert result.step == 20 and read_weights(tmp_path / "in-time" / "stable.pt")["step"] == 12
 
 
+def test_a_flat_decay_run_whose_first_steps_ran_slow_takes_back_the_steps_that_fit_once_it_speeds_up(
+    tmp_path, real_pairs, monkeypatch
+):
+    clock = StepClock(5.0)
+    monkeypatch.setattr(crestereo_pp.training.trainer, "time", clock)
+    real_step = crestereo_pp.training.trainer.Trainer.train_step
+    steps_taken = []
+
+    def timed_step(self, *args, **kwargs):
+        steps_taken.append(1)
+        clock.now += 20.0 if len(steps_taken) in (2, 3) else 5.0  # steps 2 and 3 slow, the rest 5 s
+        return real_step(self, *args, **kwargs)
+
+    monkeypatch.setattr(crestereo_pp.training.trainer.Trainer, "train_step", timed_step)
+    # planned: 20 steps, the last 8 decaying, in 155 s; after step 2 the rate so far (20 s a step) fits
+    # only 8 steps, but as the 5 s steps come in the end moves out again, up to step 19
+    config = tiny(tmp_path, sources=(real_pairs,), max_steps=20, schedule="flat-decay", decay_steps=8, lr=1e-4)
+    result = train(replace(config, max_minutes=155 / 60), progress=False)
+
+    assert result.step == 19 and not result.out_of_time and clock.now <= 155
+    lrs = [float(row["lr"]) for row in read_csv(tmp_path / "log.csv")]
+    assert lrs[:11] == pytest.approx([1e-4] * 11)  # at the peak until the decay that fits: 8 of 19 steps
+    assert lrs[11:] == pytest.approx([1e-4 * (19 - step) / 8 for step in range(11, 19)])
+    assert read_weights(tmp_path / "stable.pt")["step"] == 11
+
+
 def test_resume_options_override_the_checkpoint_config(tmp_path, real_pairs):
     train(tiny(tmp_path, sources=(real_pairs,), max_steps=1, schedule="constant"), progress=False)
     checkpoint = tmp_path / "checkpoint.pt"
