@@ -35,7 +35,14 @@ def ray_job(lefts: Path, rights: Path, out: Path, *extra: str) -> subprocess.Pop
     command += ["--uncertainty", str(out / "uncertainty"), "--mkdir", "--backend", "torch", "--ray", "--workers", "2"]
     environment = {**os.environ, "PYTHONWARNINGS": "ignore::RuntimeWarning"}
     return subprocess.Popen(
-        [*command, *extra], cwd=REPO, env=environment, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+        [*command, *extra],
+        cwd=REPO,
+        env=environment,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        # Ctrl-C acts as at a terminal whatever this process inherited or set (an ignored SIGINT is inherited)
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )
 
 
