@@ -238,9 +238,12 @@ def test_memory_settles_under_a_stream_of_new_image_sizes(tmp_path):
             for chunk in (sizes[:18], sizes[18:36], sizes[36:]):
                 assert {response.status_code for response in pool.map(post, chunk)} == {200}
                 resident.append(resident_mib())
-    # 54 sizes took it 99-156 MiB above where one small pair left it, when every pair ran at its own
-    # size; without those defaults, 375-442 MiB. The pairs of 192 px a side and more now also run
-    # enlarged (two_pass="auto", up to 1.5x: more and larger shapes): 263 MiB, all of it in the first 18.
+    # What the process keeps is mostly memory malloc holds free, fragmented as the threads' timing
+    # falls, so it varies from run to run even with the client's requests one at a time. In 22 runs
+    # on a 2-core AMX VM: 173-342 MiB above where one small pair left it, of which the last 18 sizes
+    # added -31 to +64. Without the server's defaults (ONEDNN_PRIMITIVE_CACHE_CAPACITY=1024,
+    # MALLOC_ARENA_MAX=16 in the environment) the same stream took it 598-700 MiB up. A process
+    # that held on to something per request would grow by the last 18 sizes as by the first.
     trace = " -> ".join(f"{r:.0f}" for r in resident)
-    assert resident[-1] - resident[0] < 320, "resident memory followed the new sizes: " + trace
-    assert resident[-1] - resident[1] < 64, "resident memory kept growing after the first 18 sizes: " + trace
+    assert resident[-1] - resident[0] < 450, "resident memory followed the new sizes: " + trace
+    assert resident[-1] - resident[-2] < 96, "resident memory kept growing over the last 18 sizes: " + trace
