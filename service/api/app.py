@@ -69,10 +69,15 @@ def create_app(
     app.state.uploads = ByteBudget(settings.max_upload_bytes)  # request bodies
     app.state.stream_bytes = ByteBudget(settings.max_stream_bytes, "stream images")  # apart from the bodies'
     app.state.streams = StreamSlots(settings.max_streams, settings.max_streams_per_client)
-    app.state.freed_memory = FreedMemory()  # given back after streams end
+    app.state.freed_memory = FreedMemory()  # given back after streams end and when no request is in progress
     app.add_middleware(UploadBudgetMiddleware, budget=app.state.uploads, metrics=runtime.metrics)
     app.add_middleware(RequestSizeLimitMiddleware, max_bytes=settings.max_body_bytes, metrics=runtime.metrics)
-    app.add_middleware(ConcurrencyLimitMiddleware, max_requests=settings.max_requests, metrics=runtime.metrics)
+    app.add_middleware(
+        ConcurrencyLimitMiddleware,
+        max_requests=settings.max_requests,
+        metrics=runtime.metrics,
+        freed_memory=app.state.freed_memory,
+    )
     app.add_middleware(ApiKeyMiddleware, settings=settings)  # before any limit: a refused request holds nothing
     app.add_middleware(  # outside the limits: an answer held back holds none of them
         ClientErrorPaceMiddleware,

@@ -21,6 +21,7 @@ from crestereo_pp.service.api.metrics import Metrics
 from crestereo_pp.service.api.query import query_too_long
 from crestereo_pp.service.settings import Settings
 from crestereo_pp.service.uploads.budgets import ByteBudget
+from crestereo_pp.service.uploads.memory import IDLE_TRIM_DELAY_S, FreedMemory
 
 REQUEST_ID_HEADER = "X-Request-Id"
 _VALID_REQUEST_ID = re.compile(r"[A-Za-z0-9._:-]{1,128}")
@@ -316,12 +317,15 @@ class UploadBudgetMiddleware:
 class ConcurrencyLimitMiddleware:
     """Answers 503 `overloaded` (JSON, with `Retry-After`) to a request arriving while
     `max_requests` others are in progress, so that a flood of uploads cannot hold every place:
-    the probes under `/health` are never counted nor refused, and keep answering."""
+    the probes under `/health` are never counted nor refused, and keep answering. When the last
+    request in progress ends, what the work left free goes back to the system (`freed_memory`),
+    unless another request has begun by then."""
 
-    def __init__(self, app: ASGIApp, max_requests: int, metrics: Metrics) -> None:
+    def __init__(self, app: ASGIApp, max_requests: int, metrics: Metrics, freed_memory: FreedMemory) -> None:
         self.app = app
         self.max_requests = max_requests
         self.metrics = metrics
+        self.freed_memory = freed_memory
         self.in_progress = 0
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
@@ -342,3 +346,5 @@ class ConcurrencyLimitMiddleware:
             await self.app(scope, receive, send)
         finally:
             self.in_progress -= 1
+            if self.in_progress == 0:
+                self.freed_memory.soon(IDLE_TRIM_DELAY_S, unless=lambda: self.in_progress > 0)
