@@ -347,4 +347,8 @@ class ConcurrencyLimitMiddleware:
         finally:
             self.in_progress -= 1
             if self.in_progress == 0:
-                self.freed_memory.soon(IDLE_TRIM_DELAY_S, unless=lambda: self.in_progress > 0)
+                self.freed_memory.soon(IDLE_TRIM_DELAY_S, unless=self.busy)
+
+    def busy(self) -> bool:
+        """Whether a request is in progress."""
+        return self.in_progress > 0

@@ -65,7 +65,7 @@ class FreedMemory:
         meanwhile (new work began: the trim would only have it fault the pages back in)."""
         if self._libc is None:
             return
-        if unless is not None:
+        if unless is not None and unless not in self._vetoes:  # one bound method: once
             self._vetoes.append(unless)
         loop = asyncio.get_running_loop()
         due = loop.time() + delay_s
