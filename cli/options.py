@@ -70,15 +70,22 @@ def add_model_options(parser: argparse.ArgumentParser) -> None:
         default=1.0,
         help="run the network on the pair resized by this factor in (0, 1] (faster; maps at full size) [1]",
     )
+    parser.add_argument(
+        "--flip",
+        action="store_true",
+        help="also compute the pair upside down and merge the two answers: about twice the time, fewer errors",
+    )
 
 
 def inference_options(args: argparse.Namespace) -> InferenceOptions:
-    """--iters, --two-pass, --scale (and --raw-uncertainty where the command has it) as one value,
+    """--iters, --two-pass, --scale, --flip (and --raw-uncertainty where the command has it) as one value,
     read by `InferenceOptions` as the service reads its query; a usage error where they are invalid."""
     from crestereo_pp.inference import InferenceOptions
 
     try:
-        return InferenceOptions(args.iters, args.two_pass, args.scale, getattr(args, "raw_uncertainty", False))
+        return InferenceOptions(
+            args.iters, args.two_pass, args.scale, getattr(args, "raw_uncertainty", False), args.flip
+        )
     except ValueError as error:
         raise SystemExit(f"crestereo-pp: {error}") from None
 

@@ -177,6 +177,7 @@ class StereoClient:
         scale: float | None = None,
         two_pass: bool | str = "auto",
         raw_uncertainty: bool = False,
+        flip: bool = False,
         focal_px: float | None = None,
         baseline_m: float | None = None,
         calibration: Calibration | None = None,
@@ -185,7 +186,9 @@ class StereoClient:
         """Disparity and uncertainty of a rectified pair, or of a raw pair with its `calibration`
         (raises `ServiceError` on an error answer). `two_pass`: True, False or "auto" (a quick pass
         decides: two passes where it finds large disparities, one elsewhere, the pair enlarged up
-        to 1.5x as far as their range allows, or shrunk where two passes could not hold it)."""
+        to 1.5x as far as their range allows, or shrunk where two passes could not hold it).
+        `flip`: also compute the pair upside down and merge the two answers (about twice the time,
+        fewer errors)."""
         request = _request(
             left,
             right,
@@ -196,6 +199,7 @@ class StereoClient:
                 scale=scale,
                 two_pass=two_pass,
                 raw_uncertainty=raw_uncertainty,
+                flip=flip or None,  # left out unless asked: a service without the option refuses it
                 focal_px=focal_px,
                 baseline_m=baseline_m,
                 frame=None if frame == "rectified" else frame,
@@ -219,6 +223,7 @@ class StereoClient:
         warm_iters: int | None = None,
         scale: float | None = None,
         raw_uncertainty: bool = False,
+        flip: bool = False,
         focal_px: float | None = None,
         baseline_m: float | None = None,
     ) -> DisparityStream:
@@ -230,6 +235,7 @@ class StereoClient:
             warm_iters=warm_iters,
             scale=scale,
             raw_uncertainty=raw_uncertainty,
+            flip=flip or None,
             focal_px=focal_px,
             baseline_m=baseline_m,
         )
@@ -340,6 +346,7 @@ class AsyncStereoClient:
         scale: float | None = None,
         two_pass: bool | str = "auto",
         raw_uncertainty: bool = False,
+        flip: bool = False,
         focal_px: float | None = None,
         baseline_m: float | None = None,
         calibration: Calibration | None = None,
@@ -355,6 +362,7 @@ class AsyncStereoClient:
                 scale=scale,
                 two_pass=two_pass,
                 raw_uncertainty=raw_uncertainty,
+                flip=flip or None,  # left out unless asked: a service without the option refuses it
                 focal_px=focal_px,
                 baseline_m=baseline_m,
                 frame=None if frame == "rectified" else frame,

@@ -228,6 +228,7 @@ def evaluate(
             "iters": options.iters,  # None: the model's own
             "two_pass": options.two_pass,
             "scale": options.scale,
+            "flip": options.flip,
             "uncertainty": (
                 f"P(error > {predictor.calibration.threshold_px:g} px), fitted on {predictor.calibration.fitted_on}"
                 if predictor.calibration is not None

@@ -72,6 +72,14 @@ class PaddedBatch:
         """One (1, C, h, w) tensor per pair, each padded, as one (B, C, H, W) batch."""
         return torch.cat([padding.pad(image) for padding, image in zip(self.paddings, images, strict=True)])
 
+    def upside_down(self, batch: Tensor) -> Tensor:
+        """The (B, C, H, W) `batch` with each pair's rows reversed within its own size, padded again
+        as ``stack`` pads it: the stack of the pairs upside down, and, applied to their maps, those
+        maps turned back (``inference.flip``)."""
+        if not self.mixed:
+            return batch.flip(-2)
+        return self.stack([padding.crop(batch[i : i + 1]).flip(-2) for i, padding in enumerate(self.paddings)])
+
     def served(self, raw: Tensor, disparity: Tensor, left: Tensor, right: Tensor, serve: ServeUncertainty) -> Tensor:
         """The uncertainty as served, (B, 1, H, W), of the batch's paper's U `raw` (B, 1, H, W)
         through `serve`: each pair's from its own maps and images (disparity (B, 1, H, W), `left`

@@ -96,6 +96,8 @@ class InferenceOptions:
         (True), never (False), or where the pair has large disparities ("auto"; see ``TwoPass``).
     scale: in (0, 1]: the network sees the pair resized by this factor; maps come at input size.
     raw_uncertainty: the paper's U instead of the calibrated probability of an error.
+    flip: also compute the pair upside down and merge the two answers (``inference.flip``):
+        about twice the time, fewer large errors.
     Hashable: requests with equal options (and shapes) may share a batch.
     """
 
@@ -103,6 +105,7 @@ class InferenceOptions:
     two_pass: TwoPass
     scale: float
     raw_uncertainty: bool
+    flip: bool
 
     def __init__(
         self,
@@ -110,11 +113,13 @@ class InferenceOptions:
         two_pass: str | bool = "auto",
         scale: float = 1.0,
         raw_uncertainty: bool = False,
+        flip: bool = False,
     ) -> None:
         object.__setattr__(self, "iters", parse_iterations(iters))
         object.__setattr__(self, "two_pass", parse_two_pass(two_pass))
         object.__setattr__(self, "scale", parse_scale(scale))
         object.__setattr__(self, "raw_uncertainty", raw_uncertainty)
+        object.__setattr__(self, "flip", flip)
 
     def keywords(self) -> dict[str, Any]:
         """The options as ``predict`` / ``predict_batch`` keywords."""
@@ -123,4 +128,5 @@ class InferenceOptions:
             "two_pass": self.two_pass,
             "scale": self.scale,
             "raw_uncertainty": self.raw_uncertainty,
+            "flip": self.flip,
         }

@@ -28,6 +28,7 @@ from crestereo_pp.model.weights import is_trained
 from .backend_choice import Backend, Precision
 from .batching import PaddedBatch, PairMaps, batch_groups
 from .cuda_graphs import GraphedForward
+from .flip import merge_flipped
 from .forward import Forward, Maps
 from .openvino_backend import MAX_COMPILED_BYTES, OpenVINOForward
 from .options import InferenceOptions, Iterations, IterationsGiven, StageCounts, TwoPass
@@ -155,6 +156,7 @@ class StereoPredictor:
         two_pass: TwoPass = "auto",
         scale: float = 1.0,
         raw_uncertainty: bool = False,
+        flip: bool = False,
     ) -> Prediction: ...
 
     @overload
@@ -168,6 +170,7 @@ class StereoPredictor:
         two_pass: TwoPass = "auto",
         scale: float = 1.0,
         raw_uncertainty: bool = False,
+        flip: bool = False,
     ) -> TensorPrediction: ...
 
     @torch.inference_mode()
@@ -181,10 +184,11 @@ class StereoPredictor:
         two_pass: TwoPass = "auto",
         scale: float = 1.0,
         raw_uncertainty: bool = False,
+        flip: bool = False,
     ) -> Prediction | TensorPrediction:
         """Disparity and uncertainty of a rectified pair of any size (see ``as_image_batch``).
 
-        iters, two_pass, scale, raw_uncertainty: read once, here, as ``InferenceOptions`` (see there).
+        iters, two_pass, scale, raw_uncertainty, flip: read once, here, as ``InferenceOptions`` (see there).
         init_disparity: warm start (e.g. the previous video frame's result), HxW array or
             (B, H, W) tensor, positive pixels: every stage runs (``iters``), the coarsest
             starting from it instead of from zero (see ``FrameStream``).
@@ -201,10 +205,12 @@ class StereoPredictor:
         raw_uncertainty: return the paper's U (in [0, 1], at most 0.5 after the first iteration)
             even when the weights carry a calibration; otherwise the uncertainty is the calibrated
             probability of an error above ``calibration.threshold_px`` where there is one.
+        flip: also compute the pair upside down and merge the two answers (``inference.flip``):
+            about twice the time, fewer large errors.
         A ``left`` array gives a ``Prediction`` (numpy arrays, copied from the device once); a
         ``left`` tensor a ``TensorPrediction`` (tensors on the predictor's device).
         """
-        options = InferenceOptions(iters, two_pass, scale, raw_uncertainty)
+        options = InferenceOptions(iters, two_pass, scale, raw_uncertainty, flip)
         left_batch, right_batch = as_image_batch(left, self.device), as_image_batch(right, self.device)
         inits = None
         if init_disparity is not None:  # (B, H, W) or H x W: one per pair of the batch
@@ -224,11 +230,12 @@ class StereoPredictor:
         two_pass: TwoPass = "auto",
         scale: float = 1.0,
         raw_uncertainty: bool = False,
+        flip: bool = False,
         init_disparities: Sequence[np.ndarray] | None = None,
     ) -> list[Prediction]:
         """Several pairs (arrays, as ``predict`` takes them) in one forward pass: ``predict_pairs``
         with the options read once, here, as ``InferenceOptions``, its maps copied to the host."""
-        options = InferenceOptions(iters, two_pass, scale, raw_uncertainty)
+        options = InferenceOptions(iters, two_pass, scale, raw_uncertainty, flip)
         return self.predict_pairs(lefts, rights, options, init_disparities).on_host()
 
     @torch.inference_mode()
@@ -272,15 +279,10 @@ class StereoPredictor:
         batches: list[tuple[list[int], PaddedBatch, Tensor, Tensor]] = []
         for group, two_pass in batch_groups(sizes, options.two_pass, init_disparities is not None, options.scale):
             batch = PaddedBatch.of([sizes[i] for i in group])
-            left = original_left = batch.stack([as_image_batch(lefts[i], self.device) for i in group])
-            right = original_right = batch.stack([as_image_batch(rights[i], self.device) for i in group])
-            height, width = left.shape[-2:]
-            size = scaled_size(height, width, options.scale)
-            if size != (height, width):
-                left, right = resize_images(left, size), resize_images(right, size)
-            if init_disparities is None:
-                disparity, uncertainty = cold_maps(left, right, iters, two_pass, forward, resize=options.scale == 1.0)
-            else:
+            left = batch.stack([as_image_batch(lefts[i], self.device) for i in group])
+            right = batch.stack([as_image_batch(rights[i], self.device) for i in group])
+            init = None
+            if init_disparities is not None:
                 init = batch.stack(
                     [
                         torch.as_tensor(init_disparities[i], dtype=torch.float32, device=self.device).reshape(
@@ -289,15 +291,52 @@ class StereoPredictor:
                         for i in group
                     ]
                 )
-                init = init if size == (height, width) else resize_disparity(init, *size)
-                disparity, uncertainty = forward(left, right, iters, init)
-            disparity, uncertainty = maps_at((disparity, uncertainty), height, width)
-            if not options.raw_uncertainty:
-                uncertainty = batch.served(
-                    uncertainty, disparity, original_left, original_right, self.served_uncertainty
+            disparity, uncertainty = self.batch_maps(batch, left, right, init, options, iters, two_pass, forward)
+            if options.flip:
+                turned = batch.upside_down
+                maps = self.batch_maps(
+                    batch,
+                    turned(left),
+                    turned(right),
+                    None if init is None else turned(init),
+                    options,
+                    iters,
+                    two_pass,
+                    forward,
                 )
+                disparity, uncertainty = merge_flipped(disparity, uncertainty, *(turned(x) for x in maps))
             batches.append((group, batch, disparity[:, 0], uncertainty[:, 0]))
         return PairMaps.of(batches)
+
+    def batch_maps(
+        self,
+        batch: PaddedBatch,
+        left: Tensor,
+        right: Tensor,
+        init: Tensor | None,
+        options: InferenceOptions,
+        iters: StageCounts,
+        two_pass: TwoPass,
+        forward: PaddedForward,
+    ) -> tuple[Tensor, Tensor]:
+        """The maps of one batch of ``predict_pairs`` (as ``batch`` pads it: `left`, `right`
+        (B, 3, H, W), `init` (B, 1, H, W) px or None for a cold start), computed once with
+        `options` (their ``flip`` aside) and `two_pass`: disparity and uncertainty (served, or
+        the paper's U with ``raw_uncertainty``), each (B, 1, H, W) at the batch's size."""
+        height, width = left.shape[-2:]
+        size = scaled_size(height, width, options.scale)
+        scaled_left, scaled_right = left, right
+        if size != (height, width):
+            scaled_left, scaled_right = resize_images(left, size), resize_images(right, size)
+        if init is None:
+            maps = cold_maps(scaled_left, scaled_right, iters, two_pass, forward, resize=options.scale == 1.0)
+        else:
+            init = init if size == (height, width) else resize_disparity(init, *size)
+            maps = forward(scaled_left, scaled_right, iters, init)
+        disparity, uncertainty = maps_at(maps, height, width)
+        if not options.raw_uncertainty:
+            uncertainty = batch.served(uncertainty, disparity, left, right, self.served_uncertainty)
+        return disparity, uncertainty
 
     def stream(self, options: InferenceOptions | None = None, warm_iters: IterationsGiven = None) -> FrameStream:
         """A video's pairs one at a time, each warm-started from the previous one (``FrameStream``)."""

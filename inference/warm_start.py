@@ -34,7 +34,11 @@ class WarmStart:
         self.options = options
         """A cold frame's options."""
         self.warm_options = InferenceOptions(
-            options.iters if warm_iters is None else warm_iters, False, options.scale, options.raw_uncertainty
+            options.iters if warm_iters is None else warm_iters,
+            False,
+            options.scale,
+            options.raw_uncertainty,
+            options.flip,
         )
         """A warm frame's options, read once for the whole stream (ValueError where `warm_iters` is invalid)."""
         self._previous: np.ndarray | None = None
@@ -72,6 +76,7 @@ class PairPredictor(Protocol):
         two_pass: TwoPass = "auto",
         scale: float = 1.0,
         raw_uncertainty: bool = False,
+        flip: bool = False,
     ) -> Prediction: ...
 
 

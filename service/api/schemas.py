@@ -88,6 +88,12 @@ class DisparityOptions(BaseModel):
         description="Return the paper's raw U (last iteration, in [0, 0.5] after the first) "
         "instead of the calibrated probability of an error above 2 px (see `uncertainty`).",
     )
+    flip: bool = Field(
+        False,
+        description="Also compute the pair upside down and merge the two answers (their mean where they "
+        "agree within 2 px, else the less uncertain one; the uncertainty is the mean of the two): about "
+        "twice the time, fewer errors.",
+    )
     color_min: FiniteFloat | None = Field(
         None,
         ge=-MAX_IMAGE_SIDE,
@@ -163,7 +169,7 @@ class DisparityOptions(BaseModel):
     def inference(self) -> InferenceOptions:
         """The options that say how the pair is computed (`inference.InferenceOptions`, which parses
         `iters`): read once per request, where the pipeline keys it (`answer_pair`), or once per stream."""
-        return InferenceOptions(self.iters, self.two_pass, self.scale, self.raw_uncertainty)
+        return InferenceOptions(self.iters, self.two_pass, self.scale, self.raw_uncertainty, self.flip)
 
     def scale_problem(self, height: int, width: int) -> str | None:
         """What is wrong with `scale` for a pair of this size (None: nothing)."""

@@ -90,16 +90,20 @@ TWO_PASS_COST = 1.0
 "auto" adds a pass at quarter resolution to one or the other (about 1/16 of the pixels)."""
 
 
-def relative_cost(counts: StageCounts, default_counts: StageCounts, scale: float, two_pass: TwoPass) -> float:
+def relative_cost(
+    counts: StageCounts, default_counts: StageCounts, scale: float, two_pass: TwoPass, flip: bool = False
+) -> float:
     """Compute of a request relative to a plain one of the same size (the model's own iteration
-    counts `default_counts`, scale 1, one pass): its iterations `counts` (at 1/16, 1/8, 1/4),
-    `scale` (the network sees scale^2 of the pixels) and `two_pass`."""
+    counts `default_counts`, scale 1, one pass, no flip): its iterations `counts` (at 1/16, 1/8,
+    1/4), `scale` (the network sees scale^2 of the pixels), `two_pass` and `flip` (all of it
+    twice, the second time upside down)."""
 
     def forward(iterations: tuple[int, int, int]) -> float:
         return FIXED_COST + sum(weight * n for weight, n in zip(STAGE_WEIGHTS, iterations, strict=True))
 
     cost = forward(counts) / forward(default_counts) * scale**2
-    return cost * TWO_PASS_COST if two_pass is not False else cost
+    cost = cost * TWO_PASS_COST if two_pass is not False else cost
+    return 2.0 * cost if flip else cost
 
 
 @dataclass(frozen=True)
@@ -138,7 +142,8 @@ class StereoBatches:
         upper bound: a pair whose disparities are too large for that factor is computed smaller)."""
         predictor = self.predictors[key.model]
         counts = predictor.iterations(key.options.iters)
-        cost = relative_cost(counts, predictor.config.iters, key.options.scale, key.options.two_pass)
+        options = key.options
+        cost = relative_cost(counts, predictor.config.iters, options.scale, options.two_pass, options.flip)
         if key.options.two_pass == "auto" and key.options.scale == 1.0 and not key.warm_start:
             cost *= largest_enlargement(key.height, key.width) ** 2
         return key.pixels * cost

@@ -108,10 +108,10 @@ def test_sgbm_rows_on_a_real_pair_match_the_stereo_dev_readme(small_stereo_dev, 
 
 def test_eval_runs_and_records_the_inference_knobs(pairs_dir, tmp_path):
     out = tmp_path / "report.json"
-    argv = ["eval", str(pairs_dir), "--device", "cpu", "--iters", "1", "1", "2", "--scale", "0.5"]
+    argv = ["eval", str(pairs_dir), "--device", "cpu", "--iters", "1", "1", "2", "--scale", "0.5", "--flip"]
     assert main([*argv, "--json", str(out)]) == 0
     model = json.loads(out.read_text())["model"]
-    assert (model["iters"], model["scale"], model["two_pass"]) == ([1, 1, 2], 0.5, "auto")
+    assert (model["iters"], model["scale"], model["two_pass"], model["flip"]) == ([1, 1, 2], 0.5, "auto", True)
     with pytest.raises(SystemExit, match="1 or 3 counts"):
         main(["eval", str(pairs_dir), "--device", "cpu", "--iters", "1", "2"])
 

@@ -51,10 +51,15 @@ async def test_the_async_client_gives_the_same_answer(default_server):
     left, right = stereo_pair()
     async with AsyncStereoClient(default_server.base_url) as service:
         result = await service.disparity(left, right)
+        flipped = await service.disparity(left, right, flip=True)
         with pytest.raises(ServiceError):
             await service.disparity(left, right[:, :-1])
     with StereoClient(default_server.base_url) as service:
         np.testing.assert_array_equal(result.disparity, service.disparity(left, right).disparity)
+        np.testing.assert_array_equal(flipped.disparity, service.disparity(left, right, flip=True).disparity)
+    direct = quiet_load_model("lite").predict(left, right, flip=True)
+    np.testing.assert_allclose(flipped.disparity, direct.disparity, rtol=1e-4, atol=1e-3)
+    assert np.abs(flipped.disparity - result.disparity).max() > 0.1  # the option reached the service
 
 
 @pytest.mark.slow

@@ -21,12 +21,15 @@ def test_iterations_other_than_one_or_three_counts_of_1_to_99_are_refused(given)
 
 def test_options_are_hashable_values_that_normalise_their_iterations_and_check_the_scale():
     assert InferenceOptions(iters=[1, 2, 4]) == InferenceOptions(iters="1,2,4") == InferenceOptions(iters=(1, 2, 4))
-    assert len({InferenceOptions(), InferenceOptions(), InferenceOptions(two_pass=True)}) == 2
+    assert (
+        len({InferenceOptions(), InferenceOptions(), InferenceOptions(two_pass=True), InferenceOptions(flip=True)}) == 3
+    )
     assert InferenceOptions(scale=0.5).keywords() == {
         "iters": None,
         "two_pass": "auto",
         "scale": 0.5,
         "raw_uncertainty": False,
+        "flip": False,
     }
     for scale in (0.0, 1.5, -1.0):
         with pytest.raises(ValueError, match="scale"):

@@ -129,6 +129,11 @@ async def test_grayscale_16_bit_and_jpeg_uploads_are_accepted():
         ({"scale": "0.5"}, {"scale": 0.5}),
         ({"scale": "0.5", "iters": "2", "two_pass": "true"}, {"scale": 0.5, "iters": 2, "two_pass": True}),
         ({"raw_uncertainty": "true"}, {"raw_uncertainty": True}),
+        ({"flip": "true"}, {"flip": True}),
+        (
+            {"flip": "true", "raw_uncertainty": "true", "iters": "2"},
+            {"flip": True, "raw_uncertainty": True, "iters": 2},
+        ),
     ],
 )
 async def test_inference_options_are_served_as_the_library_computes_them(params, knobs):
@@ -153,9 +158,10 @@ async def test_inference_options_are_served_as_the_library_computes_them(params,
         {"scale": "0"},
         {"scale": "1.5"},
         {"two_pass": "sometimes"},
+        {"flip": "upside"},
     ],
 )
-async def test_bad_iterations_scale_or_two_pass_get_422(params):
+async def test_bad_iterations_scale_two_pass_or_flip_get_422(params):
     async with serve_asgi() as h:
         response = await h.client.post("/disparity", params=params, files=pair_files(*stereo_pair()))
     assert (response.status_code, response.json()["error"]["code"]) == (422, "invalid_request")

@@ -49,6 +49,7 @@ def test_every_disparity_answer_is_documented_with_examples_of_its_error_codes()
         "iters",
         "scale",
         "raw_uncertainty",
+        "flip",
         "color_min",
         "color_max",
         "cx_px",

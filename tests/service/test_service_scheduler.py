@@ -127,12 +127,13 @@ def test_compute_times_are_running_means_weighting_the_newest_batch():
     assert lite.work_per_request == pytest.approx(0.75 * 1000 + 0.25 * 3000)
 
 
-def test_the_cost_of_a_request_follows_its_iterations_and_scale():
+def test_the_cost_of_a_request_follows_its_iterations_scale_and_flip():
     lite = (2, 4, 6)
     assert relative_cost(lite, lite, scale=1.0, two_pass=False) == 1.0
     assert relative_cost((99, 99, 99), lite, scale=1.0, two_pass=False) > 10  # the flood that once froze estimates
     assert relative_cost((1, 1, 1), lite, scale=1.0, two_pass=False) < 0.5
     assert relative_cost(lite, lite, scale=0.5, two_pass=False) == pytest.approx(0.25)
+    assert relative_cost(lite, lite, scale=0.5, two_pass=False, flip=True) == pytest.approx(0.5)  # all of it twice
 
 
 def test_costly_requests_neither_skew_the_estimate_of_plain_ones_nor_are_underestimated():

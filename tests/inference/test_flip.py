@@ -1,0 +1,82 @@
+"""Spec of `flip`: the pair computed as given and upside down, the two answers merged."""
+
+import warnings
+
+import numpy as np
+import pytest
+import torch
+
+from crestereo_pp.inference import InferenceOptions, load_model
+from crestereo_pp.inference.flip import AGREEMENT_PX, merge_flipped
+from crestereo_pp.inference.warm_start import WarmStart
+from crestereo_pp.stereo_data.readers import open_dataset
+from tests.shared_data import SMALL_STEREO_DEV_PAIR, STEREO_DEV
+
+
+@pytest.fixture(scope="module")
+def lite():
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return load_model("lite", weights=None)
+
+
+def maps(*values: float) -> torch.Tensor:
+    return torch.tensor(values, dtype=torch.float32).reshape(1, 1, 1, len(values))
+
+
+def test_answers_that_agree_are_averaged_and_of_two_that_disagree_the_less_uncertain_is_kept():
+    near = AGREEMENT_PX - 0.5
+    disparity, uncertainty = merge_flipped(
+        maps(10.0, 10.0, 10.0, 10.0),
+        maps(0.1, 0.1, 0.2, 0.6),
+        maps(10.0 + near, 10.0 + near, 20.0, 20.0),
+        maps(0.3, 0.9, 0.4, 0.2),
+    )
+    assert disparity.flatten().tolist() == pytest.approx([10.0 + near / 2, 10.0 + near / 2, 10.0, 20.0])
+    assert uncertainty.flatten().tolist() == pytest.approx([0.2, 0.5, 0.3, 0.4])  # the mean of the two
+
+
+def small_real_pair() -> tuple[np.ndarray, np.ndarray]:
+    if not (STEREO_DEV / SMALL_STEREO_DEV_PAIR).is_dir():
+        pytest.skip(f"needs the shared stereo-dev pairs ({STEREO_DEV})")
+    dataset = open_dataset(STEREO_DEV)
+    sample = dataset[[files.name for files in dataset.files].index(SMALL_STEREO_DEV_PAIR)]
+    return sample.left[:192, :256], sample.right[:192, :256]  # the top left of Tsukuba
+
+
+@pytest.mark.parametrize("raw_uncertainty", [False, True])
+def test_flip_merges_the_answer_with_that_of_the_pair_upside_down_turned_back(lite, raw_uncertainty):
+    left, right = small_real_pair()
+    given = lite.predict(left, right, raw_uncertainty=raw_uncertainty)
+    upside_down = lite.predict(left[::-1].copy(), right[::-1].copy(), raw_uncertainty=raw_uncertainty)
+    expected = merge_flipped(
+        *(
+            torch.from_numpy(x.copy())[None, None]
+            for x in (*given, upside_down.disparity[::-1], upside_down.uncertainty[::-1])
+        )
+    )
+    flipped = lite.predict(left, right, raw_uncertainty=raw_uncertainty, flip=True)
+    np.testing.assert_allclose(flipped.disparity, expected[0][0, 0].numpy(), atol=1e-4)
+    np.testing.assert_allclose(flipped.uncertainty, expected[1][0, 0].numpy(), atol=1e-5)
+    # a real pair: the two answers differ somewhere, and the merge is neither of them
+    assert not np.allclose(flipped.disparity, given.disparity, atol=1e-3)
+    assert not np.allclose(flipped.disparity, upside_down.disparity[::-1], atol=1e-3)
+
+
+def test_flip_turns_each_pair_of_a_padded_batch_within_its_own_size(lite):
+    rng = np.random.default_rng(4)
+    sizes = [(64, 96), (50, 90), (60, 70)]  # padded to 64x96 in the batch as each is alone
+    pairs = [tuple(rng.integers(0, 256, (h, w, 3), dtype=np.uint8) for _ in range(2)) for h, w in sizes]
+    batched = lite.predict_batch(
+        [p[0] for p in pairs], [p[1] for p in pairs], iters=(1, 1, 2), two_pass=False, flip=True
+    )
+    for (left, right), result in zip(pairs, batched, strict=True):
+        alone = lite.predict(left, right, iters=(1, 1, 2), two_pass=False, flip=True)
+        assert result.disparity.shape == left.shape[:2]
+        np.testing.assert_allclose(result.disparity, alone.disparity, rtol=1e-4, atol=1e-3)
+        np.testing.assert_allclose(result.uncertainty, alone.uncertainty, rtol=1e-4, atol=1e-4)
+
+
+def test_a_streams_warm_frames_keep_its_flip():
+    assert WarmStart(InferenceOptions(flip=True), warm_iters=3).warm_options.flip
+    assert not WarmStart(InferenceOptions(), warm_iters=3).warm_options.flip
