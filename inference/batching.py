@@ -1,7 +1,11 @@
 """Pairs of mixed sizes in one batch (``StereoPredictor.predict_pairs``): each replicate-padded at
-the bottom and right to one shape, a multiple of INPUT_MULTIPLE, exactly as the network's padding
-pads a single pair, so each result equals the pair computed alone up to float rounding; or, with
-``two_pass="auto"``, one batch per size (``batch_groups``)."""
+the bottom and right to one shape, a multiple of INPUT_MULTIPLE, as the network's padding pads a
+single pair; or, with ``two_pass="auto"``, one batch per size (``batch_groups``). A pair whose own
+padded shape is the batch's (the service batches only such pairs, ``stereo_key``) gets what it
+gets alone, up to float rounding. A smaller one sees more replicated border than alone, and the
+network's receptive field reaches across the image: Middlebury Tsukuba (288x384) in one pass
+beside Teddy (padded to 384x480) moved by 0.09 px at the median, 1.9 px at the 99th percentile,
+bad-2 5.61 -> 5.80 %."""
 
 from __future__ import annotations
 

@@ -258,8 +258,9 @@ class StereoPredictor:
         graphed: on CUDA, replay the forward from a CUDA graph of the padded shape (``self.graphs``).
 
         Pairs of different sizes are replicate-padded at the bottom and right to one shape, a
-        multiple of INPUT_MULTIPLE, exactly as a single pair is padded, so each result equals
-        the pair computed alone up to float rounding. With ``two_pass=True`` or a ``scale`` the
+        multiple of INPUT_MULTIPLE, as a single pair is padded: each result equals the pair
+        computed alone up to float rounding where that shape is the pair's own padded shape, and
+        moves a little where it is larger (``inference.batching``). With ``two_pass=True`` or a ``scale`` the
         resized passes would see the padding: all pairs must then have one size; with
         ``two_pass="auto"`` (and no warm starts) pairs of different sizes run as one batch per
         size, unless none of them is large enough for two passes (``batch_groups``).
