@@ -80,3 +80,20 @@ def test_flip_turns_each_pair_of_a_padded_batch_within_its_own_size(lite):
 def test_a_streams_warm_frames_keep_its_flip():
     assert WarmStart(InferenceOptions(flip=True), warm_iters=3).warm_options.flip
     assert not WarmStart(InferenceOptions(), warm_iters=3).warm_options.flip
+
+
+def test_a_warm_start_is_turned_with_its_pair(lite):
+    left, right = small_real_pair()
+    start = lite.predict(left, right, iters=(1, 1, 2)).disparity
+    given = lite.predict(left, right, iters=(1, 1, 2), init_disparity=start)
+    upside_down = lite.predict(
+        left[::-1].copy(), right[::-1].copy(), iters=(1, 1, 2), init_disparity=start[::-1].copy()
+    )
+    expected = merge_flipped(
+        *(
+            torch.from_numpy(x.copy())[None, None]
+            for x in (*given, upside_down.disparity[::-1], upside_down.uncertainty[::-1])
+        )
+    )
+    flipped = lite.predict(left, right, iters=(1, 1, 2), init_disparity=start, flip=True)
+    np.testing.assert_allclose(flipped.disparity, expected[0][0, 0].numpy(), atol=1e-4)
