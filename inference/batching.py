@@ -1,11 +1,11 @@
-"""Pairs of mixed sizes in one batch (``StereoPredictor.predict_pairs``): each replicate-padded at
-the bottom and right to one shape, a multiple of INPUT_MULTIPLE, as the network's padding pads a
-single pair; or, with ``two_pass="auto"``, one batch per size (``batch_groups``). A pair whose own
-padded shape is the batch's (the service batches only such pairs, ``stereo_key``) gets what it
-gets alone, up to float rounding. A smaller one sees more replicated border than alone, and the
-network's receptive field reaches across the image: Middlebury Tsukuba (288x384) in one pass
-beside Teddy (padded to 384x480) moved by 0.09 px at the median, 1.9 px at the 99th percentile,
-bad-2 5.61 -> 5.80 %."""
+"""Pairs of mixed sizes in one batch (``StereoPredictor.predict_pairs``): pairs of one padded shape
+(a multiple of INPUT_MULTIPLE), each replicate-padded at the bottom and right to it exactly as the
+network pads a single pair, so each result equals the pair computed alone up to float rounding;
+pairs of other padded shapes in other batches, and with ``two_pass="auto"`` one batch per size
+(``batch_groups``). A pair padded further than alone would not get its own answer: the network's
+receptive field reaches across the image, and Middlebury Tsukuba (288x384) in one pass beside
+Teddy padded to 384x480 moved by 0.09 px at the median, 1.9 px at the 99th percentile (bad-2 5.61
+-> 5.80 %)."""
 
 from __future__ import annotations
 
@@ -33,21 +33,23 @@ def batch_groups(
     sizes: Sequence[tuple[int, int]], two_pass: TwoPass, warm_started: bool, scale: float
 ) -> list[tuple[list[int], TwoPass]]:
     """How pairs of these (height, width) sizes run: the batches (the indices of their pairs, in
-    order) and the ``two_pass`` each runs with. One batch of all, except with ``two_pass="auto"``,
-    cold and at scale 1, where pairs of different sizes are decided per size (one batch per size,
-    sizes in the order they first come), unless none of them is large enough for two passes
-    (``two_pass_possible``: then one padded batch in one pass). With ``two_pass=True`` or a
-    ``scale`` the resized passes would see the padding: ValueError where the sizes differ."""
-    everyone = list(range(len(sizes)))
+    order) and the ``two_pass`` each runs with. Pairs of one padded shape (each size rounded up to
+    a multiple of INPUT_MULTIPLE, as the network pads a pair alone) run as one batch, so that each
+    gets the maps it gets alone; with ``two_pass="auto"``, cold and at scale 1, pairs of different
+    sizes are decided per size (one batch per size, sizes in the order they first come), unless
+    none of them is large enough for two passes (``two_pass_possible``: then one pass, batched by
+    padded shape). With ``two_pass=True`` or a ``scale`` the resized passes would see the
+    padding: ValueError where the sizes differ."""
     if len(set(sizes)) == 1:
-        return [(everyone, two_pass)]
+        return [(list(range(len(sizes))), two_pass)]
     if two_pass == "auto" and not warm_started and scale == 1.0:
-        if not any(two_pass_possible(*size) for size in sizes):
-            return [(everyone, False)]
-        return [([i for i, other in enumerate(sizes) if other == size], "auto") for size in dict.fromkeys(sizes)]
-    if two_pass is True or scale != 1.0:
+        if any(two_pass_possible(*size) for size in sizes):
+            return [([i for i, other in enumerate(sizes) if other == size], "auto") for size in dict.fromkeys(sizes)]
+        two_pass = False
+    elif two_pass is True or scale != 1.0:
         raise ValueError("pairs of different sizes can only be batched without two_pass or scale")
-    return [(everyone, two_pass)]
+    shapes = [(padded_size(height), padded_size(width)) for height, width in sizes]
+    return [([i for i, other in enumerate(shapes) if other == shape], two_pass) for shape in dict.fromkeys(shapes)]
 
 
 @dataclass(frozen=True)

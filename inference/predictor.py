@@ -257,10 +257,10 @@ class StereoPredictor:
         tensor. init_disparities: a warm start per pair (h x w px of its size), as ``predict``'s.
         graphed: on CUDA, replay the forward from a CUDA graph of the padded shape (``self.graphs``).
 
-        Pairs of different sizes are replicate-padded at the bottom and right to one shape, a
-        multiple of INPUT_MULTIPLE, as a single pair is padded: each result equals the pair
-        computed alone up to float rounding where that shape is the pair's own padded shape, and
-        moves a little where it is larger (``inference.batching``). With ``two_pass=True`` or a ``scale`` the
+        Pairs of different sizes but one padded shape (a multiple of INPUT_MULTIPLE) run as one
+        batch, each replicate-padded at the bottom and right to it exactly as a single pair is
+        padded, so each result equals the pair computed alone up to float rounding; pairs of
+        other padded shapes run as other batches (``inference.batching``). With ``two_pass=True`` or a ``scale`` the
         resized passes would see the padding: all pairs must then have one size; with
         ``two_pass="auto"`` (and no warm starts) pairs of different sizes run as one batch per
         size, unless none of them is large enough for two passes (``batch_groups``).

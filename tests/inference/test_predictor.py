@@ -367,6 +367,19 @@ def test_a_batch_of_pairs_of_different_sizes_equals_each_pair_alone_as_host_arra
         lite.predict_batch([pairs[0][0]], [])
 
 
+def test_pairs_of_different_padded_shapes_in_one_call_each_get_the_answer_they_get_alone(lite):
+    # padded to one larger shape, a pair would see more replicated border than alone, and the
+    # network's receptive field reaches across the image: each padded shape runs as its own batch
+    pairs = [random_pair(64, 96, seed=1), random_pair(100, 130, seed=2), random_pair(50, 90, seed=3)]
+    lefts, rights = [left for left, _ in pairs], [right for _, right in pairs]
+    for knobs in ({"two_pass": False}, {"two_pass": False, "flip": True}):
+        results = lite.predict_batch(lefts, rights, iters=(1, 1, 2), **knobs)
+        for (left, right), result in zip(pairs, results, strict=True):
+            alone = lite.predict(left, right, iters=(1, 1, 2), **knobs)
+            np.testing.assert_allclose(result.disparity, alone.disparity, rtol=1e-4, atol=1e-3)
+            np.testing.assert_allclose(result.uncertainty, alone.uncertainty, rtol=1e-4, atol=1e-4)
+
+
 def test_bf16_autocast_keeps_the_disparity_within_0_08_px_of_fp32_on_average():
     """The disparity, pixel grids and upsampling weights stay float32 under autocast: only the
     convolutions and correlations run in bf16 (measured on the bundled lite weights, CPU autocast)."""
