@@ -233,8 +233,9 @@ class StereoPredictor:
         flip: bool = False,
         init_disparities: Sequence[np.ndarray] | None = None,
     ) -> list[Prediction]:
-        """Several pairs (arrays, as ``predict`` takes them) in one forward pass: ``predict_pairs``
-        with the options read once, here, as ``InferenceOptions``, its maps copied to the host."""
+        """Several pairs (arrays, as ``predict`` takes them) in as few forward passes as their sizes
+        allow (``batching.batch_groups``): ``predict_pairs`` with the options read once, here, as
+        ``InferenceOptions``, its maps copied to the host."""
         options = InferenceOptions(iters, two_pass, scale, raw_uncertainty, flip)
         return self.predict_pairs(lefts, rights, options, init_disparities).on_host()
 
@@ -260,11 +261,11 @@ class StereoPredictor:
         Pairs of different sizes but one padded shape (a multiple of INPUT_MULTIPLE) run as one
         batch, each replicate-padded at the bottom and right to it exactly as a single pair is
         padded, so each result equals the pair computed alone up to float rounding; pairs of
-        other padded shapes run as other batches (``inference.batching``). With ``two_pass=True`` or a ``scale`` the
-        resized passes would see the padding: all pairs must then have one size; with
-        ``two_pass="auto"`` (and no warm starts) pairs of different sizes run as one batch per
-        size, unless none of them is large enough for two passes (``batch_groups``).
-        """
+        other padded shapes run as other batches (``inference.batching``). With
+        ``two_pass=True`` or a ``scale`` the resized passes would see the padding: all pairs must
+        then have one size; with ``two_pass="auto"`` (and no warm starts) pairs of different sizes
+        run as one batch per size, unless none of them is large enough for two passes
+        (``batch_groups``)."""
         sizes = [image_size(image) for image in lefts]
         if not lefts or len(lefts) != len(rights):
             raise ValueError(
