@@ -3,12 +3,12 @@ answers merged into one.
 
 Turning both images upside down keeps a rectified pair rectified (rows stay rows, the match stays
 on the same row, the same way), so the network's answer for it, turned back, is a second estimate
-of the same map. The network is not symmetric under the turn: its upward and downward
-propagation differ, so the two answers fail in different places. Where they agree within
-``AGREEMENT_PX`` their mean is kept (it averages out noise); where they disagree, one of them is
-wrong, and the one whose uncertainty is lower is kept. The uncertainty served is the mean of the
-two (it ranks the merged answer's errors better than either alone, and stays near calibrated:
-the model card, "Flip ensemble").
+of the same map. The network's learned filters are not symmetric under the turn, so the two
+answers fail in different places. Where they agree within ``AGREEMENT_PX`` their mean is kept (it
+averages out noise); where they disagree, one of them is wrong, and the one whose uncertainty is
+lower is kept. The uncertainty served is the mean of the two (on the dev pairs it ranks the merged
+answer's errors a little better than the given pair's uncertainty, and stays calibrated: the
+model card, "Flip ensemble").
 """
 
 from __future__ import annotations
