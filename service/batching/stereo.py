@@ -141,10 +141,10 @@ class StereoBatches:
         where "auto" may enlarge the pair, times the square of the largest factor it may take (an
         upper bound: a pair whose disparities are too large for that factor is computed smaller)."""
         predictor = self.predictors[key.model]
-        counts = predictor.iterations(key.options.iters)
         options = key.options
+        counts = predictor.iterations(options.iters)
         cost = relative_cost(counts, predictor.config.iters, options.scale, options.two_pass, options.flip)
-        if key.options.two_pass == "auto" and key.options.scale == 1.0 and not key.warm_start:
+        if options.two_pass == "auto" and options.scale == 1.0 and not key.warm_start:
             cost *= largest_enlargement(key.height, key.width) ** 2
         return key.pixels * cost
 

@@ -5,12 +5,11 @@ import warnings
 import numpy as np
 import pytest
 import torch
+from raw_camera import small_dev_sample
 
 from crestereo_pp.inference import InferenceOptions, load_model
 from crestereo_pp.inference.flip import AGREEMENT_PX, merge_flipped
 from crestereo_pp.inference.warm_start import WarmStart
-from crestereo_pp.stereo_data.readers import open_dataset
-from tests.shared_data import SMALL_STEREO_DEV_PAIR, STEREO_DEV
 
 
 @pytest.fixture(scope="module")
@@ -37,10 +36,7 @@ def test_answers_that_agree_are_averaged_and_of_two_that_disagree_the_less_uncer
 
 
 def small_real_pair() -> tuple[np.ndarray, np.ndarray]:
-    if not (STEREO_DEV / SMALL_STEREO_DEV_PAIR).is_dir():
-        pytest.skip(f"needs the shared stereo-dev pairs ({STEREO_DEV})")
-    dataset = open_dataset(STEREO_DEV)
-    sample = dataset[[files.name for files in dataset.files].index(SMALL_STEREO_DEV_PAIR)]
+    sample = small_dev_sample()
     return sample.left[:192, :256], sample.right[:192, :256]  # the top left of Tsukuba
 
 
