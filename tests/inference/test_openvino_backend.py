@@ -376,6 +376,26 @@ def test_bf16_moves_the_maps_a_little_and_runs_only_where_asked(first_call, tsuk
     assert 0 < difference.mean() < 0.5, difference.mean()
 
 
+@pytest.mark.skipif(not native_bf16(), reason="needs a CPU that computes bf16 natively")
+def test_bf16_computes_the_convolutions_in_bf16_and_the_feature_networks_other_ops_in_fp32(first_call, tsukuba):
+    predictor, *_ = first_call
+    predictor.precision = "bf16"
+    try:
+        predictor.predict(*tsukuba, iters=ITERS)
+    finally:
+        predictor.precision = "fp32"
+    compiled = [c for (_, _, bf16), c in predictor.openvino.compiled.items() if bf16]
+    assert compiled
+    for one in compiled:  # the shapes of the pair's passes
+        precisions: dict[str, set[str]] = {}
+        for op in one.model.get_runtime_model().get_ops():
+            info = op.get_rt_info()
+            precisions.setdefault(info["layerType"].astype(str), set()).add(info["runtimePrecision"].astype(str))
+        assert "bf16" in precisions["Convolution"]  # (the plugin keeps a few small ones in f32)
+        # the instance norms are in the feature and context networks only, before any correlation
+        assert precisions["MVN"] == {"f32"}
+
+
 def test_auto_picks_openvino_on_a_cpu_and_bf16_only_where_the_cpu_computes_it(tmp_path: Path, monkeypatch):
     monkeypatch.delenv("CRESTEREO_BACKEND")
     cpu = torch.device("cpu")
