@@ -136,9 +136,10 @@ def keep_features_in_fp32(graph: Any) -> int:
     ops were marked. A compile in fp32 is unchanged.
 
     On the dev pairs (default inference, OpenVINO on an AMX CPU) this takes bf16 from 9.12 % bad-2
-    and 1.087 px EPE to 8.91 % and 1.073 px (torch fp32: 8.87 % and 1.068 px) at 9 % more time
-    (0.73 against 0.67 s a pair); every op but the convolutions in fp32 gave 8.86 % at 48 % more,
-    and the iterations' ops alone in fp32 changed nothing."""
+    and 1.087 px EPE to 8.91 % and 1.073 px (torch fp32: 8.87 % and 1.068 px) at 10 % more time
+    (0.76 against 0.69 s a pair, runs alternated); every op but the convolutions in fp32 gave
+    8.86 % at 48 % more, and the iterations' ops alone in fp32 changed nothing (model card, "bf16
+    with the feature networks' other ops in fp32")."""
     iterations: set[str] = set()  # ops by their unique names: the Python objects are made anew per access
     stack = [op for op in graph.get_ops() if op.get_type_name() == CORRELATION_SAMPLING]
     while stack:
