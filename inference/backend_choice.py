@@ -13,7 +13,8 @@ from .openvino_backend import native_bf16, openvino_available
 
 Precision = Literal["fp32", "bf16"]
 """fp32: the network in float32; bf16: torch under bf16 autocast, OpenVINO with bf16 inference
-precision; the maps stay float32 either way."""
+precision (its graphs keep the feature networks' ops other than convolutions in fp32,
+``openvino_export.keep_features_in_fp32``); the maps stay float32 either way."""
 
 Backend = Literal["torch", "openvino"]
 """torch: eager (CUDA graphs on a GPU), the reference; openvino: compiled for the CPU
