@@ -44,12 +44,17 @@ def batch_groups(
         return [(list(range(len(sizes))), two_pass)]
     if two_pass == "auto" and not warm_started and scale == 1.0:
         if any(two_pass_possible(*size) for size in sizes):
-            return [([i for i, other in enumerate(sizes) if other == size], "auto") for size in dict.fromkeys(sizes)]
+            return [(group, "auto") for group in _indices_by(sizes)]
         two_pass = False
     elif two_pass is True or scale != 1.0:
         raise ValueError("pairs of different sizes can only be batched without two_pass or scale")
     shapes = [(padded_size(height), padded_size(width)) for height, width in sizes]
-    return [([i for i, other in enumerate(shapes) if other == shape], two_pass) for shape in dict.fromkeys(shapes)]
+    return [(group, two_pass) for group in _indices_by(shapes)]
+
+
+def _indices_by(keys: Sequence[tuple[int, int]]) -> list[list[int]]:
+    """The indices of equal keys, one list per key, keys in the order they first come."""
+    return [[i for i, other in enumerate(keys) if other == key] for key in dict.fromkeys(keys)]
 
 
 @dataclass(frozen=True)
