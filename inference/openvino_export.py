@@ -30,7 +30,7 @@ from crestereo_pp.model.network import INPUT_MULTIPLE
 from .forward import Maps
 from .options import StageCounts
 
-EXPORT_VERSION = 6
+EXPORT_VERSION = 7
 """Bumped whenever the exported graph changes for the same weights (part of the cache key)."""
 
 KEEP_FP32 = "precise_0"

@@ -31,6 +31,20 @@ def test_group_correlation_is_the_group_mean_of_channel_products_at_each_candida
                 assert volume[b, 9 * g + r, i, j].item() == pytest.approx(float(expected), abs=1e-6)
 
 
+@pytest.mark.parametrize("window", ["1x9", "3x3"])
+def test_an_exported_graph_computes_the_same_volume_with_one_mean_over_the_stacked_candidates(window):
+    class Volume(torch.nn.Module):
+        def forward(self, left, right):
+            return group_correlation(left, right, groups=4, window=window)
+
+    torch.manual_seed(2)
+    left, right = torch.randn(2, 8, 5, 11), torch.randn(2, 8, 5, 11)
+    program = torch.export.export(Volume(), (left, right))
+    means = [node for node in program.graph.nodes if node.target == torch.ops.aten.mean.dim]
+    assert len(means) == 1  # eager torch takes one mean per candidate, nine
+    torch.testing.assert_close(program.module()(left, right), group_correlation(left, right, 4, window))
+
+
 def test_correlation_peaks_at_the_true_residual_shift():
     torch.manual_seed(1)
     left = torch.randn(1, 128, 4, 20)
