@@ -46,22 +46,24 @@ BF16_CPU_FLAGS = ("amx_bf16", "avx512_bf16")
 
 COMPILED_BASE_BYTES = 16 << 20
 COMPILED_BYTES_PER_ITERATION = 7 << 20
-COMPILED_BYTES_PER_PIXEL = 400
+COMPILED_BYTES_PER_PIXEL = {True: 430, False: 520}
 """The estimate of what one compiled shape holds (``compiled_bytes``), fitted from above to lite's
 in-use malloc bytes after its first call: the code and constants of the unrolled graph, which grow
 with the iterations it unrolls (1,1,1: 31-32 MiB, 0,0,6: 48 MiB, 2,4,6: 87-93 MiB at 1x64x96), plus
-its buffers, which grow with the input pixels (batch x height x width: 317 bytes a pixel in bf16,
-378 in fp32; 2,4,6 at 1x384x1248 in bf16: 240-259 MiB)."""
+its buffers, which grow with the input pixels (batch x height x width), by precision (bf16: True):
+2,4,6 at 1x384x1248 and 1x576x1888 took 285-287 and 527-530 MiB in bf16, 310 and 617 MiB in fp32
+(0,0,6: 242 and 475 MiB in bf16), about 415 and 500 bytes a pixel beyond the graph."""
 
-MAX_COMPILED_BYTES = 1536 << 20
+MAX_COMPILED_BYTES = 1856 << 20
 """Default bound of the compiled shapes kept per model, by their estimated memory: the shapes of
 one camera's pairs computed by ``two_pass="auto"`` at the largest size it enlarges to (1.2 M
-pixels) fit, its quick pass, one pass and both of two passes (1.45 GiB estimated for 600x888
-pairs at 1.5x; a KITTI frame at 1.5x: 1.3 GiB). Under 768 MiB, the bound before pairs were
-enlarged, those shapes evicted one another and each request compiled again: a KITTI pair in two
-passes at 1.5x took 2.7 s against 1.2 s on a 2-core AVX512-BF16 CPU (``bench/camera_shapes.py``).
-Under a mix of many sizes the bound before that, 8 shapes, held 0.9-1.2 GiB, and 8 large ones (4
-MP each) would have held about 12 GiB."""
+pixels) fit, its quick pass, one pass and both of two passes, in either precision (600x888 pairs
+at 1.5x: lite 1.49 GiB estimated in bf16, 1.73 in fp32, full 1.79 in fp32; a KITTI frame at 1.5x:
+lite 1.34 and 1.55 GiB). Under 768 MiB, the bound before pairs were enlarged, those shapes evicted
+one another and each request compiled again: a KITTI pair in two passes at 1.5x took 2.7 s against
+1.2 s on a 2-core AVX512-BF16 CPU (``bench/camera_shapes.py``). Under a mix of many sizes the
+bound before that, 8 shapes, held 0.9-1.2 GiB, and 8 large ones (4 MP each) would have held about
+12 GiB."""
 
 MAX_BLOB_CACHE_BYTES = 512 << 20
 """Default bound of the disk cache of compiled shapes (OpenVINO's ``CACHE_DIR``, shared by the
@@ -98,11 +100,12 @@ def default_cache_dir() -> Path:
     return (Path(xdg) if xdg else Path.home() / ".cache") / "crestereo-pp"
 
 
-def compiled_bytes(kind: GraphKind, shape: tuple[int, ...]) -> int:
-    """Estimated memory of `kind`'s graph compiled for input `shape` (B, C, H, W), its infer request included."""
+def compiled_bytes(kind: GraphKind, shape: tuple[int, ...], bf16: bool) -> int:
+    """Estimated memory of `kind`'s graph compiled for input `shape` (B, C, H, W) in bf16 (else
+    fp32), its infer request included."""
     batch, _, height, width = shape
     unrolled = COMPILED_BASE_BYTES + COMPILED_BYTES_PER_ITERATION * sum(kind.iters)
-    return unrolled + COMPILED_BYTES_PER_PIXEL * batch * height * width
+    return unrolled + COMPILED_BYTES_PER_PIXEL[bf16] * batch * height * width
 
 
 @dataclass(frozen=True)
@@ -279,7 +282,7 @@ class OpenVINOForward:
             if key in self.compiled:
                 self.compiled.move_to_end(key)
                 return self.compiled[key]
-            self._make_room(compiled_bytes(kind, shape))  # before compiling: the cache and the new one fit the bound
+            self._make_room(compiled_bytes(kind, shape, bf16))  # before compiling: the cache and the new one fit the bound
             if self.blob_dir is not None:
                 prune_oldest(self.blob_dir, "*.blob", self.max_blob_bytes)
             static = graph.clone()
@@ -303,7 +306,7 @@ class OpenVINOForward:
     @property
     def kept_bytes(self) -> int:
         """Estimated memory of the compiled shapes kept (``compiled_bytes``)."""
-        return sum(compiled_bytes(kind, shape) for kind, shape, _ in self.compiled)
+        return sum(compiled_bytes(kind, shape, bf16) for kind, shape, bf16 in self.compiled)
 
     def _make_room(self, nbytes: int) -> None:
         """Drop compiled shapes, least recently used first, until one more of `nbytes` fits both

@@ -278,7 +278,7 @@ def test_compiled_shapes_are_kept_within_their_estimated_memory_and_the_estimate
     kind, left, right = GraphKind(ITERS, False), *tsukuba
     shapes = [(1, 3, height, 128) for height in (64, 96, 128)]
     backend.compiled.clear()
-    backend.max_shapes, backend.max_bytes = 8, compiled_bytes(kind, shapes[1]) + compiled_bytes(kind, shapes[2])
+    backend.max_shapes, backend.max_bytes = 8, sum(compiled_bytes(kind, shape, False) for shape in shapes[1:])  # fp32
     try:
         in_use = [malloc_in_use()]
         for _, _, height, width in shapes:
@@ -289,7 +289,7 @@ def test_compiled_shapes_are_kept_within_their_estimated_memory_and_the_estimate
         assert backend.kept_bytes <= backend.max_bytes
         # what the first two shapes really took (nothing was dropped yet) is within their estimates
         for shape, before, after in zip(shapes[:2], in_use, in_use[1:], strict=False):
-            assert 0 < after - before <= compiled_bytes(kind, shape), (shape, after - before)
+            assert 0 < after - before <= compiled_bytes(kind, shape, False), (shape, after - before)
         backend.max_bytes = 1  # a shape over the whole bound is kept, alone
         predictor.predict(left[:64, :128], right[:64, :128], iters=ITERS, two_pass=False)
         assert [shape for _, shape, _ in backend.compiled] == shapes[:1]
@@ -297,11 +297,28 @@ def test_compiled_shapes_are_kept_within_their_estimated_memory_and_the_estimate
         backend.max_shapes, backend.max_bytes = 8, MAX_COMPILED_BYTES
 
 
+@pytest.mark.parametrize("bf16", [False, pytest.param(True, marks=pytest.mark.skipif(not native_bf16(), reason="no native bf16"))])
+def test_the_estimate_of_a_large_compiled_shape_is_not_below_what_it_takes(first_call, tsukuba, bf16):
+    """Where the image's buffers outweigh the graph (1x3x384x640: about three quarters of the
+    estimate), in the precision it is compiled for."""
+    predictor, *_ = first_call
+    backend = predictor.openvino
+    kind, shape = GraphKind(ITERS, False), (1, 3, 384, 640)
+    backend.compiled.clear()
+    left, right = (torch.rand(shape) * 255 for _ in range(2))
+    before = malloc_in_use()
+    backend(left, right, None, ITERS, bf16)
+    taken = malloc_in_use() - before
+    backend.compiled.clear()
+    assert compiled_bytes(kind, shape, bf16) * 0.6 < taken <= compiled_bytes(kind, shape, bf16), taken
+
+
 @pytest.mark.parametrize("model", ["lite", "full"])
 def test_the_compiled_shapes_bound_holds_every_shape_of_a_cameras_pairs_at_the_largest_enlargement(model):
     """The shapes ``two_pass="auto"`` compiles for one camera's pairs at the largest size it
     enlarges to (quick pass, one pass, the half and refining passes of two) fit in the bound
-    together; under a smaller one they evict one another and every request compiles again."""
+    together, in either precision; under a smaller one they evict one another and every request
+    compiles again."""
     shapes: set[tuple[GraphKind, tuple[int, int, int, int]]] = set()
 
     def forward(left, right, iters, init):  # records what OpenVINO would compile, padded as it pads
@@ -317,7 +334,8 @@ def test_the_compiled_shapes_bound_holds_every_shape_of_a_cameras_pairs_at_the_l
     for two_passes in (False, True):
         way_maps(pair, pair, iters, (two_passes, factor), forward)
     assert len(shapes) == 4
-    assert sum(compiled_bytes(kind, shape) for kind, shape in shapes) <= MAX_COMPILED_BYTES
+    for bf16 in (True, False):
+        assert sum(compiled_bytes(kind, shape, bf16) for kind, shape in shapes) <= MAX_COMPILED_BYTES
 
 
 def test_the_disk_cache_of_compiled_shapes_keeps_within_its_bound_dropping_the_oldest(first_call, tsukuba):
