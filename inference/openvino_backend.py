@@ -282,7 +282,8 @@ class OpenVINOForward:
             if key in self.compiled:
                 self.compiled.move_to_end(key)
                 return self.compiled[key]
-            self._make_room(compiled_bytes(kind, shape, bf16))  # before compiling: the cache and the new one fit the bound
+            # before compiling: the cache and the new one fit the bound
+            self._make_room(compiled_bytes(kind, shape, bf16))
             if self.blob_dir is not None:
                 prune_oldest(self.blob_dir, "*.blob", self.max_blob_bytes)
             static = graph.clone()
