@@ -48,6 +48,7 @@ REPO = Path(__file__).resolve().parents[2]
 
 ITERS = (1, 1, 1)
 PAIR = STEREO_DEV / "middlebury2001_tsukuba"  # 384x288, the smallest real pair
+NATIVE_BF16_ONLY = pytest.mark.skipif(not native_bf16(), reason="needs a CPU that computes bf16 natively")
 
 
 @pytest.fixture(scope="module")
@@ -297,9 +298,6 @@ def test_compiled_shapes_are_kept_within_their_estimated_memory_and_the_estimate
         backend.max_shapes, backend.max_bytes = 8, MAX_COMPILED_BYTES
 
 
-NATIVE_BF16_ONLY = pytest.mark.skipif(not native_bf16(), reason="needs a CPU that computes bf16 natively")
-
-
 @pytest.mark.parametrize("bf16", [False, pytest.param(True, marks=NATIVE_BF16_ONLY)])
 def test_the_estimate_of_a_large_compiled_shape_is_not_below_what_it_takes(first_call, tsukuba, bf16):
     """Where the image's buffers outweigh the graph (1x3x384x640: about three quarters of the
@@ -397,7 +395,7 @@ def test_bf16_moves_the_maps_a_little_and_runs_only_where_asked(first_call, tsuk
     assert 0 < difference.mean() < 0.5, difference.mean()
 
 
-@pytest.mark.skipif(not native_bf16(), reason="needs a CPU that computes bf16 natively")
+@NATIVE_BF16_ONLY
 def test_bf16_computes_the_convolutions_in_bf16_and_the_feature_networks_other_ops_in_fp32(first_call, tsukuba):
     predictor, *_ = first_call
     predictor.precision = "bf16"
