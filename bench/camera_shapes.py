@@ -3,7 +3,7 @@
 OpenVINO's compiled shapes (``CRESTEREO_COMPILED_MB``; ``load_model(compiled_bytes=...)``).
 
     python bench/camera_shapes.py [--pair kitti2015_000001_10] [--data DIR] [--calls 5]
-                                  [--compiled-mb 768 1536] [--backend openvino]
+                                  [--compiled-mb 768 1856] [--backend openvino] [--precision auto]
 
 Each request is what auto runs for a pair it computes that way: the quick quarter-resolution pass,
 then the way (``inference.two_pass.way_maps``: one pass or two, on the pair enlarged by the
@@ -45,17 +45,22 @@ def main() -> None:
     parser.add_argument("--pair", default="kitti2015_000001_10", help="a dev pair's folder name")
     parser.add_argument("--data", type=Path, help="the dev pairs [$STEREO_DEV, shared/data/stereo-dev]")
     parser.add_argument("--calls", type=int, default=5, help="timed requests per scenario")
-    parser.add_argument("--compiled-mb", type=int, nargs="+", default=[768, 1536], help="the bounds to compare")
+    parser.add_argument("--compiled-mb", type=int, nargs="+", default=[768, 1856], help="the bounds to compare")
     parser.add_argument("--backend", choices=["openvino", "torch"], default="openvino")
+    parser.add_argument(
+        "--precision", choices=["auto", "fp32", "bf16"], default="auto", help="auto: the default on this CPU"
+    )
     args = parser.parse_args()
     folder = dev_pairs(args.data)
     if folder is None:
         raise SystemExit("no dev pairs found: --data DIR")
     left, right = (read_image(folder / args.pair / f"{side}.png") for side in ("left", "right"))
-    print(f"{args.pair} ({left.shape[1]}x{left.shape[0]}), {args.backend}; median of {args.calls} requests")
+    print(
+        f"{args.pair} ({left.shape[1]}x{left.shape[0]}), {args.backend}, {args.precision}; median of {args.calls} requests"
+    )
     print("\n| scenario | compiled MiB | ms per request | each (ms) |\n|---|---|---|---|")
     for megabytes in args.compiled_mb:
-        predictor = load_model("lite", backend=args.backend, compiled_bytes=megabytes << 20)
+        predictor = load_model("lite", backend=args.backend, precision=args.precision, compiled_bytes=megabytes << 20)
         predictor.prepare(wait=True)
         for name, ways in SCENARIOS.items():
             for way in ways:
