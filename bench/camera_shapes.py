@@ -55,9 +55,8 @@ def main() -> None:
     if folder is None:
         raise SystemExit("no dev pairs found: --data DIR")
     left, right = (read_image(folder / args.pair / f"{side}.png") for side in ("left", "right"))
-    print(
-        f"{args.pair} ({left.shape[1]}x{left.shape[0]}), {args.backend}, {args.precision}; median of {args.calls} requests"
-    )
+    size = f"{left.shape[1]}x{left.shape[0]}"
+    print(f"{args.pair} ({size}), {args.backend}, {args.precision}; median of {args.calls} requests")
     print("\n| scenario | compiled MiB | ms per request | each (ms) |\n|---|---|---|---|")
     for megabytes in args.compiled_mb:
         predictor = load_model("lite", backend=args.backend, precision=args.precision, compiled_bytes=megabytes << 20)
