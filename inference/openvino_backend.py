@@ -46,20 +46,24 @@ BF16_CPU_FLAGS = ("amx_bf16", "avx512_bf16")
 
 COMPILED_BASE_BYTES = 16 << 20
 COMPILED_BYTES_PER_ITERATION = 7 << 20
-COMPILED_BYTES_PER_PIXEL = {True: 430, False: 520}
-"""The estimate of what one compiled shape holds (``compiled_bytes``), fitted from above to lite's
+COMPILED_BYTES_PER_PIXEL = {True: (125.0, 4.8), False: (80.0, 7.0)}
+"""The estimate of what one compiled shape holds (``compiled_bytes``), fitted from above to the
 in-use malloc bytes after its first call: the code and constants of the unrolled graph, which grow
-with the iterations it unrolls (1,1,1: 31-32 MiB, 0,0,6: 48 MiB, 2,4,6: 87-93 MiB at 1x64x96), plus
-its buffers, which grow with the input pixels (batch x height x width), by precision (bf16: True):
-2,4,6 at 1x384x1248 and 1x576x1888 took 285-287 and 527-530 MiB in bf16, 310 and 617 MiB in fp32
-(0,0,6: 242 and 475 MiB in bf16), about 415 and 500 bytes a pixel beyond the graph."""
+with the iterations it unrolls (lite's 1,1,1: 31-32 MiB, 0,0,6: 48 MiB, 2,4,6: 87-93 MiB at
+1x64x96), plus its buffers, which grow with the input pixels (batch x height x width) and with the
+network's feature channels C: (a + b x C) bytes a pixel, (a, b) by precision (bf16: True). lite's
+2,4,6 (C = 64) at 1x384x1248 and 1x576x1888 took 285-287 and 527-530 MiB in bf16, 310 and 617 MiB
+in fp32 (0,0,6: 242 and 475 MiB in bf16); full's 2,4,8 (C = 256) took 711 and 1439 MiB in bf16,
+934 and 1981 MiB in fp32: about 415 and 500 bytes a pixel beyond the graph for lite, 1270 and
+1800 for full."""
 
 MAX_COMPILED_BYTES = 1856 << 20
 """Default bound of the compiled shapes kept per model, by their estimated memory: the shapes of
 one camera's pairs computed by ``two_pass="auto"`` at the largest size it enlarges to (1.2 M
-pixels) fit, its quick pass, one pass and both of two passes, in either precision (600x888 pairs
-at 1.5x: lite 1.49 GiB estimated in bf16, 1.73 in fp32, full 1.79 in fp32; a KITTI frame at 1.5x:
-lite 1.34 and 1.55 GiB). Under 768 MiB, the bound before pairs were enlarged, those shapes evicted
+pixels) fit for lite, its quick pass, one pass and both of two passes, in either precision
+(600x888 pairs at 1.5x: 1.50 GiB estimated in bf16, 1.75 in fp32; a KITTI frame at 1.5x: 1.35
+and 1.57 GiB). full's take about three times as much (4.0 and 5.4 GiB at 600x888): under this
+bound full computes such a camera's pairs but compiles some of their shapes again. Under 768 MiB, the bound before pairs were enlarged, those shapes evicted
 one another and each request compiled again: a KITTI pair in two passes at 1.5x took 2.7 s against
 1.2 s on a 2-core AVX512-BF16 CPU (``bench/camera_shapes.py``). Under a mix of many sizes the
 bound before that, 8 shapes, held 0.9-1.2 GiB, and 8 large ones (4 MP each) would have held about
@@ -100,12 +104,13 @@ def default_cache_dir() -> Path:
     return (Path(xdg) if xdg else Path.home() / ".cache") / "crestereo-pp"
 
 
-def compiled_bytes(kind: GraphKind, shape: tuple[int, ...], bf16: bool) -> int:
-    """Estimated memory of `kind`'s graph compiled for input `shape` (B, C, H, W) in bf16 (else
-    fp32), its infer request included."""
+def compiled_bytes(kind: GraphKind, shape: tuple[int, ...], bf16: bool, channels: int) -> int:
+    """Estimated memory of `kind`'s graph of a network with `channels` feature channels, compiled
+    for input `shape` (B, C, H, W) in bf16 (else fp32), its infer request included."""
     batch, _, height, width = shape
     unrolled = COMPILED_BASE_BYTES + COMPILED_BYTES_PER_ITERATION * sum(kind.iters)
-    return unrolled + COMPILED_BYTES_PER_PIXEL[bf16] * batch * height * width
+    fixed, per_channel = COMPILED_BYTES_PER_PIXEL[bf16]
+    return unrolled + round((fixed + per_channel * channels) * batch * height * width)
 
 
 @dataclass(frozen=True)
@@ -120,8 +125,9 @@ class _Compiled:
 class OpenVINOForward:
     """A ``Forward`` (see ``inference.forward``) computed by OpenVINO on the CPU.
 
-    network: the eval-mode network to export. fallback: the torch forward of calls whose graph is
-    not ready (neither in memory nor in the disk cache; ``prepare`` exports it).
+    network: the eval-mode network to export; channels: its feature channels (``ModelConfig``'s
+    feature_dim, for the memory estimate). fallback: the torch forward of calls whose graph is not
+    ready (neither in memory nor in the disk cache; ``prepare`` exports it).
     cache_key: names these weights in the disk cache (their hash); None keeps graphs in memory
     only. cache_dir: the cache's root (``default_cache_dir()``); graphs and blobs go to its
     ``openvino/`` folder. max_shapes, max_bytes: compiled shapes kept in memory, at most that many and
@@ -136,6 +142,7 @@ class OpenVINOForward:
         network: nn.Module,
         fallback: Forward,
         *,
+        channels: int,
         cache_key: str | None,
         cache_dir: Path | None = None,
         max_shapes: int = 8,
@@ -147,6 +154,7 @@ class OpenVINOForward:
         if max_shapes < 1:
             raise ValueError(f"max_shapes must be positive, got {max_shapes}")
         self.network = network
+        self.channels = channels
         self.fallback = fallback
         self.max_shapes = max_shapes
         self.max_bytes = max_bytes
@@ -283,7 +291,7 @@ class OpenVINOForward:
                 self.compiled.move_to_end(key)
                 return self.compiled[key]
             # before compiling: the cache and the new one fit the bound
-            self._make_room(compiled_bytes(kind, shape, bf16))
+            self._make_room(compiled_bytes(kind, shape, bf16, self.channels))
             if self.blob_dir is not None:
                 prune_oldest(self.blob_dir, "*.blob", self.max_blob_bytes)
             static = graph.clone()
@@ -307,7 +315,7 @@ class OpenVINOForward:
     @property
     def kept_bytes(self) -> int:
         """Estimated memory of the compiled shapes kept (``compiled_bytes``)."""
-        return sum(compiled_bytes(kind, shape, bf16) for kind, shape, bf16 in self.compiled)
+        return sum(compiled_bytes(kind, shape, bf16, self.channels) for kind, shape, bf16 in self.compiled)
 
     def _make_room(self, nbytes: int) -> None:
         """Drop compiled shapes, least recently used first, until one more of `nbytes` fits both
