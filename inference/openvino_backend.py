@@ -63,11 +63,11 @@ one camera's pairs computed by ``two_pass="auto"`` at the largest size it enlarg
 pixels) fit for lite, its quick pass, one pass and both of two passes, in either precision
 (600x888 pairs at 1.5x: 1.50 GiB estimated in bf16, 1.75 in fp32; a KITTI frame at 1.5x: 1.35
 and 1.57 GiB). full's take about three times as much (4.0 and 5.4 GiB at 600x888): under this
-bound full computes such a camera's pairs but compiles some of their shapes again. Under 768 MiB, the bound before pairs were enlarged, those shapes evicted
-one another and each request compiled again: a KITTI pair in two passes at 1.5x took 2.7 s against
-1.2 s on a 2-core AVX512-BF16 CPU (``bench/camera_shapes.py``). Under a mix of many sizes the
-bound before that, 8 shapes, held 0.9-1.2 GiB, and 8 large ones (4 MP each) would have held about
-12 GiB."""
+bound full computes such a camera's pairs but compiles some of their shapes again. Under 768 MiB,
+the bound before pairs were enlarged, those shapes evicted one another and each request compiled
+again: a KITTI pair in two passes at 1.5x took 2.7 s against 1.2 s on a 2-core AVX512-BF16 CPU
+(``bench/camera_shapes.py``). Under a mix of many sizes the bound before that, 8 shapes, held
+0.9-1.2 GiB, and 8 large ones (4 MP each) would have held about 12 GiB."""
 
 MAX_BLOB_CACHE_BYTES = 512 << 20
 """Default bound of the disk cache of compiled shapes (OpenVINO's ``CACHE_DIR``, shared by the
