@@ -40,13 +40,14 @@ def group_correlation(left: Tensor, warped_right: Tensor, groups: int, window: W
         padded = F.pad(warped_right, (1, 1, 1, 1))
         shifts = [(dy, dx) for dy in range(3) for dx in range(3)]
     candidates = [padded[:, :, dy : dy + h, dx : dx + w] for dy, dx in shifts]  # views, no copies
+    per_group = c // groups
     if torch.compiler.is_exporting():
         # Exported graphs (OpenVINO, ONNX) take one product and one mean over the stacked
-        # candidates: OpenVINO computes lite about 10 % faster in bf16 so than with a mean per
-        # candidate. Eager torch takes one candidate at a time: the stack is a copy, which made it
-        # about 12 % slower (and autograd would keep it).
-        stacked = torch.stack(candidates, dim=2).view(b, groups, c // groups, CANDIDATES, h, w)
-        return (left.view(b, groups, c // groups, 1, h, w) * stacked).mean(2).view(b, groups * CANDIDATES, h, w)
-    left_groups = left.view(b, groups, c // groups, h, w)
-    volume = [(left_groups * candidate.view(b, groups, c // groups, h, w)).mean(2) for candidate in candidates]
+        # candidates: lite's OpenVINO graph ran 8 % faster in bf16 so than with a mean per
+        # candidate (6 % less time per dev pair). Eager torch takes one candidate at a time: the
+        # stack is a copy, which made it 12 % slower (and autograd would keep it).
+        stacked = torch.stack(candidates, dim=2).view(b, groups, per_group, CANDIDATES, h, w)
+        return (left.view(b, groups, per_group, 1, h, w) * stacked).mean(2).view(b, groups * CANDIDATES, h, w)
+    left_groups = left.view(b, groups, per_group, h, w)
+    volume = [(left_groups * candidate.view(b, groups, per_group, h, w)).mean(2) for candidate in candidates]
     return torch.stack(volume, dim=2).view(b, groups * CANDIDATES, h, w)
