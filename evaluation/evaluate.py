@@ -229,6 +229,7 @@ def evaluate(
             "two_pass": options.two_pass,
             "scale": options.scale,
             "flip": options.flip,
+            "blend_sgbm": options.blend_sgbm,
             "uncertainty": (
                 f"P(error > {predictor.calibration.threshold_px:g} px), fitted on {predictor.calibration.fitted_on}"
                 if predictor.calibration is not None

@@ -1,39 +1,17 @@
-"""OpenCV StereoSGBM baseline, with exactly the settings of the stereo-dev README's table.
+"""OpenCV StereoSGBM baseline, with exactly the settings of the stereo-dev README's table
+(``inference.sgbm.create_sgbm``: the matcher the served answers are blended with too).
 
-numDisparities = ceil(max GT / 16) * 16, blockSize 5, P1 600 (8*3*5^2), P2 2400 (32*3*5^2),
-disp12MaxDiff 1, uniquenessRatio 10, speckleWindowSize 100, speckleRange 2, SGBM_3WAY, on the
-colour images; disparity = output / 16; invalid outputs (< 0) filled from the nearest valid pixel
-to the left (a row's leading invalid run from the nearest valid pixel to the right).
+numDisparities = ceil(max GT / 16) * 16 (below the image's width), blockSize 5, P1 600 (8*3*5^2),
+P2 2400 (32*3*5^2), disp12MaxDiff 1, uniquenessRatio 10, speckleWindowSize 100, speckleRange 2,
+SGBM_3WAY, on the colour images; disparity = output / 16; invalid outputs (< 0) filled from the
+nearest valid pixel to the left (a row's leading invalid run from the nearest valid pixel to the right).
 """
 
 from __future__ import annotations
 
-import math
-
-import cv2
 import numpy as np
 
-
-def sgbm_num_disparities(max_disparity: float) -> int:
-    """SGBM's disparity range: `max_disparity` (px) rounded up to a multiple of 16, at least 16."""
-    return max(16, int(math.ceil(max_disparity / 16.0)) * 16)
-
-
-def create_sgbm(max_disparity: float) -> cv2.StereoSGBM:
-    """A StereoSGBM matcher with the baseline settings, searching 0..`max_disparity` px."""
-    block_size = 5
-    return cv2.StereoSGBM.create(
-        minDisparity=0,
-        numDisparities=sgbm_num_disparities(max_disparity),
-        blockSize=block_size,
-        P1=8 * 3 * block_size**2,
-        P2=32 * 3 * block_size**2,
-        disp12MaxDiff=1,
-        uniquenessRatio=10,
-        speckleWindowSize=100,
-        speckleRange=2,
-        mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY,
-    )
+from crestereo_pp.inference.sgbm import create_sgbm, sgbm_num_disparities
 
 
 def fill_invalid_from_left(disparity: np.ndarray, valid: np.ndarray) -> np.ndarray:
@@ -57,8 +35,12 @@ def sgbm_disparity(left: np.ndarray, right: np.ndarray, max_disparity: float) ->
     left) of a rectified uint8 HxWx3 pair, and its left-right consistency error as an
     uncertainty (float32 HxW, px, larger = less trusted): |d_L(x) - d_R(x - d_L(x))| with d_R the
     right view's disparity (SGBM on the mirrored, swapped pair); pixels SGBM left invalid, or
-    whose match falls outside the right view or on an invalid right pixel, get +inf."""
-    matcher = create_sgbm(max_disparity)
+    whose match falls outside the right view or on an invalid right pixel, get +inf. An image too
+    narrow for SGBM (17 px or less) gets 0 everywhere, at +inf."""
+    num_disparities = sgbm_num_disparities(max_disparity, left.shape[1])
+    if num_disparities == 0:
+        return np.zeros(left.shape[:2], np.float32), np.full(left.shape[:2], np.inf, np.float32)
+    matcher = create_sgbm(num_disparities)
     raw_left = matcher.compute(left, right)
     raw_right = matcher.compute(np.ascontiguousarray(right[:, ::-1]), np.ascontiguousarray(left[:, ::-1]))[:, ::-1]
     disparity_left = raw_left.astype(np.float32) / 16.0

@@ -93,16 +93,23 @@ class PaddedBatch:
 
     def served(self, raw: Tensor, disparity: Tensor, left: Tensor, right: Tensor, serve: ServeUncertainty) -> Tensor:
         """The uncertainty as served, (B, 1, H, W), of the batch's paper's U `raw` (B, 1, H, W)
-        through `serve`: each pair's from its own maps and images (disparity (B, 1, H, W), `left`
-        and `right` (B, 3, H, W)) cropped to its size, borders as the pair alone has them; the
-        padding keeps U."""
+        through `serve`: from the maps and images (disparity (B, 1, H, W), `left` and `right`
+        (B, 3, H, W)) of the whole batch at once where the pairs are of one size, else pair by
+        pair (``each_pair``); the padding keeps U."""
         if not self.mixed:
             return serve(raw, disparity, left, right)
-        served = raw.clone()
+        return self.each_pair(serve, raw, raw, disparity, left, right)
+
+    def each_pair(self, apply: Callable[..., Tensor], kept: Tensor, *maps: Tensor) -> Tensor:
+        """`apply` computed pair by pair: for each pair, on its crop (1, C, h, w) of each
+        (B, C, H, W) tensor of `maps`, borders as the pair alone has them, giving its (1, C', h, w)
+        map; the pairs' maps written into a copy of `kept` (B, C', H, W), whose values the padding
+        keeps."""
+        result = kept.clone()
         for i, padding in enumerate(self.paddings):
-            pair_maps = (padding.crop(x[i : i + 1]) for x in (raw, disparity, left, right))
-            served[i : i + 1, :, : padding.height, : padding.width] = serve(*pair_maps)
-        return served
+            pair_maps = (padding.crop(x[i : i + 1]) for x in maps)
+            result[i : i + 1, :, : padding.height, : padding.width] = apply(*pair_maps)
+        return result
 
 
 @dataclass(frozen=True)

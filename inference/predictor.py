@@ -35,6 +35,7 @@ from .options import InferenceOptions, Iterations, IterationsGiven, StageCounts,
 from .padding import Padding
 from .prediction import Prediction, TensorPrediction, as_image_batch, image_size
 from .scaling import maps_at, resize_images, scaled_size
+from .sgbm import blend_with_sgbm
 from .torch_backend import autocast_bf16
 from .two_pass import PaddedForward, cold_maps, large_disparity_percentile
 from .uncertainty_calibration import UncertaintyCalibration
@@ -158,6 +159,7 @@ class StereoPredictor:
         scale: float = 1.0,
         raw_uncertainty: bool = False,
         flip: bool = False,
+        blend_sgbm: bool = True,
     ) -> Prediction: ...
 
     @overload
@@ -172,6 +174,7 @@ class StereoPredictor:
         scale: float = 1.0,
         raw_uncertainty: bool = False,
         flip: bool = False,
+        blend_sgbm: bool = True,
     ) -> TensorPrediction: ...
 
     @torch.inference_mode()
@@ -186,10 +189,12 @@ class StereoPredictor:
         scale: float = 1.0,
         raw_uncertainty: bool = False,
         flip: bool = False,
+        blend_sgbm: bool = True,
     ) -> Prediction | TensorPrediction:
         """Disparity and uncertainty of a rectified pair of any size (see ``as_image_batch``).
 
-        iters, two_pass, scale, raw_uncertainty, flip: read once, here, as ``InferenceOptions`` (see there).
+        iters, two_pass, scale, raw_uncertainty, flip, blend_sgbm: read once, here, as
+            ``InferenceOptions`` (see there).
         init_disparity: warm start (e.g. the previous video frame's result), HxW array or
             (B, H, W) tensor, positive pixels: every stage runs (``iters``), the coarsest
             starting from it instead of from zero (see ``FrameStream``).
@@ -208,10 +213,12 @@ class StereoPredictor:
             probability of an error above ``calibration.threshold_px`` where there is one.
         flip: also compute the pair upside down and merge the two answers (``inference.flip``):
             about twice the time, fewer large errors.
+        blend_sgbm: average the answer with OpenCV's SGBM where the two agree within 4 px
+            (``inference.sgbm``); False: the network's own answer.
         A ``left`` array gives a ``Prediction`` (numpy arrays, copied from the device once); a
         ``left`` tensor a ``TensorPrediction`` (tensors on the predictor's device).
         """
-        options = InferenceOptions(iters, two_pass, scale, raw_uncertainty, flip)
+        options = InferenceOptions(iters, two_pass, scale, raw_uncertainty, flip, blend_sgbm)
         left_batch, right_batch = as_image_batch(left, self.device), as_image_batch(right, self.device)
         inits = None
         if init_disparity is not None:  # (B, H, W) or H x W: one per pair of the batch
@@ -232,12 +239,13 @@ class StereoPredictor:
         scale: float = 1.0,
         raw_uncertainty: bool = False,
         flip: bool = False,
+        blend_sgbm: bool = True,
         init_disparities: Sequence[np.ndarray] | None = None,
     ) -> list[Prediction]:
         """Several pairs (arrays, as ``predict`` takes them) in as few forward passes as their sizes
         allow (``batching.batch_groups``): ``predict_pairs`` with the options read once, here, as
         ``InferenceOptions``, its maps copied to the host."""
-        options = InferenceOptions(iters, two_pass, scale, raw_uncertainty, flip)
+        options = InferenceOptions(iters, two_pass, scale, raw_uncertainty, flip, blend_sgbm)
         return self.predict_pairs(lefts, rights, options, init_disparities).on_host()
 
     @torch.inference_mode()
@@ -308,6 +316,8 @@ class StereoPredictor:
                     forward,
                 )
                 disparity, uncertainty = merge_flipped(disparity, uncertainty, *(turned(x) for x in maps))
+            if options.blend_sgbm:
+                disparity = batch.each_pair(blend_with_sgbm, disparity, disparity, left, right)
             batches.append((group, batch, disparity[:, 0], uncertainty[:, 0]))
         return PairMaps.of(batches)
 

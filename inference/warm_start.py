@@ -3,6 +3,7 @@ disparity (``WarmStart``, the rules; ``FrameStream``, a predictor's pairs comput
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Protocol
 
 import numpy as np
@@ -33,13 +34,7 @@ class WarmStart:
     def __init__(self, options: InferenceOptions, warm_iters: IterationsGiven = None) -> None:
         self.options = options
         """A cold frame's options."""
-        self.warm_options = InferenceOptions(
-            options.iters if warm_iters is None else warm_iters,
-            False,
-            options.scale,
-            options.raw_uncertainty,
-            options.flip,
-        )
+        self.warm_options = replace(options, iters=options.iters if warm_iters is None else warm_iters, two_pass=False)
         """A warm frame's options, read once for the whole stream (ValueError where `warm_iters` is invalid)."""
         self._previous: np.ndarray | None = None
 
@@ -77,6 +72,7 @@ class PairPredictor(Protocol):
         scale: float = 1.0,
         raw_uncertainty: bool = False,
         flip: bool = False,
+        blend_sgbm: bool = True,
     ) -> Prediction: ...
 
 

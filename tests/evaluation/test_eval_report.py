@@ -31,7 +31,9 @@ class OffsetPredictor:
         self.calls = 0
         self.two_pass = []
 
-    def predict(self, left, right, *, two_pass="auto", iters=None, scale=1.0, raw_uncertainty=False, flip=False):
+    def predict(
+        self, left, right, *, two_pass="auto", iters=None, scale=1.0, raw_uncertainty=False, flip=False, blend_sgbm=True
+    ):
         self.calls += 1
         self.two_pass.append(two_pass)
         truth = self.truth[id(left)]
@@ -128,7 +130,9 @@ class HalfWrongPredictor(OffsetPredictor):
         super().__init__(samples, 0.0)
         self.wrong_p = {id(s.left): wrong_p[s.name] for s in samples}
 
-    def predict(self, left, right, *, two_pass="auto", iters=None, scale=1.0, raw_uncertainty=False, flip=False):
+    def predict(
+        self, left, right, *, two_pass="auto", iters=None, scale=1.0, raw_uncertainty=False, flip=False, blend_sgbm=True
+    ):
         truth = self.truth[id(left)]
         half = truth.shape[1] // 2
         disparity = np.where(np.isfinite(truth), truth, 0.0).astype(np.float32)

@@ -1,21 +1,9 @@
-"""The SGBM baseline: the stereo-dev README's settings and hole filling (its numbers: tests/cli)."""
+"""The SGBM baseline: hole filling and the left-right check (its settings: tests/inference/test_sgbm_blend.py;
+its numbers: tests/cli)."""
 
 import numpy as np
-import pytest
 
-from crestereo_pp.evaluation.sgbm import create_sgbm, fill_invalid_from_left, sgbm_disparity, sgbm_num_disparities
-
-
-@pytest.mark.parametrize(("max_disparity", "expected"), [(14.0, 16), (16.0, 16), (52.75, 64), (152.12, 160), (0.0, 16)])
-def test_disparity_range_is_the_ground_truth_maximum_rounded_up_to_16(max_disparity, expected):
-    assert sgbm_num_disparities(max_disparity) == expected
-
-
-def test_matcher_has_the_readme_settings():
-    sgbm = create_sgbm(100.5)
-    assert (sgbm.getNumDisparities(), sgbm.getBlockSize(), sgbm.getP1(), sgbm.getP2()) == (112, 5, 600, 2400)
-    assert (sgbm.getDisp12MaxDiff(), sgbm.getUniquenessRatio()) == (1, 10)
-    assert (sgbm.getSpeckleWindowSize(), sgbm.getSpeckleRange(), sgbm.getMode()) == (100, 2, 2)  # 2 = SGBM_3WAY
+from crestereo_pp.evaluation.sgbm import fill_invalid_from_left, sgbm_disparity
 
 
 def test_holes_take_the_nearest_valid_value_on_their_left_and_leading_holes_the_right():
@@ -44,3 +32,10 @@ def test_sgbm_left_right_consistency_flags_where_the_views_disagree():
     inconsistent = ~(consistency < 1.0)
     assert inconsistent[:, 62:78].mean() > 3 * inconsistent[:, 30:55].mean()
     assert np.isinf(consistency[:, :7]).all()  # matches left of the right view's frame
+
+
+def test_a_pair_too_narrow_for_sgbm_gets_zeros_it_does_not_trust():
+    rng = np.random.default_rng(2)
+    image = rng.integers(0, 256, (32, 12, 3), dtype=np.uint8)
+    disparity, consistency = sgbm_disparity(image, image, max_disparity=20)
+    assert (disparity == 0).all() and np.isinf(consistency).all()

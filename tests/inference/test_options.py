@@ -22,7 +22,16 @@ def test_iterations_other_than_one_or_three_counts_of_1_to_99_are_refused(given)
 def test_options_are_hashable_values_that_normalise_their_iterations_and_check_the_scale():
     assert InferenceOptions(iters=[1, 2, 4]) == InferenceOptions(iters="1,2,4") == InferenceOptions(iters=(1, 2, 4))
     assert (
-        len({InferenceOptions(), InferenceOptions(), InferenceOptions(two_pass=True), InferenceOptions(flip=True)}) == 3
+        len(
+            {
+                InferenceOptions(),
+                InferenceOptions(),
+                InferenceOptions(two_pass=True),
+                InferenceOptions(flip=True),
+                InferenceOptions(blend_sgbm=False),
+            }
+        )
+        == 4
     )
     assert InferenceOptions(scale=0.5).keywords() == {
         "iters": None,
@@ -30,6 +39,7 @@ def test_options_are_hashable_values_that_normalise_their_iterations_and_check_t
         "scale": 0.5,
         "raw_uncertainty": False,
         "flip": False,
+        "blend_sgbm": True,
     }
     for scale in (0.0, 1.5, -1.0):
         with pytest.raises(ValueError, match="scale"):
