@@ -9,7 +9,7 @@ from typing import Protocol
 import numpy as np
 from torch import Tensor
 
-from .options import InferenceOptions, IterationsGiven, TwoPass
+from .options import InferenceOptions, IterationsGiven, TwoPass, parse_iterations
 from .prediction import Prediction
 
 
@@ -34,7 +34,9 @@ class WarmStart:
     def __init__(self, options: InferenceOptions, warm_iters: IterationsGiven = None) -> None:
         self.options = options
         """A cold frame's options."""
-        self.warm_options = replace(options, iters=options.iters if warm_iters is None else warm_iters, two_pass=False)
+        self.warm_options = replace(
+            options, iters=options.iters if warm_iters is None else parse_iterations(warm_iters), two_pass=False
+        )
         """A warm frame's options, read once for the whole stream (ValueError where `warm_iters` is invalid)."""
         self._previous: np.ndarray | None = None
 
