@@ -21,6 +21,7 @@ from crestereo_pp.model.network import padded_size
 from .options import TwoPass
 from .padding import Padding
 from .prediction import Prediction, TensorPrediction
+from .sgbm import blend_with_sgbm, host_rgb8
 from .two_pass import two_pass_possible
 
 ServeUncertainty = Callable[[Tensor, Tensor, Tensor, Tensor], Tensor]
@@ -93,58 +94,76 @@ class PaddedBatch:
 
     def served(self, raw: Tensor, disparity: Tensor, left: Tensor, right: Tensor, serve: ServeUncertainty) -> Tensor:
         """The uncertainty as served, (B, 1, H, W), of the batch's paper's U `raw` (B, 1, H, W)
-        through `serve`: from the maps and images (disparity (B, 1, H, W), `left` and `right`
-        (B, 3, H, W)) of the whole batch at once where the pairs are of one size, else pair by
-        pair (``each_pair``); the padding keeps U."""
+        through `serve`: each pair's from its own maps and images (disparity (B, 1, H, W), `left`
+        and `right` (B, 3, H, W)) cropped to its size, borders as the pair alone has them; the
+        padding keeps U."""
         if not self.mixed:
             return serve(raw, disparity, left, right)
-        return self.each_pair(serve, raw, raw, disparity, left, right)
-
-    def each_pair(self, apply: Callable[..., Tensor], kept: Tensor, *maps: Tensor) -> Tensor:
-        """`apply` computed pair by pair: for each pair, on its crop (1, C, h, w) of each
-        (B, C, H, W) tensor of `maps`, borders as the pair alone has them, giving its (1, C', h, w)
-        map; the pairs' maps written into a copy of `kept` (B, C', H, W), whose values the padding
-        keeps."""
-        result = kept.clone()
+        served = raw.clone()
         for i, padding in enumerate(self.paddings):
-            pair_maps = (padding.crop(x[i : i + 1]) for x in maps)
-            result[i : i + 1, :, : padding.height, : padding.width] = apply(*pair_maps)
-        return result
+            pair_maps = (padding.crop(x[i : i + 1]) for x in (raw, disparity, left, right))
+            served[i : i + 1, :, : padding.height, : padding.width] = serve(*pair_maps)
+        return served
+
+
+PairImages = tuple[Sequence[np.ndarray | Tensor], Sequence[np.ndarray | Tensor]]
+"""The left and the right image of each pair, as ``predict_pairs`` took them (arrays, or
+(1, 3|1, h, w) tensors)."""
 
 
 @dataclass(frozen=True)
 class PairMaps:
     """The maps of pairs computed together (``StereoPredictor.predict_pairs``), on the device:
     for each batch that ran, the indices of its pairs (in the order given), its padding and its
-    maps stacked as one (2, B, H, W) tensor (disparity, uncertainty)."""
+    maps stacked as one (2, B, H, W) tensor (disparity, uncertainty). With `blend_images` (the
+    pairs' images), each pair's disparity is blended with SGBM's (``inference.sgbm``) on its way
+    out: host work, done where the maps reach the host."""
 
     batches: tuple[tuple[tuple[int, ...], PaddedBatch, Tensor], ...]
+    blend_images: PairImages | None = None
 
     @staticmethod
-    def of(batches: Sequence[tuple[Sequence[int], PaddedBatch, Tensor, Tensor]]) -> PairMaps:
-        """From each batch's pair indices, padding, and (B, H, W) disparity and uncertainty."""
+    def of(
+        batches: Sequence[tuple[Sequence[int], PaddedBatch, Tensor, Tensor]], blend_images: PairImages | None = None
+    ) -> PairMaps:
+        """From each batch's pair indices, padding, and (B, H, W) disparity and uncertainty, and
+        the pairs' images where their answers are to be blended with SGBM."""
         return PairMaps(
             tuple(
                 (tuple(indices), batch, torch.stack((disparity, uncertainty)))
                 for indices, batch, disparity, uncertainty in batches
-            )
+            ),
+            blend_images,
         )
 
     def on_host(self) -> list[Prediction]:
         """Each pair's maps as numpy HxW arrays, copied to the host once per batch (the stack,
-        (2, H, W) for a batch of one pair): the only device-to-host transfer of a prediction."""
+        (2, H, W) for a batch of one pair): the only device-to-host transfer of a prediction (and of
+        the blend, for images given as arrays)."""
         results: dict[int, Prediction] = {}
         for indices, batch, maps in self.batches:
             host = maps[:, 0].cpu().numpy()[:, None] if maps.shape[1] == 1 else maps.cpu().numpy()
             for i, (index, padding) in enumerate(zip(indices, batch.paddings, strict=True)):
                 disparity, uncertainty = (np.ascontiguousarray(padding.crop(host[k, i])) for k in (0, 1))
-                results[index] = Prediction(disparity, uncertainty)
+                results[index] = Prediction(self._blended(index, disparity), uncertainty)
         return [results[i] for i in range(len(results))]
 
     def on_device(self) -> TensorPrediction:
         """The maps of pairs of one size computed as one batch (``predict`` of a tensor batch),
-        (B, H, W) each, on the device as they are."""
+        (B, H, W) each, on the device as they are; blended with SGBM, each pair's disparity and
+        images are copied to the host and the blended disparity back."""
         if len(self.batches) != 1 or self.batches[0][1].mixed:
             raise ValueError("on_device takes the maps of pairs of one size, computed as one batch")
-        maps = self.batches[0][2]
-        return TensorPrediction(maps[0], maps[1])
+        indices, _, maps = self.batches[0]
+        disparity = maps[0]
+        if self.blend_images is not None:
+            blended = [self._blended(index, pair.cpu().numpy()) for index, pair in zip(indices, disparity, strict=True)]
+            disparity = torch.from_numpy(np.stack(blended)).to(disparity.device)
+        return TensorPrediction(disparity, maps[1])
+
+    def _blended(self, index: int, disparity: np.ndarray) -> np.ndarray:
+        """Pair `index`'s disparity (HxW, on the host), blended with SGBM's where asked."""
+        if self.blend_images is None:
+            return disparity
+        lefts, rights = self.blend_images
+        return blend_with_sgbm(disparity, host_rgb8(lefts[index]), host_rgb8(rights[index]))

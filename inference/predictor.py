@@ -35,7 +35,6 @@ from .options import InferenceOptions, Iterations, IterationsGiven, StageCounts,
 from .padding import Padding
 from .prediction import Prediction, TensorPrediction, as_image_batch, image_size
 from .scaling import maps_at, resize_images, scaled_size
-from .sgbm import blend_with_sgbm
 from .torch_backend import autocast_bf16
 from .two_pass import PaddedForward, cold_maps, large_disparity_percentile
 from .uncertainty_calibration import UncertaintyCalibration
@@ -219,15 +218,21 @@ class StereoPredictor:
         ``left`` tensor a ``TensorPrediction`` (tensors on the predictor's device).
         """
         options = InferenceOptions(iters, two_pass, scale, raw_uncertainty, flip, blend_sgbm)
-        left_batch, right_batch = as_image_batch(left, self.device), as_image_batch(right, self.device)
+        # arrays go as given (uploaded once, in predict_pairs; the blend with SGBM reads them on the host)
+        lefts, rights = (self.pairs_of(image) for image in (left, right))
         inits = None
         if init_disparity is not None:  # (B, H, W) or H x W: one per pair of the batch
             init = torch.as_tensor(init_disparity, dtype=torch.float32, device=self.device)
-            inits = one_per_pair(init.reshape(left_batch.shape[0], *left_batch.shape[-2:]))
-        maps = self.predict_pairs(one_per_pair(left_batch), one_per_pair(right_batch), options, inits, graphed=False)
+            inits = one_per_pair(init.reshape(len(lefts), *image_size(left)))
+        maps = self.predict_pairs(lefts, rights, options, inits, graphed=False)
         if isinstance(left, np.ndarray):
             return maps.on_host()[0]
         return maps.on_device()
+
+    def pairs_of(self, image: np.ndarray | Tensor) -> list[np.ndarray] | list[Tensor]:
+        """``predict``'s image as ``predict_pairs`` takes it: an array as it is (one pair), a
+        (B, 3|1, H, W) tensor as B tensors (1, 3, H, W) on the device."""
+        return [image] if isinstance(image, np.ndarray) else one_per_pair(as_image_batch(image, self.device))
 
     def predict_batch(
         self,
@@ -316,10 +321,8 @@ class StereoPredictor:
                     forward,
                 )
                 disparity, uncertainty = merge_flipped(disparity, uncertainty, *(turned(x) for x in maps))
-            if options.blend_sgbm:
-                disparity = batch.each_pair(blend_with_sgbm, disparity, disparity, left, right)
             batches.append((group, batch, disparity[:, 0], uncertainty[:, 0]))
-        return PairMaps.of(batches)
+        return PairMaps.of(batches, (lefts, rights) if options.blend_sgbm else None)
 
     def batch_maps(
         self,

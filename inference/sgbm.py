@@ -20,6 +20,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .prediction import as_image_batch
+
 BLEND_WITHIN_PX = 4.0
 """The network's answer and SGBM's are averaged where they are within this many pixels of each
 other. Chosen on procedural validation scenes (40 plain, 24 with rooms, flat surfaces and thin
@@ -66,23 +68,22 @@ def sgbm_search_range(disparity: np.ndarray) -> float:
     return 1.2 * float(np.percentile(disparity, 99.9)) + 8.0
 
 
-def blend_with_sgbm(disparity: Tensor, left: Tensor, right: Tensor) -> Tensor:
-    """The network's answer of one pair blended with SGBM's (see the module): `disparity`
-    (1, 1, H, W) px, positive; `left` and `right` (1, 3, H, W) RGB in [0, 255], on any device.
-    Returns the blended (1, 1, H, W) disparity on `disparity`'s device; the answer unchanged where
-    the image is too narrow for SGBM (``sgbm_num_disparities``)."""
-    answer = disparity[0, 0].float().cpu().numpy()
-    num_disparities = sgbm_num_disparities(sgbm_search_range(answer), answer.shape[1])
+def blend_with_sgbm(disparity: np.ndarray, left: np.ndarray, right: np.ndarray) -> np.ndarray:
+    """The network's answer of one pair blended with SGBM's (see the module): `disparity` (HxW
+    float32, px, positive), `left` and `right` HxWx3 uint8 RGB (``host_rgb8``). Returns the blended
+    HxW float32 disparity; the answer unchanged where the image is too narrow for SGBM
+    (``sgbm_num_disparities``). Host work: OpenCV computes on the CPU."""
+    num_disparities = sgbm_num_disparities(sgbm_search_range(disparity), disparity.shape[1])
     if num_disparities == 0:
         return disparity
-    images = (np.ascontiguousarray(_as_uint8(image)) for image in (left, right))
-    raw = create_sgbm(num_disparities).compute(*images)
+    raw = create_sgbm(num_disparities).compute(left, right)
     matched = raw.astype(np.float32) / 16.0
-    agree = (raw >= 0) & (np.abs(matched - answer) < BLEND_WITHIN_PX)
-    blended = np.where(agree, 0.5 * (matched + answer), answer)
-    return torch.from_numpy(blended).to(disparity.device, disparity.dtype)[None, None]
+    agree = (raw >= 0) & (np.abs(matched - disparity) < BLEND_WITHIN_PX)
+    return np.where(agree, 0.5 * (matched + disparity), disparity).astype(np.float32)
 
 
-def _as_uint8(image: Tensor) -> np.ndarray:
-    """A (1, 3, H, W) image in [0, 255] as an HxWx3 uint8 array on the host."""
-    return image[0].round().clamp(0, 255).to(torch.uint8).permute(1, 2, 0).cpu().numpy()
+def host_rgb8(image: np.ndarray | Tensor) -> np.ndarray:
+    """An image as ``as_image_batch`` reads it (an array, or a (1, 3|1, H, W) tensor on any
+    device), as the HxWx3 uint8 RGB array on the host that SGBM matches (rounded, clipped)."""
+    pixels = as_image_batch(image, torch.device("cpu"))[0]
+    return np.ascontiguousarray(pixels.round().clamp(0, 255).to(torch.uint8).permute(1, 2, 0).numpy())

@@ -85,14 +85,15 @@ function readCalibration() {
   return ["calibration-file", "calibration-right-file"].map((id) => $(id).files[0]).filter(Boolean);
 }
 
-/** The query options from the form: every named control, empty ones left out (and `frame`
- * only with a calibration, the one case where it means something). */
+/** The query options from the form: every named control, empty ones and checkboxes at their
+ * default (the service's) left out (and `frame` only with a calibration, the one case where it
+ * means something). */
 function readOptions(calibrated) {
   const params = new URLSearchParams();
   for (const element of $("options").elements) {
     if (!element.name || (element.name === "frame" && !calibrated)) continue;
     if (element.type === "checkbox") {
-      if (element.checked) params.set(element.name, "true");
+      if (element.checked !== element.defaultChecked) params.set(element.name, String(element.checked));
     } else if (element.value.trim() !== "") {
       params.set(element.name, element.value.trim());
     }

@@ -47,13 +47,18 @@ def test_predict_of_arrays_uploads_the_inputs_and_downloads_both_maps_in_one_cop
     assert transfers.uploads == 2 + ("init_disparity" in options) and transfers.scalar_reads == 0
 
 
-def test_predict_of_device_tensors_leaves_the_maps_on_the_device(predictor):
+@pytest.mark.parametrize(("blend_sgbm", "transfers_made"), [(False, (0, 0, 0)), (True, (1, 6, 0))])
+def test_predict_of_device_tensors_leaves_the_maps_on_the_device_and_the_blend_copies_once(
+    predictor, blend_sgbm, transfers_made
+):
+    """Without the blend nothing crosses; with it (host work) each pair's answer and images come
+    to the host once (3 x 2 pairs) and the blended answers go back in one copy."""
     left = torch.rand(2, 3, 40, 60, device=DEVICE) * 255
     with DeviceTransfers() as transfers:
-        prediction = predictor.predict(left, left, iters=ITERS)
+        prediction = predictor.predict(left, left, iters=ITERS, blend_sgbm=blend_sgbm)
     assert prediction.disparity.device == prediction.uncertainty.device == DEVICE
     assert prediction.disparity.shape == (2, 40, 60)
-    assert (transfers.uploads, transfers.downloads, transfers.scalar_reads) == (0, 0, 0)
+    assert (transfers.uploads, transfers.downloads, transfers.scalar_reads) == transfers_made
 
 
 @pytest.mark.parametrize("graphs", [False, True], ids=["eager", "graphed"])

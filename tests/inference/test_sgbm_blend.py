@@ -8,7 +8,13 @@ import torch
 from raw_camera import small_dev_sample
 
 from crestereo_pp.inference import load_model
-from crestereo_pp.inference.sgbm import BLEND_WITHIN_PX, blend_with_sgbm, create_sgbm, sgbm_num_disparities
+from crestereo_pp.inference.sgbm import (
+    BLEND_WITHIN_PX,
+    blend_with_sgbm,
+    create_sgbm,
+    host_rgb8,
+    sgbm_num_disparities,
+)
 
 SHIFT = 7  # px: the textured pair's disparity
 
@@ -24,10 +30,6 @@ def shifted_pair(height: int = 64, width: int = 128) -> tuple[np.ndarray, np.nda
     """A random texture and the same shifted SHIFT px: left(x) = right(x - SHIFT)."""
     right = np.random.default_rng(0).integers(0, 256, (height, width, 3), dtype=np.uint8)
     return np.roll(right, SHIFT, axis=1), right
-
-
-def as_tensors(*images: np.ndarray) -> list[torch.Tensor]:
-    return [torch.from_numpy(image).permute(2, 0, 1)[None].float() for image in images]
 
 
 @pytest.mark.parametrize(
@@ -54,24 +56,24 @@ def test_the_matcher_has_the_baseline_settings():
 
 def test_where_sgbm_agrees_the_mean_is_served_and_where_it_does_not_the_network_answer_stands():
     left, right = shifted_pair()
-    answer = torch.full((1, 1, 64, 128), SHIFT + 1.0)  # 1 px off: SGBM agrees, the mean is nearer
-    answer[..., 64:] = SHIFT + BLEND_WITHIN_PX + 3.0  # 7 px off: SGBM disagrees
-    blended = blend_with_sgbm(answer, *as_tensors(left, right))[0, 0].numpy()
+    answer = np.full((64, 128), SHIFT + 1.0, np.float32)  # 1 px off: SGBM agrees, the mean is nearer
+    answer[:, 64:] = SHIFT + BLEND_WITHIN_PX + 3.0  # 7 px off: SGBM disagrees
+    blended = blend_with_sgbm(answer, left, right)
     seen = blended[8:-8, 16:60]  # where the match is in the right view, away from the borders
     assert np.median(seen) == pytest.approx(SHIFT + 0.5, abs=0.1)
     np.testing.assert_array_equal(blended[:, 64:], SHIFT + BLEND_WITHIN_PX + 3.0)
-    assert np.abs(blended - answer[0, 0].numpy()).max() <= BLEND_WITHIN_PX / 2
+    assert np.abs(blended - answer).max() <= BLEND_WITHIN_PX / 2
 
 
 @pytest.mark.parametrize("width", [5, 16, 17, 40])
 def test_images_too_narrow_for_the_search_are_answered_without_a_crash(width):
     # OpenCV's SGBM crashes the process on a search as wide as the image; the range is kept below it
     left, right = shifted_pair(32, width)
-    answer = torch.full((1, 1, 32, width), 30.0)
-    blended = blend_with_sgbm(answer, *as_tensors(left, right))
-    assert blended.shape == answer.shape and torch.isfinite(blended).all()
+    answer = np.full((32, width), 30.0, np.float32)
+    blended = blend_with_sgbm(answer, left, right)
+    assert blended.shape == answer.shape and np.isfinite(blended).all()
     if width <= 16:
-        assert torch.equal(blended, answer)
+        np.testing.assert_array_equal(blended, answer)
 
 
 def test_the_blend_moves_a_real_answer_by_at_most_half_the_agreement_and_can_be_turned_off(lite):
@@ -104,3 +106,23 @@ def test_the_blend_gets_fewer_pixels_of_a_real_pair_wrong_by_over_1_px(lite):
     own = lite.predict(sample.left, sample.right, blend_sgbm=False).disparity
     blended = lite.predict(sample.left, sample.right).disparity
     assert wrong_by_over_1_px(blended) < 0.9 * wrong_by_over_1_px(own)
+
+
+def test_grey_16_bit_and_tensor_images_are_matched_as_the_network_reads_them():
+    left, right = shifted_pair()
+    grey16 = (left[..., 0].astype(np.uint16) * 257)[..., None]
+    np.testing.assert_array_equal(host_rgb8(grey16), np.repeat(left[..., :1], 3, axis=2))
+    tensor = torch.from_numpy(left).permute(2, 0, 1)[None].float()
+    np.testing.assert_array_equal(host_rgb8(tensor), left)
+
+
+def test_device_tensors_are_blended_too_and_the_maps_stay_tensors(lite):
+    sample = small_dev_sample()
+    left, right = (
+        torch.from_numpy(x[:96, :160].copy()).permute(2, 0, 1)[None].float() for x in (sample.left, sample.right)
+    )
+    own = lite.predict(left, right, blend_sgbm=False)
+    blended = lite.predict(left, right)
+    assert isinstance(blended.disparity, torch.Tensor) and blended.disparity.shape == (1, 96, 160)
+    moved = (blended.disparity - own.disparity).abs()
+    assert 0 < float(moved.max()) <= BLEND_WITHIN_PX / 2 + 1e-4

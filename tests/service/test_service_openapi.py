@@ -50,6 +50,7 @@ def test_every_disparity_answer_is_documented_with_examples_of_its_error_codes()
         "scale",
         "raw_uncertainty",
         "flip",
+        "blend_sgbm",
         "color_min",
         "color_max",
         "cx_px",

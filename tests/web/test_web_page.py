@@ -165,6 +165,23 @@ def test_example_pair_gives_three_pictures_with_color_bars_in_px(web: WebPage) -
     expect(page.locator("#results")).to_be_in_viewport()  # brought into view below the form
 
 
+def test_a_ticked_box_sends_its_option_only_where_it_differs_from_the_services_default(web: WebPage) -> None:
+    page = web.page
+    page.select_option("#example", EXAMPLE)
+    expect(page.locator("#status")).to_contain_text("loaded")
+    queries = []
+    for change in (None, "#flip", "#blend_sgbm"):  # flip is off by default, blend_sgbm on
+        if change is not None:
+            page.click(change)
+        with page.expect_response(lambda answer: "/disparity?" in answer.url) as answer:
+            page.click("#run")
+        assert answer.value.status == 200
+        queries.append(answer.value.url.split("?", 1)[1])
+    assert "flip" not in queries[0] and "blend_sgbm" not in queries[0]
+    assert "flip=true" in queries[1] and "blend_sgbm" not in queries[1]
+    assert "flip=true" in queries[2] and "blend_sgbm=false" in queries[2]
+
+
 def test_color_range_follows_color_min_and_color_max(web: WebPage) -> None:
     run_example(web, color_min="2", color_max="30")
     assert web.page.inner_text("#disparity-bar .low") == "2 px"
