@@ -72,8 +72,9 @@ def row_settings(plan: Plan, on_cuda: bool) -> list[tuple[int, bool, str, bool |
     """The rows' (batch, CUDA graphs, precision, two_pass) for one model and size: every batch,
     graphs or not and precision in one pass at the pair's size (``two_pass=False``: the network
     once, as the paper times it), then the default inference (``two_pass="auto"``: a quick pass,
-    then one or two passes on the pair enlarged as far as its disparities allow) at batch 1 in bf16,
-    with graphs where there is CUDA: what a user's single request costs."""
+    then one or two passes on the pair enlarged as far as its disparities allow, and the blend with
+    SGBM, on the CPU) at batch 1 in bf16, with graphs where there is CUDA: what a user's single
+    request costs."""
     one_pass = [
         (batch, graphs, precision, False)
         for batch, graphs, precision in itertools.product(plan.batches, (False, True), ("fp32", "bf16"))
@@ -111,9 +112,8 @@ def time_predict_batch(
         torch.cuda.reset_peak_memory_stats(predictor.device)
 
     def call() -> None:
-        predictor.predict_batch(  # numpy out: the copy waits; the network alone (no SGBM, which runs on the CPU)
-            lefts, rights, iters=plan.iters, two_pass=two_pass, blend_sgbm=False
-        )
+        # numpy out: the copy waits; one pass is the network alone, auto the default (with SGBM, on the CPU)
+        predictor.predict_batch(lefts, rights, iters=plan.iters, two_pass=two_pass, blend_sgbm=two_pass == "auto")
 
     for _ in range(plan.warmup_calls):
         call()
