@@ -219,7 +219,7 @@ class StereoPredictor:
         """
         options = InferenceOptions(iters, two_pass, scale, raw_uncertainty, flip, blend_sgbm)
         # arrays go as given (uploaded once, in predict_pairs; the blend with SGBM reads them on the host)
-        lefts, rights = (self.pairs_of(image) for image in (left, right))
+        lefts, rights = (pairs_of(image, self.device) for image in (left, right))
         inits = None
         if init_disparity is not None:  # (B, H, W) or H x W: one per pair of the batch
             init = torch.as_tensor(init_disparity, dtype=torch.float32, device=self.device)
@@ -228,11 +228,6 @@ class StereoPredictor:
         if isinstance(left, np.ndarray):
             return maps.on_host()[0]
         return maps.on_device()
-
-    def pairs_of(self, image: np.ndarray | Tensor) -> list[np.ndarray] | list[Tensor]:
-        """``predict``'s image as ``predict_pairs`` takes it: an array as it is (one pair), a
-        (B, 3|1, H, W) tensor as B tensors (1, 3, H, W) on the device."""
-        return [image] if isinstance(image, np.ndarray) else one_per_pair(as_image_batch(image, self.device))
 
     def predict_batch(
         self,
@@ -435,3 +430,9 @@ class StereoPredictor:
 def one_per_pair(batch: Tensor) -> list[Tensor]:
     """A (B, ...) batch as B tensors (1, ...), views of it: one per pair, as ``predict_pairs`` takes them."""
     return [batch[i : i + 1] for i in range(batch.shape[0])]
+
+
+def pairs_of(image: np.ndarray | Tensor, device: torch.device) -> list[np.ndarray] | list[Tensor]:
+    """``predict``'s image as ``predict_pairs`` takes it: an array as it is (one pair), a
+    (B, 3|1, H, W) tensor as B tensors (1, 3, H, W) on `device`."""
+    return [image] if isinstance(image, np.ndarray) else one_per_pair(as_image_batch(image, device))

@@ -72,8 +72,12 @@ def blend_with_sgbm(disparity: np.ndarray, left: np.ndarray, right: np.ndarray) 
     """The network's answer of one pair blended with SGBM's (see the module): `disparity` (HxW
     float32, px, positive), `left` and `right` HxWx3 uint8 RGB (``host_rgb8``). Returns the blended
     HxW float32 disparity; the answer unchanged where the image is too narrow for SGBM
-    (``sgbm_num_disparities``). Host work: OpenCV computes on the CPU."""
-    num_disparities = sgbm_num_disparities(sgbm_search_range(disparity), disparity.shape[1])
+    (``sgbm_num_disparities``) or the answer holds a NaN or an infinity (no range to search). Host
+    work: OpenCV computes on the CPU."""
+    search = sgbm_search_range(disparity)
+    if not math.isfinite(search):
+        return disparity
+    num_disparities = sgbm_num_disparities(search, disparity.shape[1])
     if num_disparities == 0:
         return disparity
     raw = create_sgbm(num_disparities).compute(left, right)

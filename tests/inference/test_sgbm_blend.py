@@ -108,6 +108,13 @@ def test_the_blend_gets_fewer_pixels_of_a_real_pair_wrong_by_over_1_px(lite):
     assert wrong_by_over_1_px(blended) < 0.9 * wrong_by_over_1_px(own)
 
 
+def test_an_answer_with_a_nan_is_served_as_it_is():
+    left, right = shifted_pair()
+    answer = np.full((64, 128), float(SHIFT), np.float32)
+    answer[3, 4] = np.nan
+    np.testing.assert_array_equal(blend_with_sgbm(answer, left, right), answer)
+
+
 def test_grey_16_bit_and_tensor_images_are_matched_as_the_network_reads_them():
     left, right = shifted_pair()
     grey16 = (left[..., 0].astype(np.uint16) * 257)[..., None]
