@@ -11,8 +11,8 @@ GFLOP/s they make, the OpenVINO graph's preparation time (its export, or reading
 cache) and the first call's time (OpenVINO compiles the shape there), and peak memory; then
 OpenCV SGBM on the same pairs. Each row runs in a fresh child process, so that its peak RSS is its
 own. torch rows with bf16 run under autocast. Each timing is the network's one pass
-(``two_pass=False``, ``blend_sgbm=False``: the SGBM rows time the matcher the default blends
-with); the default ``two_pass="auto"`` adds a pass at quarter resolution, and either a
+(``two_pass=False``, ``blend_sgbm=False``, ``refine_edges=False``: the SGBM rows time the matcher
+the default blends with); the default ``two_pass="auto"`` adds a pass at quarter resolution, and either a
 half-resolution one for pairs with large disparities or, for pairs with small ones, runs the pass
 on the pair enlarged up to 1.5x (``crestereo-pp eval`` times the default).
 --profile adds the torch rows' top operators.
@@ -75,13 +75,17 @@ def measure(
     start = time.perf_counter()
     if backend == "torch":
         with FlopCounterMode(display=False) as counter:
-            predictor.predict(left, right, two_pass=False, blend_sgbm=False)  # the warm-up
+            predictor.predict(left, right, two_pass=False, blend_sgbm=False, refine_edges=False)  # the warm-up
         gflop: float | None = counter.get_total_flops() / 1e9
     else:
-        predictor.predict(left, right, two_pass=False, blend_sgbm=False)  # the warm-up, which compiles the shape
+        predictor.predict(
+            left, right, two_pass=False, blend_sgbm=False, refine_edges=False
+        )  # the warm-up, which compiles the shape
         gflop = None
     first_call_s = time.perf_counter() - start
-    times = timed_calls(lambda: predictor.predict(left, right, two_pass=False, blend_sgbm=False), runs)
+    times = timed_calls(
+        lambda: predictor.predict(left, right, two_pass=False, blend_sgbm=False, refine_edges=False), runs
+    )
     result = {
         "times_s": times,
         "gflop": gflop,
@@ -91,7 +95,7 @@ def measure(
     }
     if profile and backend == "torch":
         with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU]) as prof:
-            predictor.predict(left, right, two_pass=False, blend_sgbm=False)
+            predictor.predict(left, right, two_pass=False, blend_sgbm=False, refine_edges=False)
         result["profile"] = prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=15)
     return result
 

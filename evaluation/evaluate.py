@@ -230,6 +230,7 @@ def evaluate(
             "scale": options.scale,
             "flip": options.flip,
             "blend_sgbm": options.blend_sgbm,
+            "refine_edges": options.refine_edges,
             "uncertainty": (
                 f"P(error > {predictor.calibration.threshold_px:g} px), fitted on {predictor.calibration.fitted_on}"
                 if predictor.calibration is not None

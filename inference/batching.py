@@ -21,7 +21,7 @@ from crestereo_pp.model.network import padded_size
 from .options import TwoPass
 from .padding import Padding
 from .prediction import Prediction, TensorPrediction
-from .sgbm import blend_with_sgbm, host_rgb8
+from .refinement import HostRefinement
 from .two_pass import two_pass_possible
 
 ServeUncertainty = Callable[[Tensor, Tensor, Tensor, Tensor], Tensor]
@@ -106,64 +106,59 @@ class PaddedBatch:
         return served
 
 
-PairImages = tuple[Sequence[np.ndarray | Tensor], Sequence[np.ndarray | Tensor]]
-"""The left and the right image of each pair, as ``predict_pairs`` took them (arrays, or
-(1, 3|1, h, w) tensors)."""
-
-
 @dataclass(frozen=True)
 class PairMaps:
     """The maps of pairs computed together (``StereoPredictor.predict_pairs``), on the device:
     for each batch that ran, the indices of its pairs (in the order given), its padding and its
-    maps stacked as one (2, B, H, W) tensor (disparity, uncertainty). With `blend_images` (the
-    pairs' images), each pair's disparity is blended with SGBM's (``inference.sgbm``) on its way
-    out: host work, done where the maps reach the host."""
+    maps stacked as one (2, B, H, W) tensor (disparity, uncertainty). With a `refinement`, each
+    pair's disparity is refined on its way out (``inference.refinement``: the blend with SGBM, the
+    depth edges): host work, done where the maps reach the host."""
 
     batches: tuple[tuple[tuple[int, ...], PaddedBatch, Tensor], ...]
-    blend_images: PairImages | None = None
+    refinement: HostRefinement | None = None
 
     @staticmethod
     def of(
-        batches: Sequence[tuple[Sequence[int], PaddedBatch, Tensor, Tensor]], blend_images: PairImages | None = None
+        batches: Sequence[tuple[Sequence[int], PaddedBatch, Tensor, Tensor]],
+        refinement: HostRefinement | None = None,
     ) -> PairMaps:
         """From each batch's pair indices, padding, and (B, H, W) disparity and uncertainty, and
-        the pairs' images where their answers are to be blended with SGBM."""
+        the refinement of their answers, if any."""
         return PairMaps(
             tuple(
                 (tuple(indices), batch, torch.stack((disparity, uncertainty)))
                 for indices, batch, disparity, uncertainty in batches
             ),
-            blend_images,
+            refinement,
         )
 
     def on_host(self) -> list[Prediction]:
         """Each pair's maps as numpy HxW arrays, copied to the host once per batch (the stack,
         (2, H, W) for a batch of one pair): the only device-to-host transfer of a prediction (and of
-        the blend, for images given as arrays)."""
+        the refinement, for images given as arrays)."""
         results: dict[int, Prediction] = {}
         for indices, batch, maps in self.batches:
             host = maps[:, 0].cpu().numpy()[:, None] if maps.shape[1] == 1 else maps.cpu().numpy()
             for i, (index, padding) in enumerate(zip(indices, batch.paddings, strict=True)):
                 disparity, uncertainty = (np.ascontiguousarray(padding.crop(host[k, i])) for k in (0, 1))
-                results[index] = Prediction(self._blended(index, disparity), uncertainty)
+                results[index] = Prediction(self._refined(index, disparity), uncertainty)
         return [results[i] for i in range(len(results))]
 
     def on_device(self) -> TensorPrediction:
         """The maps of pairs of one size computed as one batch (``predict`` of a tensor batch),
-        (B, H, W) each, on the device as they are; blended with SGBM, each pair's disparity and
-        images are copied to the host and the blended disparity back."""
+        (B, H, W) each, on the device as they are; refined (``inference.refinement``), each pair's
+        disparity and images are copied to the host and the refined disparity back."""
         if len(self.batches) != 1 or self.batches[0][1].mixed:
             raise ValueError("on_device takes the maps of pairs of one size, computed as one batch")
         indices, _, maps = self.batches[0]
         disparity = maps[0]
-        if self.blend_images is not None:
-            blended = [self._blended(index, pair.cpu().numpy()) for index, pair in zip(indices, disparity, strict=True)]
-            disparity = torch.from_numpy(np.stack(blended)).to(disparity.device)
+        if self.refinement is not None:
+            refined = [
+                self.refinement(index, pair.cpu().numpy()) for index, pair in zip(indices, disparity, strict=True)
+            ]
+            disparity = torch.from_numpy(np.stack(refined)).to(disparity.device)
         return TensorPrediction(disparity, maps[1])
 
-    def _blended(self, index: int, disparity: np.ndarray) -> np.ndarray:
-        """Pair `index`'s disparity (HxW, on the host), blended with SGBM's where asked."""
-        if self.blend_images is None:
-            return disparity
-        lefts, rights = self.blend_images
-        return blend_with_sgbm(disparity, host_rgb8(lefts[index]), host_rgb8(rights[index]))
+    def _refined(self, index: int, disparity: np.ndarray) -> np.ndarray:
+        """Pair `index`'s disparity (HxW, on the host), refined where asked."""
+        return disparity if self.refinement is None else self.refinement(index, disparity)

@@ -34,6 +34,7 @@ from .openvino_backend import MAX_COMPILED_BYTES, OpenVINOForward
 from .options import InferenceOptions, Iterations, IterationsGiven, StageCounts, TwoPass
 from .padding import Padding
 from .prediction import Prediction, TensorPrediction, as_image_batch, image_size
+from .refinement import HostRefinement
 from .scaling import maps_at, resize_images, scaled_size
 from .torch_backend import autocast_bf16
 from .two_pass import PaddedForward, cold_maps, large_disparity_percentile
@@ -159,6 +160,7 @@ class StereoPredictor:
         raw_uncertainty: bool = False,
         flip: bool = False,
         blend_sgbm: bool = True,
+        refine_edges: bool = True,
     ) -> Prediction: ...
 
     @overload
@@ -174,6 +176,7 @@ class StereoPredictor:
         raw_uncertainty: bool = False,
         flip: bool = False,
         blend_sgbm: bool = True,
+        refine_edges: bool = True,
     ) -> TensorPrediction: ...
 
     @torch.inference_mode()
@@ -189,10 +192,11 @@ class StereoPredictor:
         raw_uncertainty: bool = False,
         flip: bool = False,
         blend_sgbm: bool = True,
+        refine_edges: bool = True,
     ) -> Prediction | TensorPrediction:
         """Disparity and uncertainty of a rectified pair of any size (see ``as_image_batch``).
 
-        iters, two_pass, scale, raw_uncertainty, flip, blend_sgbm: read once, here, as
+        iters, two_pass, scale, raw_uncertainty, flip, blend_sgbm, refine_edges: read once, here, as
             ``InferenceOptions`` (see there).
         init_disparity: warm start (e.g. the previous video frame's result), HxW array or
             (B, H, W) tensor, positive pixels: every stage runs (``iters``), the coarsest
@@ -213,12 +217,14 @@ class StereoPredictor:
         flip: also compute the pair upside down and merge the two answers (``inference.flip``):
             about twice the time, fewer large errors.
         blend_sgbm: average the answer with OpenCV's SGBM where the two agree within 4 px
-            (``inference.sgbm``); False: the network's own answer.
+            (``inference.sgbm``).
+        refine_edges: put the answer's depth edges where the left image's colour edges are
+            (``inference.depth_edges``). With both False: the network's own answer.
         A ``left`` array gives a ``Prediction`` (numpy arrays, copied from the device once); a
         ``left`` tensor a ``TensorPrediction`` (tensors on the predictor's device).
         """
-        options = InferenceOptions(iters, two_pass, scale, raw_uncertainty, flip, blend_sgbm)
-        # arrays go as given (uploaded once, in predict_pairs; the blend with SGBM reads them on the host)
+        options = InferenceOptions(iters, two_pass, scale, raw_uncertainty, flip, blend_sgbm, refine_edges)
+        # arrays go as given (uploaded once, in predict_pairs; the refinement reads them on the host)
         lefts, rights = (pairs_of(image, self.device) for image in (left, right))
         inits = None
         if init_disparity is not None:  # (B, H, W) or H x W: one per pair of the batch
@@ -240,12 +246,13 @@ class StereoPredictor:
         raw_uncertainty: bool = False,
         flip: bool = False,
         blend_sgbm: bool = True,
+        refine_edges: bool = True,
         init_disparities: Sequence[np.ndarray] | None = None,
     ) -> list[Prediction]:
         """Several pairs (arrays, as ``predict`` takes them) in as few forward passes as their sizes
         allow (``batching.batch_groups``): ``predict_pairs`` with the options read once, here, as
         ``InferenceOptions``, its maps copied to the host."""
-        options = InferenceOptions(iters, two_pass, scale, raw_uncertainty, flip, blend_sgbm)
+        options = InferenceOptions(iters, two_pass, scale, raw_uncertainty, flip, blend_sgbm, refine_edges)
         return self.predict_pairs(lefts, rights, options, init_disparities).on_host()
 
     @torch.inference_mode()
@@ -317,7 +324,7 @@ class StereoPredictor:
                 )
                 disparity, uncertainty = merge_flipped(disparity, uncertainty, *(turned(x) for x in maps))
             batches.append((group, batch, disparity[:, 0], uncertainty[:, 0]))
-        return PairMaps.of(batches, (lefts, rights) if options.blend_sgbm else None)
+        return PairMaps.of(batches, HostRefinement.of((lefts, rights), options))
 
     def batch_maps(
         self,

@@ -75,6 +75,7 @@ class PairPredictor(Protocol):
         raw_uncertainty: bool = False,
         flip: bool = False,
         blend_sgbm: bool = True,
+        refine_edges: bool = True,
     ) -> Prediction: ...
 
 

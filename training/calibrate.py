@@ -105,8 +105,10 @@ def calibrate(
     for first in range(0, scenes, batch_size):
         count = min(batch_size, scenes - first)
         batch = generator.generate(count, seed=CALIBRATION_SEED + first)
-        # the network's own answer: the served uncertainty is computed from it, before any blend with SGBM
-        prediction = predictor.predict(batch.left, batch.right, raw_uncertainty=True, blend_sgbm=False)
+        # the network's own answer: the served uncertainty is computed from it, before any host refinement
+        prediction = predictor.predict(
+            batch.left, batch.right, raw_uncertainty=True, blend_sgbm=False, refine_edges=False
+        )
         assert isinstance(prediction.disparity, torch.Tensor)
         disparity = prediction.disparity[:, None]
         known = batch.valid[:, 0]

@@ -72,9 +72,9 @@ def row_settings(plan: Plan, on_cuda: bool) -> list[tuple[int, bool, str, bool |
     """The rows' (batch, CUDA graphs, precision, two_pass) for one model and size: every batch,
     graphs or not and precision in one pass at the pair's size (``two_pass=False``: the network
     once, as the paper times it), then the default inference (``two_pass="auto"``: a quick pass,
-    then one or two passes on the pair enlarged as far as its disparities allow, and the blend with
-    SGBM, on the CPU) at batch 1 in bf16, with graphs where there is CUDA: what a user's single
-    request costs."""
+    then one or two passes on the pair enlarged as far as its disparities allow, the blend with SGBM
+    and the depth edges' refinement, on the CPU) at batch 1 in bf16, with graphs where there is
+    CUDA: what a user's single request costs."""
     one_pass = [
         (batch, graphs, precision, False)
         for batch, graphs, precision in itertools.product(plan.batches, (False, True), ("fp32", "bf16"))
@@ -113,7 +113,14 @@ def time_predict_batch(
 
     def call() -> None:
         # numpy out: the copy waits; one pass is the network alone, auto the default (with SGBM, on the CPU)
-        predictor.predict_batch(lefts, rights, iters=plan.iters, two_pass=two_pass, blend_sgbm=two_pass == "auto")
+        predictor.predict_batch(
+            lefts,
+            rights,
+            iters=plan.iters,
+            two_pass=two_pass,
+            blend_sgbm=two_pass == "auto",
+            refine_edges=two_pass == "auto",
+        )
 
     for _ in range(plan.warmup_calls):
         call()
@@ -144,18 +151,22 @@ def accuracy(plan: Plan, name: str, eager: Any, graphed: Any, data_dir: Path | N
             break
         known = sample.valid & np.isfinite(sample.disparity)
         eager.precision = "fp32"
-        fp32 = eager.predict(sample.left, sample.right, iters=plan.iters, blend_sgbm=False).disparity
+        fp32 = eager.predict(
+            sample.left, sample.right, iters=plan.iters, blend_sgbm=False, refine_edges=False
+        ).disparity
         eager.precision = "bf16"
-        bf16 = eager.predict(sample.left, sample.right, iters=plan.iters, blend_sgbm=False).disparity
+        bf16 = eager.predict(
+            sample.left, sample.right, iters=plan.iters, blend_sgbm=False, refine_edges=False
+        ).disparity
         bf16_differences.append(float(np.abs(bf16 - fp32).mean()))
         epe_fp32.append(float(np.abs(fp32 - sample.disparity)[known].mean()))
         epe_bf16.append(float(np.abs(bf16 - sample.disparity)[known].mean()))
         if graphed is not None:
             graphed.precision = "fp32"
             for _ in range(2):  # the second sighting of the shape is captured and replayed
-                replayed = graphed.predict_batch([sample.left], [sample.right], iters=plan.iters, blend_sgbm=False)[
-                    0
-                ].disparity
+                replayed = graphed.predict_batch(
+                    [sample.left], [sample.right], iters=plan.iters, blend_sgbm=False, refine_edges=False
+                )[0].disparity
             graph_differences.append(float(np.abs(replayed - fp32).max()))
             graphed.graphs.clear()
     return dict(
