@@ -330,12 +330,19 @@ def test_a_real_pair_made_raw_gives_its_true_depth_about_as_well_as_the_rectifie
     ):
         cv2.imwrite(str(tmp_path / f"{name}.png"), image[:, :, ::-1])
     calibration = opencv_file(tmp_path / "camera.yaml", **raw.calibration)
-    camera = ["--focal-px", str(DEV_FOCAL_PX), "--baseline-m", str(DEV_BASELINE_M), "--no-blend-sgbm"]
+    camera = [
+        "--focal-px",
+        str(DEV_FOCAL_PX),
+        "--baseline-m",
+        str(DEV_BASELINE_M),
+        "--no-blend-sgbm",
+        "--no-refine-edges",
+    ]
     rectified = [str(tmp_path / "left.png"), str(tmp_path / "right.png"), "-o", str(tmp_path / "d.pfm"), *camera]
     assert main(["predict", *rectified, "--depth", str(tmp_path / "z.pfm")]) == 0
     raw_inputs = [str(tmp_path / "raw_left.png"), str(tmp_path / "raw_right.png"), "--calibration", str(calibration)]
     outputs = ["-o", str(tmp_path / "d0.pfm"), "--depth", str(tmp_path / "z0.pfm"), "--frame", "original"]
-    outputs.append("--no-blend-sgbm")
+    outputs += ["--no-blend-sgbm", "--no-refine-edges"]
     assert main(["predict", *raw_inputs, *outputs]) == 0
     with np.errstate(divide="ignore"):
         truth = np.where(sample.valid, DEV_FOCAL_PX * DEV_BASELINE_M / sample.disparity, np.nan)

@@ -32,7 +32,17 @@ class OffsetPredictor:
         self.two_pass = []
 
     def predict(
-        self, left, right, *, two_pass="auto", iters=None, scale=1.0, raw_uncertainty=False, flip=False, blend_sgbm=True
+        self,
+        left,
+        right,
+        *,
+        two_pass="auto",
+        iters=None,
+        scale=1.0,
+        raw_uncertainty=False,
+        flip=False,
+        blend_sgbm=True,
+        refine_edges=True,
     ):
         self.calls += 1
         self.two_pass.append(two_pass)
@@ -131,7 +141,17 @@ class HalfWrongPredictor(OffsetPredictor):
         self.wrong_p = {id(s.left): wrong_p[s.name] for s in samples}
 
     def predict(
-        self, left, right, *, two_pass="auto", iters=None, scale=1.0, raw_uncertainty=False, flip=False, blend_sgbm=True
+        self,
+        left,
+        right,
+        *,
+        two_pass="auto",
+        iters=None,
+        scale=1.0,
+        raw_uncertainty=False,
+        flip=False,
+        blend_sgbm=True,
+        refine_edges=True,
     ):
         truth = self.truth[id(left)]
         half = truth.shape[1] // 2

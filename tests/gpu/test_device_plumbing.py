@@ -47,15 +47,19 @@ def test_predict_of_arrays_uploads_the_inputs_and_downloads_both_maps_in_one_cop
     assert transfers.uploads == 2 + ("init_disparity" in options) and transfers.scalar_reads == 0
 
 
-@pytest.mark.parametrize(("blend_sgbm", "transfers_made"), [(False, (0, 0, 0)), (True, (1, 6, 0))])
-def test_predict_of_device_tensors_leaves_the_maps_on_the_device_and_the_blend_copies_once(
-    predictor, blend_sgbm, transfers_made
+@pytest.mark.parametrize(
+    ("blend_sgbm", "refine_edges", "transfers_made"),
+    [(False, False, (0, 0, 0)), (True, True, (1, 6, 0)), (False, True, (1, 4, 0))],
+)
+def test_predict_of_device_tensors_leaves_the_maps_on_the_device_and_the_refinement_copies_once(
+    predictor, blend_sgbm, refine_edges, transfers_made
 ):
-    """Without the blend nothing crosses; with it (host work) each pair's answer and images come
-    to the host once (3 x 2 pairs) and the blended answers go back in one copy."""
+    """Without the host refinement nothing crosses; with it each pair's answer and the images it
+    reads come to the host once (the answer, the left image and, for the blend, the right one, for
+    each of 2 pairs) and the refined answers go back in one copy."""
     left = torch.rand(2, 3, 40, 60, device=DEVICE) * 255
     with DeviceTransfers() as transfers:
-        prediction = predictor.predict(left, left, iters=ITERS, blend_sgbm=blend_sgbm)
+        prediction = predictor.predict(left, left, iters=ITERS, blend_sgbm=blend_sgbm, refine_edges=refine_edges)
     assert prediction.disparity.device == prediction.uncertainty.device == DEVICE
     assert prediction.disparity.shape == (2, 40, 60)
     assert (transfers.uploads, transfers.downloads, transfers.scalar_reads) == transfers_made

@@ -40,7 +40,7 @@ def test_exported_model_in_onnx_runtime_matches_predict_within_a_thousandth_of_a
     predictor = load_model("lite", weights)
     assert predictor.calibration is not None
     # the graph is one pass of the network (no blend with SGBM)
-    expected = predictor.predict(left, right, iters=(1, 1, 2), two_pass=False, blend_sgbm=False)
+    expected = predictor.predict(left, right, iters=(1, 1, 2), two_pass=False, blend_sgbm=False, refine_edges=False)
     session = ort.InferenceSession(str(onnx_file), providers=["CPUExecutionProvider"])
     as_input = lambda image: np.ascontiguousarray(image.transpose(2, 0, 1)[None], dtype=np.float32)  # noqa: E731
     disparity, uncertainty = session.run(None, {"left": as_input(left), "right": as_input(right)})

@@ -29,9 +29,10 @@ def test_options_are_hashable_values_that_normalise_their_iterations_and_check_t
                 InferenceOptions(two_pass=True),
                 InferenceOptions(flip=True),
                 InferenceOptions(blend_sgbm=False),
+                InferenceOptions(refine_edges=False),
             }
         )
-        == 4
+        == 5
     )
     assert InferenceOptions(scale=0.5).keywords() == {
         "iters": None,
@@ -40,6 +41,7 @@ def test_options_are_hashable_values_that_normalise_their_iterations_and_check_t
         "raw_uncertainty": False,
         "flip": False,
         "blend_sgbm": True,
+        "refine_edges": True,
     }
     for scale in (0.0, 1.5, -1.0):
         with pytest.raises(ValueError, match="scale"):

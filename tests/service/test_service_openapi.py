@@ -51,6 +51,7 @@ def test_every_disparity_answer_is_documented_with_examples_of_its_error_codes()
         "raw_uncertainty",
         "flip",
         "blend_sgbm",
+        "refine_edges",
         "color_min",
         "color_max",
         "cx_px",

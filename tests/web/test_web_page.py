@@ -170,7 +170,7 @@ def test_a_ticked_box_sends_its_option_only_where_it_differs_from_the_services_d
     page.select_option("#example", EXAMPLE)
     expect(page.locator("#status")).to_contain_text("loaded")
     queries = []
-    for change in (None, "#flip", "#blend_sgbm"):  # flip is off by default, blend_sgbm on
+    for change in (None, "#flip", "#blend_sgbm", "#refine_edges"):  # flip is off by default, the others on
         if change is not None:
             page.click(change)
         with page.expect_response(lambda answer: "/disparity?" in answer.url) as answer:
@@ -179,7 +179,8 @@ def test_a_ticked_box_sends_its_option_only_where_it_differs_from_the_services_d
         queries.append(answer.value.url.split("?", 1)[1])
     assert "flip" not in queries[0] and "blend_sgbm" not in queries[0]
     assert "flip=true" in queries[1] and "blend_sgbm" not in queries[1]
-    assert "flip=true" in queries[2] and "blend_sgbm=false" in queries[2]
+    assert "flip=true" in queries[2] and "blend_sgbm=false" in queries[2] and "refine_edges" not in queries[2]
+    assert "blend_sgbm=false" in queries[3] and "refine_edges=false" in queries[3]
 
 
 def test_color_range_follows_color_min_and_color_max(web: WebPage) -> None:
