@@ -87,7 +87,7 @@ def add_model_options(parser: argparse.ArgumentParser) -> None:
         action=argparse.BooleanOptionalAction,
         default=True,
         help="put the answer's depth edges where the left image's colour edges are (a colour-weighted median "
-        "near them): fewer errors at object edges for about 5 %% more time; --no-blend-sgbm --no-refine-edges "
+        "near them): fewer errors at object edges for under 10 %% more time; --no-blend-sgbm --no-refine-edges "
         "give the network's own answer [on]",
     )
 

@@ -102,8 +102,8 @@ class InferenceOptions:
         (``inference.sgbm``): one SGBM run more (about 5 % of the default's time on a CPU),
         fewer errors over 1 and 2 px.
     refine_edges: put the answer's depth edges where the left image's colour edges are, by a
-        colour-weighted median of the disparities near them (``inference.depth_edges``): about
-        5 % more time on a CPU, fewer errors at the edges of objects. With ``blend_sgbm`` False
+        colour-weighted median of the disparities near them (``inference.depth_edges``): under
+        10 % more time on a CPU, fewer errors at the edges of objects. With ``blend_sgbm`` False
         too, the network's own answer is served.
     Hashable: requests with equal options (and shapes) may share a batch.
     """

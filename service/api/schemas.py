@@ -104,7 +104,7 @@ class DisparityOptions(BaseModel):
         True,
         description="Put the answer's depth edges where the left image's colour edges are: near a depth edge, each "
         "pixel takes the median of the disparities around it weighted by how alike their colours are (and how "
-        "near): fewer errors at the edges of objects, about 5 % more time on a CPU. With `blend_sgbm=false` too, "
+        "near): fewer errors at the edges of objects, under 10 % more time on a CPU. With `blend_sgbm=false` too, "
         "the network's own answer is served. The uncertainty stays the network answer's.",
     )
     color_min: FiniteFloat | None = Field(
