@@ -26,14 +26,16 @@ def test_the_sync_client_returns_the_library_maps_as_arrays(default_server):
     assert [m["name"] for m in models] == ["lite"] and health["status"] == "ready"
 
 
-def test_the_network_answer_without_the_sgbm_blend_is_asked_for_by_an_option(default_server):
+def test_the_network_answer_without_the_host_refinements_is_asked_for_by_options(default_server):
     left, right = stereo_pair()
     with StereoClient(default_server.base_url) as service:
-        blended = service.disparity(left, right)
+        default = service.disparity(left, right)
+        blended = service.disparity(left, right, refine_edges=False)
         own = service.disparity(left, right, blend_sgbm=False, refine_edges=False)
     direct = quiet_load_model("lite").predict(left, right, blend_sgbm=False, refine_edges=False)
     np.testing.assert_allclose(own.disparity, direct.disparity, rtol=1e-4, atol=1e-3)
-    assert 0.1 < np.abs(blended.disparity - own.disparity).max() <= 2.0 + 1e-3  # the option reached the service
+    assert 0.1 < np.abs(blended.disparity - own.disparity).max() <= 2.0 + 1e-3  # blend_sgbm reached the service
+    assert np.abs(default.disparity - blended.disparity).max() > 0.1  # and refine_edges
 
 
 def test_files_and_bytes_are_sent_as_they_are(default_server, tmp_path):

@@ -9,7 +9,7 @@ import pytest
 from crestereo_pp.evaluation.evaluate import SGBM, evaluate
 from crestereo_pp.evaluation.metrics import sparsification
 from crestereo_pp.evaluation.visualize import PANEL_WIDTH
-from crestereo_pp.inference import Prediction
+from crestereo_pp.inference import InferenceOptions, Prediction
 from crestereo_pp.inference.uncertainty_calibration import UncertaintyCalibration
 from crestereo_pp.stereo_data.readers import StereoSample
 from crestereo_pp.stereo_data.visualize import colorize
@@ -31,19 +31,8 @@ class OffsetPredictor:
         self.calls = 0
         self.two_pass = []
 
-    def predict(
-        self,
-        left,
-        right,
-        *,
-        two_pass="auto",
-        iters=None,
-        scale=1.0,
-        raw_uncertainty=False,
-        flip=False,
-        blend_sgbm=True,
-        refine_edges=True,
-    ):
+    def predict(self, left, right, *, two_pass="auto", **options):
+        assert options.keys() <= InferenceOptions().keywords().keys()  # what StereoPredictor.predict takes
         self.calls += 1
         self.two_pass.append(two_pass)
         truth = self.truth[id(left)]
@@ -140,19 +129,8 @@ class HalfWrongPredictor(OffsetPredictor):
         super().__init__(samples, 0.0)
         self.wrong_p = {id(s.left): wrong_p[s.name] for s in samples}
 
-    def predict(
-        self,
-        left,
-        right,
-        *,
-        two_pass="auto",
-        iters=None,
-        scale=1.0,
-        raw_uncertainty=False,
-        flip=False,
-        blend_sgbm=True,
-        refine_edges=True,
-    ):
+    def predict(self, left, right, **options):
+        assert options.keys() <= InferenceOptions().keywords().keys()
         truth = self.truth[id(left)]
         half = truth.shape[1] // 2
         disparity = np.where(np.isfinite(truth), truth, 0.0).astype(np.float32)

@@ -1,23 +1,13 @@
 """Spec of `refine_edges`: the answer's depth edges put where the left image's colour edges are."""
 
-import warnings
-
 import numpy as np
 import pytest
 import torch
 from raw_camera import small_dev_sample
 
-from crestereo_pp.inference import load_model
 from crestereo_pp.inference.depth_edges import MEDIAN_RADIUS_PX, depth_edge_pixels, refine_depth_edges
 
 NEAR, FAR = 30.0, 10.0  # px: the two sides' disparities
-
-
-@pytest.fixture(scope="module")
-def lite():
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        return load_model("lite", weights=None)
 
 
 def two_surfaces(height: int = 48, width: int = 96) -> tuple[np.ndarray, np.ndarray]:

@@ -1,22 +1,13 @@
 """Spec of `flip`: the pair computed as given and upside down, the two answers merged."""
 
-import warnings
-
 import numpy as np
 import pytest
 import torch
 from raw_camera import small_dev_sample
 
-from crestereo_pp.inference import InferenceOptions, load_model
+from crestereo_pp.inference import InferenceOptions
 from crestereo_pp.inference.flip import AGREEMENT_PX, merge_flipped
 from crestereo_pp.inference.warm_start import WarmStart
-
-
-@pytest.fixture(scope="module")
-def lite():
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        return load_model("lite", weights=None)
 
 
 def maps(*values: float) -> torch.Tensor:

@@ -1,13 +1,10 @@
 """Spec of `blend_sgbm`: the network's answer averaged with OpenCV's SGBM where the two agree."""
 
-import warnings
-
 import numpy as np
 import pytest
 import torch
 from raw_camera import small_dev_sample
 
-from crestereo_pp.inference import load_model
 from crestereo_pp.inference.sgbm import (
     BLEND_WITHIN_PX,
     blend_with_sgbm,
@@ -17,13 +14,6 @@ from crestereo_pp.inference.sgbm import (
 )
 
 SHIFT = 7  # px: the textured pair's disparity
-
-
-@pytest.fixture(scope="module")
-def lite():
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        return load_model("lite", weights=None)
 
 
 def shifted_pair(height: int = 64, width: int = 128) -> tuple[np.ndarray, np.ndarray]:
