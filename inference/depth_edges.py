@@ -36,6 +36,10 @@ scale (L 0-255)."""
 DISTANCE_SIGMA_PX = 6.0
 """The distance weight's width: exp(-distance^2 / (2 sigma^2)), px."""
 
+EDGE_PIXELS_PER_CHUNK = 32_768
+"""Edge pixels refined at a time: their neighbours' indices, values and weights take about
+35 MB, whatever the image's size."""
+
 
 def depth_edge_pixels(disparity: np.ndarray) -> np.ndarray:
     """HxW bool: the pixels of `disparity` (HxW float32, px) within EDGE_REACH_PX of a depth edge
@@ -53,27 +57,30 @@ def refine_depth_edges(disparity: np.ndarray, left: np.ndarray) -> np.ndarray:
     edge (``depth_edge_pixels``) replaced by the weighted median of its neighbours' disparities
     (see the module; MEDIAN_RADIUS_PX, COLOUR_SIGMA, DISTANCE_SIGMA_PX). `left`: the left image,
     HxWx3 uint8 RGB (``sgbm.host_rgb8``). Returns a new HxW float32 array; the answer unchanged
-    where it holds a NaN or an infinity."""
+    where it holds a NaN or an infinity. The edge pixels go EDGE_PIXELS_PER_CHUNK at a time, so
+    that the memory it takes does not grow with the image."""
     if not np.isfinite(disparity).all():
         return disparity
     rows, cols = np.nonzero(depth_edge_pixels(disparity))
-    if rows.size == 0:
-        return disparity
     r = MEDIAN_RADIUS_PX
-    width = disparity.shape[1] + 2 * r  # both maps edge-padded by r, flattened
+    width = disparity.shape[1] + 2 * r  # the maps edge-padded by r, flattened
     padded = torch.from_numpy(cv2.copyMakeBorder(disparity, r, r, r, r, cv2.BORDER_REPLICATE).ravel())
     lab = cv2.copyMakeBorder(cv2.cvtColor(left, cv2.COLOR_RGB2LAB), r, r, r, r, cv2.BORDER_REPLICATE)
     colour = torch.from_numpy(lab.reshape(-1, 3).T.astype(np.float32))  # (3, pixels)
     dy, dx = np.mgrid[-r : r + 1 : MEDIAN_STEP_PX, -r : r + 1 : MEDIAN_STEP_PX]
-    centre = torch.from_numpy((rows + r) * width + cols + r)
-    neighbours = centre[:, None] + torch.from_numpy((dy * width + dx).ravel())[None, :]  # (N, 49)
-    log_weight = torch.from_numpy((-(dy * dy + dx * dx) / (2 * DISTANCE_SIGMA_PX**2)).ravel().astype(np.float32))
-    log_weight = log_weight.expand(len(centre), -1).clone()
-    for channel in colour:
-        log_weight -= (channel[neighbours] - channel[centre][:, None]).square_() / (2 * COLOUR_SIGMA**2)
-    values, order = torch.sort(padded[neighbours], dim=1)
-    cumulative = torch.cumsum(torch.gather(log_weight.exp_(), 1, order), dim=1)
-    median = (cumulative < 0.5 * cumulative[:, -1:]).sum(dim=1, keepdim=True)
+    offsets = torch.from_numpy((dy * width + dx).ravel())
+    distance = torch.from_numpy((-(dy * dy + dx * dx) / (2 * DISTANCE_SIGMA_PX**2)).ravel().astype(np.float32))
+    centres = torch.from_numpy((rows + r) * width + cols + r)
     refined = disparity.copy()
-    refined[rows, cols] = torch.gather(values, 1, median)[:, 0].numpy()
+    for start in range(0, len(centres), EDGE_PIXELS_PER_CHUNK):
+        centre = centres[start : start + EDGE_PIXELS_PER_CHUNK]
+        neighbours = centre[:, None] + offsets[None, :]  # (n, 49) indices into the padded maps
+        log_weight = distance.expand(len(centre), -1).clone()
+        for channel in colour:
+            log_weight -= (channel[neighbours] - channel[centre][:, None]).square_() / (2 * COLOUR_SIGMA**2)
+        values, order = torch.sort(padded[neighbours], dim=1)
+        cumulative = torch.cumsum(torch.gather(log_weight.exp_(), 1, order), dim=1)
+        median = (cumulative < 0.5 * cumulative[:, -1:]).sum(dim=1, keepdim=True)
+        chunk = slice(start, start + len(centre))
+        refined[rows[chunk], cols[chunk]] = torch.gather(values, 1, median)[:, 0].numpy()
     return refined

@@ -5,6 +5,7 @@ import pytest
 import torch
 from raw_camera import small_dev_sample
 
+from crestereo_pp.inference import depth_edges
 from crestereo_pp.inference.depth_edges import MEDIAN_RADIUS_PX, depth_edge_pixels, refine_depth_edges
 
 NEAR, FAR = 30.0, 10.0  # px: the two sides' disparities
@@ -92,3 +93,13 @@ def test_device_tensors_are_refined_too_and_the_maps_stay_tensors(lite):
     assert isinstance(refined.disparity, torch.Tensor) and refined.disparity.shape == (1, 96, 160)
     expected = refine_depth_edges(unrefined.disparity[0].numpy(), sample.left[:96, :160])
     np.testing.assert_array_equal(refined.disparity[0].numpy(), expected)
+
+
+def test_edge_pixels_refined_a_chunk_at_a_time_give_the_answer_of_one_go(lite, monkeypatch):
+    sample = small_dev_sample()
+    left, right = sample.left[:160, :224], sample.right[:160, :224]
+    answer = lite.predict(left, right, blend_sgbm=False, refine_edges=False).disparity
+    in_one_go = refine_depth_edges(answer, left)
+    monkeypatch.setattr(depth_edges, "EDGE_PIXELS_PER_CHUNK", 250)  # chunks ending mid-row, a short last one
+    assert depth_edge_pixels(answer).sum() > 500
+    np.testing.assert_array_equal(refine_depth_edges(answer, left), in_one_go)
