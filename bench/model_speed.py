@@ -72,20 +72,21 @@ def measure(
     if not predictor.prepare():
         raise RuntimeError(f"{name} could not be prepared on {backend}")
     prepare_s = time.perf_counter() - start
+
+    def one_pass() -> None:
+        """The network once at the pair's size: no quick pass, no enlarging, no host refinement."""
+        predictor.predict(left, right, two_pass=False, blend_sgbm=False, refine_edges=False)
+
     start = time.perf_counter()
     if backend == "torch":
         with FlopCounterMode(display=False) as counter:
-            predictor.predict(left, right, two_pass=False, blend_sgbm=False, refine_edges=False)  # the warm-up
+            one_pass()  # the warm-up
         gflop: float | None = counter.get_total_flops() / 1e9
     else:
-        predictor.predict(
-            left, right, two_pass=False, blend_sgbm=False, refine_edges=False
-        )  # the warm-up, which compiles the shape
+        one_pass()  # the warm-up, which compiles the shape
         gflop = None
     first_call_s = time.perf_counter() - start
-    times = timed_calls(
-        lambda: predictor.predict(left, right, two_pass=False, blend_sgbm=False, refine_edges=False), runs
-    )
+    times = timed_calls(one_pass, runs)
     result = {
         "times_s": times,
         "gflop": gflop,
@@ -95,7 +96,7 @@ def measure(
     }
     if profile and backend == "torch":
         with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU]) as prof:
-            predictor.predict(left, right, two_pass=False, blend_sgbm=False, refine_edges=False)
+            one_pass()
         result["profile"] = prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=15)
     return result
 
