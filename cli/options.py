@@ -86,9 +86,10 @@ def add_model_options(parser: argparse.ArgumentParser) -> None:
         "--refine-edges",
         action=argparse.BooleanOptionalAction,
         default=True,
-        help="put the answer's depth edges where the left image's colour edges are (a colour-weighted median "
-        "near them): fewer errors at object edges for under 10 %% more time; --no-blend-sgbm --no-refine-edges "
-        "give the network's own answer [on]",
+        help="refine the answer at its edges: its depth edges put where the left image's colour edges are (a "
+        "colour-weighted median near them), and the strip along the image's left edge whose matches fall outside "
+        "the right image raised towards the surface beside it: fewer errors at the edges of objects and of the "
+        "image for under 10 %% more time; --no-blend-sgbm --no-refine-edges give the network's own answer [on]",
     )
 
 

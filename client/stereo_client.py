@@ -201,9 +201,10 @@ class StereoClient:
         to 1.5x as far as their range allows, or shrunk where two passes could not hold it).
         `flip`: also compute the pair upside down and merge the two answers (about twice the time,
         fewer errors). `blend_sgbm`: the answer averaged with OpenCV's SGBM where the two agree
-        within 4 px (fewer errors). `refine_edges`: the answer's depth edges put where the left
-        image's colour edges are (fewer errors at object edges). Both False: the network's own
-        answer."""
+        within 4 px (fewer errors). `refine_edges`: the answer refined at its edges: its depth edges
+        put where the left image's colour edges are, the strip along the image's left edge whose
+        matches fall outside the right image raised (fewer errors at the edges of objects and of
+        the image). Both False: the network's own answer."""
         request = _request(
             left,
             right,

@@ -112,7 +112,7 @@ class PairMaps:
     for each batch that ran, the indices of its pairs (in the order given), its padding and its
     maps stacked as one (2, B, H, W) tensor (disparity, uncertainty). With a `refinement`, each
     pair's disparity is refined on its way out (``inference.refinement``: the blend with SGBM, the
-    depth edges): host work, done where the maps reach the host."""
+    edges): host work, done where the maps reach the host."""
 
     batches: tuple[tuple[tuple[int, ...], PaddedBatch, Tensor], ...]
     refinement: HostRefinement | None = None

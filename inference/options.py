@@ -101,10 +101,12 @@ class InferenceOptions:
     blend_sgbm: average the answer with OpenCV's SGBM where the two agree within 4 px
         (``inference.sgbm``): one SGBM run more (about 5 % of the default's time on a CPU),
         fewer errors over 1 and 2 px.
-    refine_edges: put the answer's depth edges where the left image's colour edges are, by a
-        colour-weighted median of the disparities near them (``inference.depth_edges``): under
-        10 % more time on a CPU, fewer errors at the edges of objects. With ``blend_sgbm`` False
-        too, the network's own answer is served.
+    refine_edges: refine the answer at its edges: put its depth edges where the left image's
+        colour edges are, by a colour-weighted median of the disparities near them
+        (``inference.depth_edges``), then raise the strip along the image's left edge whose
+        matches fall outside the right image towards the surface beside it, by 4 px at most
+        (``inference.border_strip``): under 10 % more time on a CPU, fewer errors at the edges of
+        objects and of the image. With ``blend_sgbm`` False too, the network's own answer is served.
     Hashable: requests with equal options (and shapes) may share a batch.
     """
 

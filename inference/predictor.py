@@ -218,8 +218,10 @@ class StereoPredictor:
             about twice the time, fewer large errors.
         blend_sgbm: average the answer with OpenCV's SGBM where the two agree within 4 px
             (``inference.sgbm``).
-        refine_edges: put the answer's depth edges where the left image's colour edges are
-            (``inference.depth_edges``). With both False: the network's own answer.
+        refine_edges: refine the answer at its edges: its depth edges put where the left image's
+            colour edges are (``inference.depth_edges``), the strip along the image's left edge
+            whose matches fall outside the right image raised (``inference.border_strip``). With
+            both False: the network's own answer.
         A ``left`` array gives a ``Prediction`` (numpy arrays, copied from the device once); a
         ``left`` tensor a ``TensorPrediction`` (tensors on the predictor's device).
         """

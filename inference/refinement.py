@@ -1,8 +1,10 @@
 """The host's classical steps on the network's answer, in order: the blend with OpenCV's SGBM
-(``InferenceOptions.blend_sgbm``, ``inference.sgbm``), then the depth edges put where the colour
-edges are (``InferenceOptions.refine_edges``, ``inference.depth_edges``). Each pair's disparity is
-refined where its maps reach the host (``batching.PairMaps``); the uncertainty stays the network
-answer's."""
+(``InferenceOptions.blend_sgbm``, ``inference.sgbm``), then the answer's edges
+(``InferenceOptions.refine_edges``): its depth edges put where the colour edges are
+(``inference.depth_edges``), then the strip along the image's left edge whose matches fall outside
+the right image raised towards the surface beside it (``inference.border_strip``). Each pair's
+disparity is refined where its maps reach the host (``batching.PairMaps``); the uncertainty stays
+the network answer's."""
 
 from __future__ import annotations
 
@@ -12,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 from torch import Tensor
 
+from .border_strip import raise_border_strip
 from .depth_edges import refine_depth_edges
 from .options import InferenceOptions
 from .sgbm import blend_with_sgbm, host_rgb8
@@ -43,5 +46,5 @@ class HostRefinement:
         if self.blend_sgbm:
             disparity = blend_with_sgbm(disparity, left, host_rgb8(rights[index]))
         if self.refine_edges:
-            disparity = refine_depth_edges(disparity, left)
+            disparity = raise_border_strip(refine_depth_edges(disparity, left))
         return disparity

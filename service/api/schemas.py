@@ -102,9 +102,11 @@ class DisparityOptions(BaseModel):
     )
     refine_edges: bool = Field(
         True,
-        description="Put the answer's depth edges where the left image's colour edges are: near a depth edge, each "
-        "pixel takes the median of the disparities around it weighted by how alike their colours are (and how "
-        "near): fewer errors at the edges of objects, under 10 % more time on a CPU. With `blend_sgbm=false` too, "
+        description="Refine the answer at its edges. Its depth edges are put where the left image's colour edges "
+        "are: near a depth edge, each pixel takes the median of the disparities around it weighted by how alike "
+        "their colours are (and how near). Then the strip along the image's left edge whose matches fall outside "
+        "the right image is raised towards the disparity of the surface beside it, by 4 px at most. Fewer errors "
+        "at the edges of objects and of the image, under 10 % more time on a CPU. With `blend_sgbm=false` too, "
         "the network's own answer is served. The uncertainty stays the network answer's.",
     )
     color_min: FiniteFloat | None = Field(
