@@ -46,5 +46,5 @@ class HostRefinement:
         if self.blend_sgbm:
             disparity = blend_with_sgbm(disparity, left, host_rgb8(rights[index]))
         if self.refine_edges:
-            disparity = raise_border_strip(refine_depth_edges(disparity, left))
+            disparity = raise_border_strip(refine_depth_edges(disparity, left), left)
         return disparity

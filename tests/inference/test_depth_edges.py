@@ -92,7 +92,8 @@ def test_device_tensors_are_refined_too_and_the_maps_stay_tensors(lite):
     unrefined = lite.predict(left, right, refine_edges=False)
     refined = lite.predict(left, right)
     assert isinstance(refined.disparity, torch.Tensor) and refined.disparity.shape == (1, 96, 160)
-    expected = raise_border_strip(refine_depth_edges(unrefined.disparity[0].numpy(), sample.left[:96, :160]))
+    left = sample.left[:96, :160]
+    expected = raise_border_strip(refine_depth_edges(unrefined.disparity[0].numpy(), left), left)
     np.testing.assert_array_equal(refined.disparity[0].numpy(), expected)
 
 
