@@ -3,10 +3,10 @@ outside the right image, raised towards the surface beside it."""
 
 import numpy as np
 import pytest
-from shared_data import STEREO_DEV
 
 from crestereo_pp.inference.border_strip import STRIP_RAISE_PX, raise_border_strip, strip_ends
 from crestereo_pp.stereo_data.readers import open_dataset
+from shared_data import STEREO_DEV
 
 SURFACE = 20.0  # px: the disparity of a fronto-parallel surface reaching the left edge
 
