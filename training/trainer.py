@@ -392,7 +392,7 @@ def takes_two_passes(config: TrainConfig, step: int) -> bool:
 
 def validate(network: CREStereoPP, config: TrainConfig, device: torch.device) -> dict[str, float]:
     """Mean EPE, bad-1/2/3 and D1-all of `network` on config.val_data, each pair in one pass (the
-    network itself, comparable along the learning curve: no host refinement (SGBM, depth edges); ``two_pass="auto"`` is
+    network itself, comparable along the learning curve: no host refinement (SGBM, edges); ``two_pass="auto"`` is
     a serving policy whose threshold is measured for finished weights); leaves it in train mode."""
     if config.val_data is None:
         raise ValueError("validation needs config.val_data")

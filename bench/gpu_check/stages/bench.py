@@ -73,7 +73,7 @@ def row_settings(plan: Plan, on_cuda: bool) -> list[tuple[int, bool, str, bool |
     graphs or not and precision in one pass at the pair's size (``two_pass=False``: the network
     once, as the paper times it), then the default inference (``two_pass="auto"``: a quick pass,
     then one or two passes on the pair enlarged as far as its disparities allow, the blend with SGBM
-    and the depth edges' refinement, on the CPU) at batch 1 in bf16, with graphs where there is
+    and the edges' refinement, on the CPU) at batch 1 in bf16, with graphs where there is
     CUDA: what a user's single request costs."""
     one_pass = [
         (batch, graphs, precision, False)
