@@ -134,11 +134,15 @@ class UnrectifiedPair:
 
 def small_dev_sample() -> StereoSample:
     """The smallest real stereo-dev pair with its ground truth, or a skip where the pairs are not here."""
-    folder = STEREO_DEV / SMALL_STEREO_DEV_PAIR
-    if not folder.is_dir():
+    return dev_sample(SMALL_STEREO_DEV_PAIR)
+
+
+def dev_sample(name: str) -> StereoSample:
+    """The real stereo-dev pair `name` with its ground truth, or a skip where the pairs are not here."""
+    if not (STEREO_DEV / name).is_dir():
         pytest.skip(f"real pairs not available: {STEREO_DEV} does not exist (see tests/shared_data.py)")
     dataset = open_dataset(STEREO_DEV)
-    return dataset[[files.name for files in dataset.files].index(SMALL_STEREO_DEV_PAIR)]
+    return dataset[[files.name for files in dataset.files].index(name)]
 
 
 def unrectify(left: np.ndarray, right: np.ndarray, disparity: np.ndarray, change: str) -> UnrectifiedPair:

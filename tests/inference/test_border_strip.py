@@ -3,10 +3,9 @@ outside the right image, raised towards the surface beside it."""
 
 import numpy as np
 import pytest
+from raw_camera import dev_sample
 
 from crestereo_pp.inference.border_strip import STRIP_RAISE_PX, raise_border_strip, strip_ends
-from crestereo_pp.stereo_data.readers import open_dataset
-from shared_data import STEREO_DEV
 
 SURFACE = 20.0  # px: the disparity of a fronto-parallel surface reaching the left edge
 
@@ -73,10 +72,7 @@ def test_tiny_answers_are_handled(height, width):
 
 
 def test_on_a_real_driving_pair_the_strip_gets_fewer_pixels_wrong(lite):
-    if not STEREO_DEV.is_dir():
-        pytest.skip(f"real pairs not available: {STEREO_DEV} does not exist (see tests/shared_data.py)")
-    dataset = open_dataset(STEREO_DEV)
-    sample = dataset[[files.name for files in dataset.files].index("kitti2015_000001_10")]
+    sample = dev_sample("kitti2015_000001_10")
     columns = slice(0, 320)  # the left of the pair: the strip, and the road and cars beside it
     left, right, truth = sample.left[:, columns], sample.right[:, columns], sample.disparity[:, columns]
     answer = lite.predict(left, right, blend_sgbm=False, refine_edges=False).disparity
