@@ -2,11 +2,14 @@
 what a GPU machine will run, at tiny sizes, so that its first run there is not its first run."""
 
 import argparse
+import getpass
 import importlib.util
 import json
+import os
 import re
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -38,11 +41,20 @@ def test_without_fastapi_the_service_stage_is_skipped_saying_so(bench_path, monk
 
 def smoke_run(out: Path, *options: str) -> str:
     """`bench/gpu_check --cpu-smoke OPTIONS --out OUT` run as a GPU machine runs it: its summary.md,
-    once it has exited 0."""
+    once it has exited 0 leaving nothing in its temporary folder (its scratch training runs hold a
+    checkpoint each)."""
     command = [sys.executable, "bench/gpu_check", "--cpu-smoke", *options, "--out", str(out)]
-    completed = subprocess.run(command, cwd=REPO, capture_output=True, text=True, timeout=420)
+    temporary = out.parent / f"{out.name}-tmp"
+    temporary.mkdir()
+    # torch.compile's own cache stays where it was (torch's default is under the temporary folder)
+    inductor = os.environ.get(
+        "TORCHINDUCTOR_CACHE_DIR", str(Path(tempfile.gettempdir()) / f"torchinductor_{getpass.getuser()}")
+    )
+    environment = os.environ | {"TMPDIR": str(temporary), "TORCHINDUCTOR_CACHE_DIR": inductor}
+    completed = subprocess.run(command, cwd=REPO, env=environment, capture_output=True, text=True, timeout=420)
     summary = (out / "summary.md").read_text()
     assert completed.returncode == 0, summary + completed.stderr[-3000:]
+    assert sorted(path.name for path in temporary.iterdir()) == []
     return summary
 
 

@@ -47,8 +47,9 @@ def arms_stage(plan: Plan, deadline: float, args: argparse.Namespace, save: Call
     print(f"arms: {size.steps} steps each from {start.path} (step {start.first_step}); rates {rates}", flush=True)
     rows = []
     for name, config in configs.items():
-        sized = sized_config(config, scratch(name), start, size, seconds, None)
-        rows.append(train_arm(name, sized, start, args, plan, family))
+        with tempfile.TemporaryDirectory(prefix=f"arm-{name}-") as scratch:  # only the checkpoints are returned
+            sized = sized_config(config, Path(scratch), start, size, seconds, None)
+            rows.append(train_arm(name, sized, start, args, plan, family))
         save(StageResult("running", f"{name} done", data=dict(rows=rows)))
     data: dict[str, Any] = dict(
         model=args.model,
@@ -64,11 +65,6 @@ def arms_stage(plan: Plan, deadline: float, args: argparse.Namespace, save: Call
     print(json.dumps(data), flush=True)
     detail = "; ".join(f"{row['arm']}: dev bad-2 {row.get('dev_bad2', '-')}" for row in rows)
     return StageResult("passed", f"{size.steps} steps each; {detail}", data=data)
-
-
-def scratch(name: str) -> Path:
-    """A new scratch folder for arm `name`'s training run (only its checkpoint is returned)."""
-    return Path(tempfile.mkdtemp(prefix=f"arm-{name}-"))
 
 
 def family_scenes(candidate: Any, plan: Plan) -> list[Any]:

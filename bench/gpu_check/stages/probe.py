@@ -25,14 +25,22 @@ def probe_stage(plan: Plan, deadline: float, args: argparse.Namespace, save: Cal
     """Training throughput: bench/train_speed.py's probe rows for each model, in one process; a row
     that fails (out of memory, a compile error) is recorded and the next runs. Every model's eager
     rows come first and the compiled ones last (`probe_order`): a compile can take minutes, and
-    then it takes only the time the other rows leave."""
+    then it takes only the time the other rows leave. The rows train into a scratch folder, removed
+    at the end."""
+    with tempfile.TemporaryDirectory(prefix="probe-") as scratch:
+        return probe_rows_in(Path(scratch), plan, deadline, args, save)
+
+
+def probe_rows_in(
+    scratch: Path, plan: Plan, deadline: float, args: argparse.Namespace, save: Callable[..., None]
+) -> StageResult:
+    """`probe_stage` with its training runs writing into `scratch`."""
     import torch
     from train_speed import measure
 
     device = torch.device(plan.device)
     on_cuda = device.type == "cuda"
     data: dict[str, Any] = {"device": torch.cuda.get_device_name(device) if on_cuda else "CPU", "rows": []}
-    scratch = Path(tempfile.mkdtemp(prefix="probe-"))
     recipes = {
         model: replace(recipe_of(model, plan, args), out_dir=str(scratch), val_data=None)
         for model in plan.throughput_models

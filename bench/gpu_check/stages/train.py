@@ -114,20 +114,20 @@ def step_rate(config: Any, start: Start, plan: Plan) -> tuple[Any, float]:
     from crestereo_pp.training.trainer import train
 
     def rate(trial_config: Any) -> float:
-        folder = Path(tempfile.mkdtemp(prefix="probe-"))
-        trial = replace(
-            trial_config,
-            out_dir=str(folder),
-            max_steps=start.first_step + plan.probe_steps,
-            schedule_steps=start.first_step + plan.probe_steps + 1,
-            decay_steps=1,
-            max_minutes=1.5,
-            log_every=max(1, plan.probe_steps // 4),
-            checkpoint_every=10**9,
-            val_data=None,
-        )
-        train(trial, **start.source, progress=False)
-        return median_rate(read_csv(folder / "log.csv")) / float(trial_config.batch_size)
+        with tempfile.TemporaryDirectory(prefix="probe-") as folder:
+            trial = replace(
+                trial_config,
+                out_dir=folder,
+                max_steps=start.first_step + plan.probe_steps,
+                schedule_steps=start.first_step + plan.probe_steps + 1,
+                decay_steps=1,
+                max_minutes=1.5,
+                log_every=max(1, plan.probe_steps // 4),
+                checkpoint_every=10**9,
+                val_data=None,
+            )
+            train(trial, **start.source, progress=False)
+            return median_rate(read_csv(Path(folder) / "log.csv")) / float(trial_config.batch_size)
 
     try:
         return config, rate(config)
