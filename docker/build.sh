@@ -55,8 +55,10 @@ args=(--network host
 docker build "${args[@]}" -t "$image" "$@" "$root"
 
 # The legacy builder keeps its layer cache in untagged images, and a rebuild leaves the previous
-# ones behind. Tag the dependency stage (torch and the rest: the slow part, all cached here) so
-# that it stays, then drop what is untagged and unused.
-docker build "${args[@]}" --quiet --target deps -t "${image%:*}:deps-cache" "$root" >/dev/null
+# ones behind. Tag the slow stages (all cached here: the dependencies, torch and the rest; lite's
+# graph, minutes of export) so that they stay, then drop what is untagged and unused.
+for stage in deps graphs; do
+    docker build "${args[@]}" --quiet --target "$stage" -t "${image%:*}:$stage-cache" "$root" >/dev/null
+done
 docker image prune --force >/dev/null
 docker image inspect --format "image $image: {{.Size}} bytes" "$image"
