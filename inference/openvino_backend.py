@@ -1,7 +1,7 @@
 """The OpenVINO backend: the network compiled for the CPU, behind the same forward as torch.
 
-The network is exported once per iteration counts and start (cold, or warm from a given
-disparity) with symbolic batch, height and width (``inference.openvino_export``), and the graph
+The network is exported once per iteration counts, starting from a given disparity (zeros for a
+cold start), with symbolic batch, height and width (``inference.openvino_export``), and the graph
 is saved to a disk cache (OpenVINO IR, keyed by the weights' hash and the library versions). Each
 padded input shape then gets its own compiled model (a static shape runs about 10 % faster than
 the symbolic one), kept in an in-memory cache bounded by shapes and by their estimated memory
@@ -37,7 +37,7 @@ import torch
 from torch import Tensor, nn
 
 from .forward import Forward, Maps
-from .openvino_export import EXPORT_VERSION, GraphKind, export_in_child, remove_graph
+from .openvino_export import EXPORT_VERSION, export_in_child, graph_stem, remove_graph
 from .options import StageCounts
 
 logger = logging.getLogger(__name__)
@@ -104,11 +104,11 @@ def default_cache_dir() -> Path:
     return (Path(xdg) if xdg else Path.home() / ".cache") / "crestereo-pp"
 
 
-def compiled_bytes(kind: GraphKind, shape: tuple[int, ...], bf16: bool, channels: int) -> int:
-    """Estimated memory of `kind`'s graph of a network with `channels` feature channels, compiled
-    for input `shape` (B, C, H, W) in bf16 (else fp32), its infer request included."""
+def compiled_bytes(iters: StageCounts, shape: tuple[int, ...], bf16: bool, channels: int) -> int:
+    """Estimated memory of the graph for `iters` of a network with `channels` feature channels,
+    compiled for input `shape` (B, C, H, W) in bf16 (else fp32), its infer request included."""
     batch, _, height, width = shape
-    unrolled = COMPILED_BASE_BYTES + COMPILED_BYTES_PER_ITERATION * sum(kind.iters)
+    unrolled = COMPILED_BASE_BYTES + COMPILED_BYTES_PER_ITERATION * sum(iters)
     fixed, per_channel = COMPILED_BYTES_PER_PIXEL[bf16]
     return unrolled + round((fixed + per_channel * channels) * batch * height * width)
 
@@ -168,24 +168,26 @@ class OpenVINOForward:
         self.blob_dir = compiled_dir if cache_key is not None and _writable(compiled_dir) else None
         if self.blob_dir is not None:
             self.core.set_property({"CACHE_DIR": str(self.blob_dir)})
-        self.graphs: dict[GraphKind, Any] = {}
-        self.compiled: OrderedDict[tuple[GraphKind, tuple[int, ...], bool], _Compiled] = OrderedDict()
-        self.failed: set[GraphKind] = set()
+        self.graphs: dict[StageCounts, Any] = {}
+        self.compiled: OrderedDict[tuple[StageCounts, tuple[int, ...], bool], _Compiled] = OrderedDict()
+        self.failed: set[StageCounts] = set()
         self.exports = self.compiles = self.runs = self.fallback_runs = 0
-        self._pending: dict[GraphKind, threading.Event] = {}  # set when the export has ended
+        self._pending: dict[StageCounts, threading.Event] = {}  # set when the export has ended
         self._lock = threading.Lock()
 
     def __call__(self, left: Tensor, right: Tensor, init: Tensor | None, iters: StageCounts, bf16: bool) -> Maps:
-        kind = GraphKind((*iters,), init is not None)
+        counts: StageCounts = (*iters,)
         with self._lock:
-            graph = self._cached(kind)
+            graph = self._cached(counts)
             if graph is None:
                 self.fallback_runs += 1
         if graph is None:
             return self.fallback(left, right, init, iters, False)  # the torch reference, in fp32
-        compiled = self._compiled(kind, graph, tuple(left.shape), bf16)
-        given = (left, right) if init is None else (left, right, init)
-        inputs = [np.ascontiguousarray(t.detach().cpu().numpy(), dtype=np.float32) for t in given]
+        compiled = self._compiled(counts, graph, tuple(left.shape), bf16)
+        inputs = [np.ascontiguousarray(t.detach().cpu().numpy(), dtype=np.float32) for t in (left, right)]
+        batch, _, height, width = left.shape
+        start = np.zeros((batch, 1, height, width), np.float32) if init is None else init.detach().cpu().numpy()
+        inputs.append(np.ascontiguousarray(start, dtype=np.float32))
         with compiled.lock:  # one request per compiled shape, reused: a new one allocates every buffer again
             compiled.request.infer(inputs)
             outputs = [compiled.request.get_output_tensor(i).data.copy() for i in (0, 1)]
@@ -194,82 +196,84 @@ class OpenVINOForward:
             self.runs += 1
         return disparity.to(left.device), uncertainty.to(left.device)
 
-    def ready(self, iters: StageCounts, warm_start: bool = False) -> bool:
-        """Whether calls of this kind run on OpenVINO now (its graph in memory or in the disk
-        cache); starts nothing."""
+    def ready(self, iters: StageCounts) -> bool:
+        """Whether calls with these iterations (cold or warm) run on OpenVINO now (their graph in
+        memory or in the disk cache); starts nothing."""
         with self._lock:
-            return self._cached(GraphKind((*iters,), warm_start)) is not None
+            return self._cached((*iters,)) is not None
 
-    def prepare(self, iters: StageCounts, warm_start: bool = False, *, wait: bool = True) -> bool:
-        """Load the graph of this kind from the disk cache, else export it (in the background
-        unless `wait`); returns whether it is ready (False after a failed export: that kind runs
-        on torch)."""
-        kind = GraphKind((*iters,), warm_start)
+    def prepare(self, iters: StageCounts, *, wait: bool = True) -> bool:
+        """Load the graph for these iterations from the disk cache, else export it (in the
+        background unless `wait`); returns whether it is ready (False after a failed export:
+        those iterations run on torch)."""
+        counts: StageCounts = (*iters,)
         with self._lock:
-            if self._cached(kind) is not None:
+            if self._cached(counts) is not None:
                 return True
-            if kind not in self.failed and kind not in self._pending:
-                self._pending[kind] = threading.Event()
+            if counts not in self.failed and counts not in self._pending:
+                self._pending[counts] = threading.Event()
                 # A daemon thread: an export under way never holds up the process's exit (its
                 # child process ends with this process, see ``openvino_export._end_with_parent``).
-                thread = threading.Thread(target=self._export, args=(kind,), name="openvino-export", daemon=True)
+                thread = threading.Thread(target=self._export, args=(counts,), name="openvino-export", daemon=True)
                 thread.start()
-            pending = self._pending.get(kind)
+            pending = self._pending.get(counts)
         if wait and pending is not None:
             pending.wait()
-        return self.ready(iters, warm_start)
+        return self.ready(iters)
 
-    def _path(self, kind: GraphKind) -> Path | None:
-        return None if self.graph_dir is None else self.graph_dir / f"{kind.file_stem}.xml"
+    def _path(self, counts: StageCounts) -> Path | None:
+        return None if self.graph_dir is None else self.graph_dir / f"{graph_stem(counts)}.xml"
 
-    def _cached(self, kind: GraphKind) -> Any | None:
-        """The kind's graph from memory, else from the disk cache (read into memory); None if
+    def _cached(self, counts: StageCounts) -> Any | None:
+        """The graph for `counts` from memory, else from the disk cache (read into memory); None if
         neither has it. Call with the lock held."""
-        if kind not in self.graphs:
-            path = self._path(kind)
+        if counts not in self.graphs:
+            path = self._path(counts)
             if path is None or not path.is_file():
                 return None
-            self.graphs[kind] = self.core.read_model(path)
-            logger.info("openvino: the graph for %s is ready, read from the cache", _described(kind))
-        return self.graphs[kind]
+            self.graphs[counts] = self.core.read_model(path)
+            logger.info("openvino: the graph for %s is ready, read from the cache", _described(counts))
+        return self.graphs[counts]
 
-    def _export(self, kind: GraphKind) -> None:
+    def _export(self, counts: StageCounts) -> None:
         with _EXPORT_LOCK:
-            self._export_one(kind)
+            self._export_one(counts)
         with self._lock:
-            self._pending.pop(kind).set()
+            self._pending.pop(counts).set()
 
-    def _export_one(self, kind: GraphKind) -> None:
+    def _export_one(self, counts: StageCounts) -> None:
         with self._lock:
-            if self._cached(kind) is not None:  # exported meanwhile, by another predictor or process
+            if self._cached(counts) is not None:  # exported meanwhile, by another predictor or process
                 return
-        logger.info("openvino: exporting the graph for %s; its calls run on torch until it is ready", _described(kind))
+        logger.info(
+            "openvino: exporting the graph for %s; its calls run on torch until it is ready", _described(counts)
+        )
         start = time.monotonic()
         try:
-            graph = self._exported(kind, self._path(kind))
+            graph = self._exported(counts, self._path(counts))
         except Exception:
-            logger.exception("openvino: export failed for %s; its calls run on torch", _described(kind))
+            logger.exception("openvino: export failed for %s; its calls run on torch", _described(counts))
             with self._lock:
-                self.failed.add(kind)
+                self.failed.add(counts)
             return
         with self._lock:
-            self.graphs[kind] = graph
+            self.graphs[counts] = graph
             self.exports += 1
         logger.info(
             "openvino: the graph for %s is ready, exported in %.0f s; its calls run on OpenVINO from now on",
-            _described(kind),
+            _described(counts),
             time.monotonic() - start,
         )
 
-    def _exported(self, kind: GraphKind, path: Path | None) -> Any:
-        """The kind's graph, exported by a child process straight into the disk cache where it can
+    def _exported(self, counts: StageCounts, path: Path | None) -> Any:
+        """The graph for `counts`, exported by a child process straight into the disk cache where it can
         be written (then read from there), else into a temporary folder (kept in memory only)."""
         if path is not None and _writable(path.parent):
             # unique per export (two processes may export the same graph at once), and named by
             # this process, so that a later one can tell the files of an abandoned export
             partial = path.with_name(f".{os.getpid()}-{uuid.uuid4().hex[:8]}-{path.name}")
             try:
-                export_in_child(self.network, kind, partial)
+                export_in_child(self.network, counts, partial)
                 partial.with_suffix(".bin").replace(path.with_suffix(".bin"))
                 partial.replace(path)  # the .xml last: a graph on disk is complete
             finally:
@@ -279,19 +283,19 @@ class OpenVINOForward:
             logger.warning("openvino: %s cannot be written; the graph lives in memory only", path.parent)
         with tempfile.TemporaryDirectory(prefix="crestereo-graph-") as folder:
             graph_file = Path(folder) / "graph.xml"
-            export_in_child(self.network, kind, graph_file)
+            export_in_child(self.network, counts, graph_file)
             graph = self.core.read_model(graph_file)
             graph.get_ops()  # read everything now: the folder goes away
             return graph.clone()
 
-    def _compiled(self, kind: GraphKind, graph: Any, shape: tuple[int, ...], bf16: bool) -> _Compiled:
-        key = (kind, shape, bf16)
+    def _compiled(self, counts: StageCounts, graph: Any, shape: tuple[int, ...], bf16: bool) -> _Compiled:
+        key = (counts, shape, bf16)
         with self._lock:
             if key in self.compiled:
                 self.compiled.move_to_end(key)
                 return self.compiled[key]
             # before compiling: the cache and the new one fit the bound
-            self._make_room(compiled_bytes(kind, shape, bf16, self.channels))
+            self._make_room(compiled_bytes(counts, shape, bf16, self.channels))
             if self.blob_dir is not None:
                 prune_oldest(self.blob_dir, "*.blob", self.max_blob_bytes)
             static = graph.clone()
@@ -315,7 +319,7 @@ class OpenVINOForward:
     @property
     def kept_bytes(self) -> int:
         """Estimated memory of the compiled shapes kept (``compiled_bytes``)."""
-        return sum(compiled_bytes(kind, shape, bf16, self.channels) for kind, shape, bf16 in self.compiled)
+        return sum(compiled_bytes(counts, shape, bf16, self.channels) for counts, shape, bf16 in self.compiled)
 
     def _make_room(self, nbytes: int) -> None:
         """Drop compiled shapes, least recently used first, until one more of `nbytes` fits both
@@ -325,8 +329,8 @@ class OpenVINOForward:
             self.compiled.popitem(last=False)
 
 
-def _described(kind: GraphKind) -> str:
-    return f"iterations {kind.iters} ({'warm' if kind.warm_start else 'cold'} start)"
+def _described(counts: StageCounts) -> str:
+    return f"iterations {counts}"
 
 
 def prune_oldest(folder: Path, pattern: str, max_bytes: int) -> int:

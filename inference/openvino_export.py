@@ -1,9 +1,10 @@
 """The OpenVINO export: the network as an OpenVINO graph with symbolic batch, height and width,
 computed in a child process of its own (``python -m crestereo_pp.inference.openvino_export``).
 
-One graph per iteration counts and start (cold, or warm from a given disparity): torch's ONNX
-exporter, then ``openvino.convert_model``. The child process reads the network from its standard
-input, writes the graph as OpenVINO IR (.xml and .bin) and ends with the process that started it;
+One graph per iteration counts, starting from a given disparity (a cold start gives zeros, which
+is what the network starts from without one): torch's ONNX exporter, then
+``openvino.convert_model``. The child process reads the network from its standard input, writes
+the graph as OpenVINO IR (.xml and .bin) and ends with the process that started it;
 ``inference.openvino_backend`` decides when to export and keeps the graphs in its cache.
 """
 
@@ -18,7 +19,6 @@ import subprocess
 import sys
 import warnings
 from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -30,8 +30,9 @@ from crestereo_pp.model.network import INPUT_MULTIPLE
 from .forward import Maps
 from .options import StageCounts
 
-EXPORT_VERSION = 7
-"""Bumped whenever the exported graph changes for the same weights (part of the cache key)."""
+EXPORT_VERSION = 8
+"""Bumped whenever the exported graph changes for the same weights (part of the cache key). 8: one
+graph per iteration counts, for cold and warm starts alike (7 had a cold graph beside the warm)."""
 
 KEEP_FP32 = "precise_0"
 """The runtime-info name of OpenVINO's mark that keeps an op in its own precision
@@ -52,37 +53,32 @@ PR_SET_PDEATHSIG = 1
 """Linux's prctl option: the signal a process gets when the thread that started it ends."""
 
 
-@dataclass(frozen=True)
-class GraphKind:
-    """What an exported graph computes: the iterations per stage (1/16, 1/8, 1/4) and whether it
-    starts warm from a given disparity (an extra input)."""
-
-    iters: StageCounts
-    warm_start: bool
-
-    @property
-    def file_stem(self) -> str:
-        n16, n8, n4 = self.iters
-        return f"iters{n16}-{n8}-{n4}-{'warm' if self.warm_start else 'cold'}"
+def graph_stem(iters: StageCounts) -> str:
+    """The file name (without suffix) of the graph for `iters` in the disk cache."""
+    n16, n8, n4 = iters
+    return f"iters{n16}-{n8}-{n4}"
 
 
 class _Graph(nn.Module):
-    """The module that is exported: the network at fixed iterations, maps in float32."""
+    """The module that is exported: the network at fixed iterations from a start disparity, maps
+    in float32."""
 
     def __init__(self, network: nn.Module, iters: StageCounts) -> None:
         super().__init__()
         self.network = network
         self.iters = iters
 
-    def forward(self, left: Tensor, right: Tensor, init: Tensor | None = None) -> Maps:
+    def forward(self, left: Tensor, right: Tensor, init: Tensor) -> Maps:
         out = self.network(left, right, iters=self.iters, init_disparity=init)
         return out.disparity.float(), out.uncertainty.float()
 
 
-def export_graph(network: nn.Module, kind: GraphKind, onnx_file: Path) -> Any:
-    """The network as an ``openvino.Model`` with symbolic batch, height and width (multiples of
-    INPUT_MULTIPLE): inputs left, right (B, 3, H, W) float32 in [0, 255] and, warm, init
-    (B, 1, H, W) px; outputs disparity and uncertainty (B, 1, H, W) float32.
+def export_graph(network: nn.Module, iters: StageCounts, onnx_file: Path) -> Any:
+    """The network at `iters` as an ``openvino.Model`` with symbolic batch, height and width
+    (multiples of INPUT_MULTIPLE): inputs left, right (B, 3, H, W) float32 in [0, 255] and init
+    (B, 1, H, W) px, the start disparity (zeros: a cold start, computed as the network computes
+    one; on OpenVINO bf16 the maps then move by rounding only: 0.0006 px at most in fp32, and the
+    same time); outputs disparity and uncertainty (B, 1, H, W) float32.
 
     Through ONNX (torch's dynamo exporter, which also simplifies the graph), written to
     `onnx_file` meanwhile: the graph OpenVINO builds from it ran 15-20 % faster than one converted
@@ -95,11 +91,8 @@ def export_graph(network: nn.Module, kind: GraphKind, onnx_file: Path) -> Any:
     sizes = {0: batch, 2: INPUT_MULTIPLE * rows, 3: INPUT_MULTIPLE * columns}
     # Batch 2 and distinct tensors: an example of size 1, or one tensor passed twice, would be specialised.
     left = torch.full((2, 3, 2 * INPUT_MULTIPLE, 4 * INPUT_MULTIPLE), 128.0)
-    inputs: tuple[Tensor, ...] = (left, left + 1.0)
-    names = ["left", "right"]
-    if kind.warm_start:
-        inputs = (*inputs, torch.full((2, 1, *left.shape[-2:]), 4.0))
-        names.append("init")
+    inputs = (left, left + 1.0, torch.full((2, 1, *left.shape[-2:]), 4.0))
+    names = ["left", "right", "init"]
     quiet = logging.getLogger("torch.onnx")  # notes about torchvision operators this network does not use
     level = quiet.level
     quiet.setLevel(logging.ERROR)
@@ -107,7 +100,7 @@ def export_graph(network: nn.Module, kind: GraphKind, onnx_file: Path) -> Any:
         with torch.no_grad(), warnings.catch_warnings():
             warnings.simplefilter("ignore")  # the exporter's own deprecation notices, not ours
             program = torch.onnx.export(
-                _Graph(network, kind.iters).eval(),
+                _Graph(network, iters).eval(),
                 inputs,
                 dynamo=True,
                 opset_version=18,
@@ -154,7 +147,7 @@ def keep_features_in_fp32(graph: Any) -> None:
             op.get_rt_info()[KEEP_FP32] = ""
 
 
-def export_in_child(network: nn.Module, kind: GraphKind, graph_file: Path) -> None:
+def export_in_child(network: nn.Module, iters: StageCounts, graph_file: Path) -> None:
     """`export_graph` in a child process (``python -m crestereo_pp.inference.openvino_export``), saved as
     OpenVINO IR at `graph_file` (.xml, with its .bin beside it). The network reaches it through
     its standard input: no file of it is left behind, however this process ends.
@@ -163,17 +156,9 @@ def export_in_child(network: nn.Module, kind: GraphKind, graph_file: Path) -> No
     (fake tensors, functionalisation), which other threads running the network would meet too."""
     network_bytes = io.BytesIO()
     torch.save(network, network_bytes)
-    n16, n8, n4 = kind.iters
-    command = [
-        sys.executable,
-        "-m",
-        "crestereo_pp.inference.openvino_export",
-        str(os.getpid()),
-        str(n16),
-        str(n8),
-        str(n4),
-    ]
-    command += ["warm" if kind.warm_start else "cold", str(graph_file)]
+    n16, n8, n4 = iters
+    module = "crestereo_pp.inference.openvino_export"
+    command = [sys.executable, "-m", module, str(os.getpid()), str(n16), str(n8), str(n4), str(graph_file)]
     done = subprocess.run(command, input=network_bytes.getvalue(), capture_output=True, check=False)
     if done.returncode != 0:
         error = done.stderr.decode(errors="replace")[-2000:]
@@ -181,9 +166,9 @@ def export_in_child(network: nn.Module, kind: GraphKind, graph_file: Path) -> No
 
 
 def _export_main(arguments: Sequence[str]) -> None:
-    """The export process: PARENT_PID N16 N8 N4 cold|warm GRAPH_XML, the network on stdin. Its
+    """The export process: PARENT_PID N16 N8 N4 GRAPH_XML, the network on stdin. Its
     files (the .xml and .bin, the .onnx meanwhile) are named after GRAPH_XML."""
-    parent, n16, n8, n4, start, graph_file = arguments
+    parent, n16, n8, n4, graph_file = arguments
     _end_with_parent(int(parent))
     # Read before openvino is imported: its telemetry forks a process from another thread, and a
     # process forked while this thread holds stdin's lock hangs as it closes stdin.
@@ -192,7 +177,7 @@ def _export_main(arguments: Sequence[str]) -> None:
 
     network = torch.load(io.BytesIO(network_bytes), weights_only=False)  # from the parent, just now
     xml = Path(graph_file)
-    graph = export_graph(network, GraphKind((int(n16), int(n8), int(n4)), start == "warm"), xml.with_suffix(".onnx"))
+    graph = export_graph(network, (int(n16), int(n8), int(n4)), xml.with_suffix(".onnx"))
     ov.save_model(graph, xml, compress_to_fp16=False)
 
 

@@ -115,27 +115,27 @@ class StereoPredictor:
 
     def prepare(self, iters: Iterations = None, *, warm_start: bool = False, wait: bool = True) -> bool:
         """Make the fast path of this backend ready for these iterations (and a cold or warm
-        start): on OpenVINO, read its graphs (``graph_kinds``) from the cache or export them
-        (minutes each; in the background unless ``wait``). Returns whether calls of that kind now
-        run on this backend (always True on torch)."""
+        start): on OpenVINO, read their graphs (``graph_iterations``) from the cache or export
+        them (minutes each; in the background unless ``wait``). Returns whether calls of that
+        kind now run on this backend (always True on torch)."""
         if self.openvino is None:
             return True
-        kinds = self.graph_kinds(iters, warm_start)  # a list below: every export starts, even after one not ready
-        return all([self.openvino.prepare(counts, init, wait=wait) for counts, init in kinds])
+        graphs = self.graph_iterations(iters, warm_start)  # a list below: every export starts, even after one not ready
+        return all([self.openvino.prepare(counts, wait=wait) for counts in graphs])
 
     def ready(self, iters: Iterations = None, *, warm_start: bool = False) -> bool:
         """Whether calls with these iterations (and a cold or warm start) run on this predictor's
         backend now; False while OpenVINO is still exporting their graph (torch computes them)."""
-        kinds = self.graph_kinds(iters, warm_start)
-        return self.openvino is None or all(self.openvino.ready(counts, init) for counts, init in kinds)
+        graphs = self.graph_iterations(iters, warm_start)
+        return self.openvino is None or all(self.openvino.ready(counts) for counts in graphs)
 
-    def graph_kinds(self, iters: Iterations, warm_start: bool) -> list[tuple[StageCounts, bool]]:
-        """The forwards (stage counts, whether they take a start disparity) of a cold or a warm
-        start with ``iters``: cold, one from zero; warm, the two that start from a given
-        disparity, every stage (a video's next frame, ``FrameStream``) and 1/4 only (the second
-        of two passes)."""
+    def graph_iterations(self, iters: Iterations, warm_start: bool) -> list[StageCounts]:
+        """The stage counts of the forwards of a cold or a warm start with ``iters``, one graph
+        each on OpenVINO (which takes a start disparity, zeros when cold): cold, every stage; warm,
+        every stage (a video's next frame, ``FrameStream``) and 1/4 only (the second of two
+        passes)."""
         counts = self.iterations(iters)
-        return [(counts, True), (finest_stage_only(counts), True)] if warm_start else [(counts, False)]
+        return [counts, finest_stage_only(counts)] if warm_start else [counts]
 
     def iterations(self, iters: Iterations) -> StageCounts:
         """The counts per stage (1/16, 1/8, 1/4) that ``iters`` (already read, as

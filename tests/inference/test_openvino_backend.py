@@ -32,7 +32,6 @@ from crestereo_pp.inference.openvino_backend import (
     native_bf16,
     prune_oldest,
 )
-from crestereo_pp.inference.openvino_export import GraphKind
 from crestereo_pp.inference.two_pass import (
     ENLARGEMENTS,
     MAX_ENLARGED_PIXELS,
@@ -118,13 +117,14 @@ def test_a_call_whose_graph_is_not_prepared_runs_on_torch_and_starts_no_export(f
 
 def test_prepare_exports_into_the_cache_saying_when_each_graph_is_ready_and_leaves_no_partial_file(first_call):
     predictor, _, log, _ = first_call
-    for start in ("cold", "warm"):
-        assert f"exporting the graph for iterations (1, 1, 1) ({start} start)" in log
-        assert re.search(rf"iterations \(1, 1, 1\) \({start} start\) is ready, exported in \d+ s", log), log
+    # one graph per iterations, cold and warm alike; a warm start's second pass runs the 1/4 stage alone
+    for counts in ("1, 1, 1", "0, 0, 1"):
+        assert f"exporting the graph for iterations ({counts})" in log
+        assert re.search(rf"iterations \({counts}\) is ready, exported in \d+ s", log), log
     files = {path.name for path in predictor.openvino.graph_dir.iterdir()}
-    assert {f"iters1-1-1-{start}.{suffix}" for start in ("cold", "warm") for suffix in ("xml", "bin")} <= files
+    assert {f"iters{counts}.{suffix}" for counts in ("1-1-1", "0-0-1") for suffix in ("xml", "bin")} <= files
     assert not [name for name in files if name.startswith(".")]  # no partial file
-    assert predictor.openvino.exports == len(files) // 2  # the cache was empty: every graph there is its export
+    assert predictor.openvino.exports == len(files) // 2 == 2  # the cache was empty: every graph there is its export
 
 
 def test_the_cli_runs_openvino_where_the_graphs_are_cached_and_else_torch_exporting_nothing(
@@ -165,8 +165,8 @@ def test_the_partial_files_of_an_export_whose_process_ended_are_removed(tmp_path
     graph_dir.mkdir(parents=True)
     ended = subprocess.Popen(["true"])
     ended.wait()
-    abandoned = [graph_dir / f".{ended.pid}-0123abcd-iters1-1-1-cold.{suffix}" for suffix in ("xml", "bin")]
-    under_way = graph_dir / f".{os.getpid()}-4567cdef-iters1-1-1-warm.xml"
+    abandoned = [graph_dir / f".{ended.pid}-0123abcd-iters1-1-1.{suffix}" for suffix in ("xml", "bin")]
+    under_way = graph_dir / f".{os.getpid()}-4567cdef-iters0-0-1.xml"
     for path in (*abandoned, under_way):
         path.write_text("partial")
     load_model("lite", backend="openvino", cache_dir=tmp_path)
@@ -276,12 +276,12 @@ def test_compiled_shapes_are_kept_up_to_a_bound_least_recently_used_first(first_
 def test_compiled_shapes_are_kept_within_their_estimated_memory_and_the_estimate_is_not_below_it(first_call, tsukuba):
     predictor, *_ = first_call
     backend = predictor.openvino
-    kind, left, right = GraphKind(ITERS, False), *tsukuba
+    left, right = tsukuba
     shapes = [(1, 3, height, 128) for height in (64, 96, 128)]
     backend.compiled.clear()
     backend.max_shapes, backend.max_bytes = (
         8,
-        sum(compiled_bytes(kind, shape, False, backend.channels) for shape in shapes[1:]),
+        sum(compiled_bytes(ITERS, shape, False, backend.channels) for shape in shapes[1:]),
     )
     try:
         in_use = [malloc_in_use()]
@@ -293,7 +293,7 @@ def test_compiled_shapes_are_kept_within_their_estimated_memory_and_the_estimate
         assert backend.kept_bytes <= backend.max_bytes
         # what the first two shapes really took (nothing was dropped yet) is within their estimates
         for shape, before, after in zip(shapes[:2], in_use, in_use[1:], strict=False):
-            assert 0 < after - before <= compiled_bytes(kind, shape, False, backend.channels), (shape, after - before)
+            assert 0 < after - before <= compiled_bytes(ITERS, shape, False, backend.channels), (shape, after - before)
         backend.max_bytes = 1  # a shape over the whole bound is kept, alone
         predictor.predict(left[:64, :128], right[:64, :128], iters=ITERS, two_pass=False)
         assert [shape for _, shape, _ in backend.compiled] == shapes[:1]
@@ -307,14 +307,14 @@ def test_the_estimate_of_a_large_compiled_shape_is_not_below_what_it_takes(first
     estimate), in the precision it is compiled for."""
     predictor, *_ = first_call
     backend = predictor.openvino
-    kind, shape = GraphKind(ITERS, False), (1, 3, 384, 640)
+    shape = (1, 3, 384, 640)
     backend.compiled.clear()
     left, right = (torch.rand(shape) * 255 for _ in range(2))
     before = malloc_in_use()
     backend(left, right, None, ITERS, bf16)
     taken = malloc_in_use() - before
     backend.compiled.clear()
-    estimate = compiled_bytes(kind, shape, bf16, backend.channels)
+    estimate = compiled_bytes(ITERS, shape, bf16, backend.channels)
     assert estimate * 0.6 < taken <= estimate, (taken, estimate)
 
 
@@ -324,11 +324,11 @@ def test_the_compiled_shapes_bound_holds_every_shape_of_a_cameras_pairs_at_lites
     together for lite, in either precision; under a smaller one they evict one another and every
     request compiles again. (full, with four times the channels, needs about three times as much:
     service/README.md, "Backends".)"""
-    shapes: set[tuple[GraphKind, tuple[int, int, int, int]]] = set()
+    shapes: set[tuple[tuple[int, int, int], tuple[int, int, int, int]]] = set()
 
     def forward(left, right, iters, init):  # records what OpenVINO would compile, padded as it pads
         batch, _, height, width = left.shape
-        shapes.add((GraphKind(iters, init is not None), (batch, 3, padded_size(height), padded_size(width))))
+        shapes.add((tuple(iters), (batch, 3, padded_size(height), padded_size(width))))
         return torch.zeros(batch, 1, height, width), torch.zeros(batch, 1, height, width)
 
     config = ModelConfig.preset("lite")
@@ -342,7 +342,7 @@ def test_the_compiled_shapes_bound_holds_every_shape_of_a_cameras_pairs_at_lites
     assert len(shapes) == 4
     for bf16 in (True, False):
         assert (
-            sum(compiled_bytes(kind, shape, bf16, config.feature_dim) for kind, shape in shapes) <= MAX_COMPILED_BYTES
+            sum(compiled_bytes(graph, shape, bf16, config.feature_dim) for graph, shape in shapes) <= MAX_COMPILED_BYTES
         )
 
 
