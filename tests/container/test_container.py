@@ -185,10 +185,13 @@ def test_disparity_of_a_real_pair(ready: tuple[str, str]) -> None:
     assert ((uncertainty >= 0) & (uncertainty <= 1)).all()
 
 
-def test_lite_runs_on_openvino_from_the_graph_the_image_carries(ready: tuple[str, str]) -> None:
-    _, url = ready
+def test_lite_runs_on_openvino_from_the_graphs_the_image_carries(ready: tuple[str, str]) -> None:
+    name, url = ready
     lite = httpx.get(f"{url}/models/lite", timeout=10).json()
     assert lite["backend"] == "openvino" and lite["compiled"], lite  # no export at run time
+    # the default inference's every pass: one pass (and a stream's warm frames), and the second of two passes
+    graphs = _run("docker", "exec", name, "find", "/opt/crestereo-cache", "-name", "*.xml").stdout.split()
+    assert sorted(Path(graph).name for graph in graphs) == ["iters0-0-6.xml", "iters2-4-6.xml"], graphs
 
 
 def test_malformed_request_is_a_json_4xx(ready: tuple[str, str]) -> None:
