@@ -184,10 +184,8 @@ class OpenVINOForward:
         if graph is None:
             return self.fallback(left, right, init, iters, False)  # the torch reference, in fp32
         compiled = self._compiled(counts, graph, tuple(left.shape), bf16)
-        inputs = [np.ascontiguousarray(t.detach().cpu().numpy(), dtype=np.float32) for t in (left, right)]
-        batch, _, height, width = left.shape
-        start = np.zeros((batch, 1, height, width), np.float32) if init is None else init.detach().cpu().numpy()
-        inputs.append(np.ascontiguousarray(start, dtype=np.float32))
+        start = left.new_zeros(left.shape[0], 1, *left.shape[-2:]) if init is None else init  # zeros: a cold start
+        inputs = [np.ascontiguousarray(t.detach().cpu().numpy(), dtype=np.float32) for t in (left, right, start)]
         with compiled.lock:  # one request per compiled shape, reused: a new one allocates every buffer again
             compiled.request.infer(inputs)
             outputs = [compiled.request.get_output_tensor(i).data.copy() for i in (0, 1)]

@@ -76,9 +76,9 @@ class _Graph(nn.Module):
 def export_graph(network: nn.Module, iters: StageCounts, onnx_file: Path) -> Any:
     """The network at `iters` as an ``openvino.Model`` with symbolic batch, height and width
     (multiples of INPUT_MULTIPLE): inputs left, right (B, 3, H, W) float32 in [0, 255] and init
-    (B, 1, H, W) px, the start disparity (zeros: a cold start, computed as the network computes
-    one; on OpenVINO bf16 the maps then move by rounding only: 0.0006 px at most in fp32, and the
-    same time); outputs disparity and uncertainty (B, 1, H, W) float32.
+    (B, 1, H, W) px, the start disparity (zeros for a cold start: the same maps as a graph without
+    the input, to 0.0006 px in fp32, in the same time); outputs disparity and uncertainty
+    (B, 1, H, W) float32.
 
     Through ONNX (torch's dynamo exporter, which also simplifies the graph), written to
     `onnx_file` meanwhile: the graph OpenVINO builds from it ran 15-20 % faster than one converted
