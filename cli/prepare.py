@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import argparse
+import shutil
 import time
+from pathlib import Path
 
 from .options import add_iterations_option, add_network_options
 
@@ -18,6 +20,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     add_network_options(parser)
     add_iterations_option(parser)
+    parser.add_argument(
+        "--prune",
+        action="store_true",
+        help="also remove the cache's graph folders of other torch or export versions, which this install never "
+        "reads (an update leaves them behind); those of other weights are kept",
+    )
     parser.set_defaults(run=run)
 
 
@@ -41,4 +49,33 @@ def run(args: argparse.Namespace) -> int:
         print(f"{what}: {'ready' if ready else 'failed'} after {time.monotonic() - start:.0f} s")
         failed = failed or not ready
     print(f"cache: {predictor.openvino.graph_dir or 'none (weights without a hash: in memory only)'}")
+    _other_versions(prune=args.prune)
     return 1 if failed else 0
+
+
+def _other_versions(*, prune: bool) -> None:
+    """Say how much the graphs of other versions take, and remove them where asked."""
+    from crestereo_pp.inference.openvino_backend import other_version_graph_folders
+
+    folders = other_version_graph_folders()
+    if not folders:
+        return
+    megabytes = sum(_bytes(folder) for folder in folders) / 1e6
+    what = f"{len(folders)} graph folder{'s' if len(folders) > 1 else ''} of other torch or export versions"
+    if prune:
+        for folder in folders:
+            shutil.rmtree(folder, ignore_errors=True)
+        print(f"removed {what} ({megabytes:.0f} MB)")
+    else:
+        print(f"{what} in the cache, which this install does not read ({megabytes:.0f} MB): --prune removes them")
+
+
+def _bytes(folder: Path) -> int:
+    """The bytes of the files under `folder`; files removed meanwhile count nothing."""
+    total = 0
+    for path in folder.rglob("*"):
+        try:
+            total += path.stat().st_size if path.is_file() else 0
+        except FileNotFoundError:
+            pass
+    return total

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import logging
 import os
+import re
 import tempfile
 import threading
 import time
@@ -104,6 +105,34 @@ def default_cache_dir() -> Path:
     return (Path(xdg) if xdg else Path.home() / ".cache") / "crestereo-pp"
 
 
+def graph_folder_name(cache_key: str) -> str:
+    """The cache folder of one weights file's graphs (`cache_key`: ``name-hash``): its graphs as
+    this torch exports them, at this ``EXPORT_VERSION``."""
+    return f"{cache_key}{_version_suffix()}"
+
+
+def _version_suffix() -> str:
+    return f"-torch{torch.__version__}-v{EXPORT_VERSION}"
+
+
+_GRAPH_FOLDER = re.compile(r"[A-Za-z0-9_]+-[0-9a-f]{16}-torch[^/]+-v[0-9]+")
+
+
+def other_version_graph_folders(cache_dir: Path | None = None) -> list[Path]:
+    """The graph folders in the cache (``cache_dir``, else ``default_cache_dir()``) that this
+    install never reads: exported by another torch version or at another ``EXPORT_VERSION`` (an
+    update leaves them behind, several MB each). Folders of other weights at this install's
+    versions are not among them (a user's own weights may need them)."""
+    folder = (cache_dir or default_cache_dir()) / "openvino"
+    if not folder.is_dir():
+        return []
+    return sorted(
+        path
+        for path in folder.iterdir()
+        if path.is_dir() and _GRAPH_FOLDER.fullmatch(path.name) and not path.name.endswith(_version_suffix())
+    )
+
+
 def compiled_bytes(iters: StageCounts, shape: tuple[int, ...], bf16: bool, channels: int) -> int:
     """Estimated memory of the graph for `iters` of a network with `channels` feature channels,
     compiled for input `shape` (B, C, H, W) in bf16 (else fp32), its infer request included."""
@@ -128,10 +157,11 @@ class OpenVINOForward:
     network: the eval-mode network to export; channels: its feature channels (``ModelConfig``'s
     feature_dim, for the memory estimate). fallback: the torch forward of calls whose graph is not
     ready (neither in memory nor in the disk cache; ``prepare`` exports it).
-    cache_key: names these weights in the disk cache (their hash); None keeps graphs in memory
-    only. cache_dir: the cache's root (``default_cache_dir()``); graphs and blobs go to its
-    ``openvino/`` folder. max_shapes, max_bytes: compiled shapes kept in memory, at most that many and
-    that much estimated memory (``compiled_bytes``) together; the least recently used are dropped
+    cache_key: names the model and its weights in the disk cache (``name-hash``); None keeps graphs
+    in memory only. cache_dir: the cache's root (``default_cache_dir()``); graphs go to its
+    ``openvino/graph_folder_name(cache_key)`` folder, blobs to ``openvino/compiled``.
+    max_shapes, max_bytes: compiled shapes kept in memory, at most that many and that much
+    estimated memory (``compiled_bytes``) together; the least recently used are dropped
     before another is compiled, and one shape larger than `max_bytes` is kept alone.
     Thread-safe: calls may come from several threads; one export runs at a time, in a child
     process that a daemon thread waits for.
@@ -160,7 +190,7 @@ class OpenVINOForward:
         self.max_bytes = max_bytes
         self.max_blob_bytes = max_blob_bytes
         directory = (cache_dir or default_cache_dir()) / "openvino"
-        self.graph_dir = None if cache_key is None else directory / f"{cache_key}-v{EXPORT_VERSION}"
+        self.graph_dir = None if cache_key is None else directory / graph_folder_name(cache_key)
         if self.graph_dir is not None and self.graph_dir.is_dir():
             _remove_abandoned_exports(self.graph_dir)
         self.core = ov.Core()

@@ -92,7 +92,7 @@ class StereoPredictor:
                 self.network,
                 self.forward,
                 channels=self.config.feature_dim,
-                cache_key=None if weights_sha256 is None else f"{name}-{weights_sha256[:16]}-torch{torch.__version__}",
+                cache_key=None if weights_sha256 is None else f"{name}-{weights_sha256[:16]}",
                 cache_dir=cache_dir,
                 max_bytes=compiled_bytes,
             )

@@ -10,6 +10,7 @@ import ctypes
 import logging
 import os
 import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -151,6 +152,34 @@ def test_prepare_says_which_graphs_are_in_the_cache_already(first_call, cache_di
     out = capsys.readouterr().out
     for start in ("cold", "warm"):
         assert f"lite's graphs for iterations (1, 1, 1) ({start} start): in the cache already" in out
+
+
+def test_prepare_prunes_only_where_asked_the_graphs_of_other_versions_and_keeps_other_weights(
+    first_call, cache_dir, monkeypatch, capsys
+):
+    monkeypatch.setenv("CRESTEREO_CACHE_DIR", str(cache_dir))
+    current = first_call[0].openvino.graph_dir
+    version = current.name.split("-torch", 1)[1]  # this install's torch and export versions
+    older_export = current.with_name(current.name.rsplit("-v", 1)[0] + "-v7")
+    older_torch = current.with_name(f"lite-{'0' * 16}-torch2.12.0+cpu-v8")
+    own_weights = current.with_name(f"lite-{'ab' * 8}-torch{version}")
+    for folder in (older_export, older_torch, own_weights):
+        folder.mkdir()
+        (folder / "iters1-1-1.bin").write_bytes(bytes(1_500_000))
+    try:
+        assert main(["prepare", "--iters", "1", "1", "1"]) == 0
+        out = capsys.readouterr().out
+        assert "2 graph folders of other torch or export versions in the cache" in out
+        assert "(3 MB): --prune removes them" in out
+        assert older_export.is_dir() and older_torch.is_dir()
+        assert main(["prepare", "--iters", "1", "1", "1", "--prune"]) == 0
+        assert "removed 2 graph folders of other torch or export versions (3 MB)" in capsys.readouterr().out
+        assert not older_export.exists() and not older_torch.exists()
+        assert own_weights.is_dir() and current.is_dir() and (cache_dir / "openvino" / "compiled").is_dir()
+        assert main(["prepare", "--iters", "1", "1", "1"]) == 0
+        assert "other torch or export versions" not in capsys.readouterr().out
+    finally:
+        shutil.rmtree(own_weights, ignore_errors=True)
 
 
 def test_load_model_reads_the_graphs_it_is_asked_to_prepare_from_the_cache(first_call, cache_dir):
