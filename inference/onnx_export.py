@@ -9,6 +9,7 @@ from pathlib import Path
 import torch
 from torch import Tensor, nn
 
+from .onnx_optimize import optimize_onnx
 from .options import Iterations
 from .predictor import StereoPredictor
 
@@ -46,13 +47,16 @@ def export_onnx(
     path.parent.mkdir(parents=True, exist_ok=True)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the exporter's own deprecation chatter, not ours
-        torch.onnx.export(
+        program = torch.onnx.export(
             graph,
             (left, right),
-            str(path),
             dynamo=True,
             opset_version=18,
             input_names=["left", "right"],
             output_names=["disparity", "uncertainty"],
             verbose=False,
+            optimize=False,  # optimize_onnx: the same passes, faster
         )
+    assert program is not None  # dynamo=True always returns the program
+    optimize_onnx(program.model)
+    program.save(str(path))
