@@ -106,6 +106,34 @@ def video_frames(left: Path, right: Path) -> tuple[int, Iterator[PairImages]]:
     return counts[0], frames()
 
 
+GLOB_CHARACTERS = frozenset("*?[")
+
+
+def _input_kind(name: str) -> str:
+    """What LEFT or RIGHT names: a file, a folder, a glob (a name with glob characters that is
+    neither), or nothing."""
+    path = Path(name)
+    if path.is_file():
+        return "file"
+    if path.is_dir():
+        return "folder"
+    return "glob" if GLOB_CHARACTERS & set(name) else "missing"
+
+
+def check_inputs(left: str, right: str) -> None:
+    """Refuse, before anything is loaded, inputs that name nothing or two different kinds of
+    thing (a file and a folder, say): ValueError naming what was wrong."""
+    kinds = {name: _input_kind(name) for name in (left, right)}
+    for name, kind in kinds.items():
+        if kind == "missing":
+            raise ValueError(f"{name}: no such file or folder")
+    if kinds[left] != kinds[right]:
+        raise ValueError(
+            f"LEFT {left} is a {kinds[left]} but RIGHT {right} is a {kinds[right]}: give two image or video files, "
+            "two folders, or two quoted globs"
+        )
+
+
 def find_pairs(left: str, right: str) -> list[PairPaths]:
     """Pairs named by LEFT and RIGHT: two files, two folders (matched by file name), or two globs
     (matched in sorted order). Stems are relative to the folder holding all left images."""
@@ -189,7 +217,8 @@ class Job:
 
 def plan(args: argparse.Namespace) -> Job:
     """The job the arguments describe; ValueError, before any model is loaded, where they are
-    inconsistent or an output could not be written."""
+    inconsistent, an input names nothing, or an output could not be written."""
+    check_inputs(args.left, args.right)
     if (args.focal_px is None) != (args.baseline_m is None):
         raise ValueError("give both --focal-px and --baseline-m, or neither")
     if args.focal_px is not None:

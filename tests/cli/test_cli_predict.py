@@ -175,6 +175,20 @@ def test_unmatched_inputs_are_errors(tmp_path, pairs_dir):
         find_pairs(str(tmp_path / "nothing*.png"), str(tmp_path / "nothing*.png"))
 
 
+def test_an_input_that_names_nothing_or_a_mix_of_a_file_and_a_folder_is_refused_naming_it(pairs_dir, tmp_path, capsys):
+    pair, written = pairs_dir / "shift4", tmp_path / "out"
+    written.mkdir()
+    out = ["-o", str(written / "d.pfm")]
+    assert main(["predict", str(pair / "lefft.png"), str(pair / "right.png"), *out]) == 2
+    assert f"{pair / 'lefft.png'}: no such file or folder" in capsys.readouterr().err
+    assert main(["predict", str(pair), str(pair / "right.png"), *out]) == 2
+    err = capsys.readouterr().err
+    assert f"LEFT {pair} is a folder but RIGHT {pair / 'right.png'} is a file" in err
+    assert main(["predict", str(pair / "left.png"), f"{pairs_dir}/*/right.png", *out]) == 2
+    assert f"LEFT {pair / 'left.png'} is a file but RIGHT {pairs_dir}/*/right.png is a glob" in capsys.readouterr().err
+    assert not list(written.iterdir())  # refused before anything was written
+
+
 def test_an_unknown_output_extension_is_refused(pairs_dir, tmp_path, capsys):
     pair = pairs_dir / "shift4"
     assert main(["predict", str(pair / "left.png"), str(pair / "right.png"), "-o", str(tmp_path / "d.tif")]) == 2
