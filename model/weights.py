@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import pickle
 from pathlib import Path
 from typing import Any, NotRequired, TypedDict, cast
 
@@ -88,7 +89,14 @@ def read_weights(path: str | Path) -> WeightsFile:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"weights file not found: {path}")
-    payload = torch.load(path, map_location="cpu", weights_only=True)
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+    except (pickle.UnpicklingError, RuntimeError, EOFError) as error:
+        reason = {
+            pickle.UnpicklingError: "not a file torch saved, or one holding more than tensors and plain values",
+            EOFError: "empty",
+        }.get(type(error)) or str(error).split(". ")[0]  # a zip archive cut short or damaged: torch's first sentence
+        raise ValueError(f"{path} is not a weights file or checkpoint: torch cannot read it ({reason})") from None
     if not isinstance(payload, dict) or "model" not in payload:
         raise ValueError(f"{path} is not a weights file or checkpoint: expected a dict with a 'model' state_dict")
     return cast(WeightsFile, payload)  # the file's own keys, checked where they are read

@@ -1,5 +1,7 @@
 """The inference API users and the service build on: load_model(...).predict(left, right)."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
@@ -13,6 +15,8 @@ from crestereo_pp.model.weights import file_sha256
 from crestereo_pp.stereo_data.readers import open_dataset
 from crestereo_pp.stereo_data.synthetic import SceneConfig, SceneGenerator
 from tests.shared_data import SMALL_STEREO_DEV_PAIR, STEREO_DEV
+
+REPO = Path(__file__).resolve().parents[2]
 
 
 def random_pair(height, width, seed=0, channels=3):
@@ -317,6 +321,15 @@ def test_missing_or_invalid_weights_files_raise(tmp_path):
     torch.save({"something": 1}, bad)
     with pytest.raises(ValueError, match="not a weights file"):
         load_model("lite", weights=bad)
+    shipped = (REPO / "model/weights/lite.pt").read_bytes()
+    for name, content in (
+        ("image.png", b"\x89PNG\r\n\x1a\n" + bytes(64)),
+        ("empty.pt", b""),
+        ("cut.pt", shipped[:4096]),
+    ):
+        (tmp_path / name).write_bytes(content)
+        with pytest.raises(ValueError, match=f"{name} is not a weights file or checkpoint: torch cannot read it"):
+            load_model("lite", weights=tmp_path / name)
 
 
 def test_inference_holds_no_autograd_state(lite):
