@@ -29,7 +29,7 @@ $(VENV)/.test-installed: $(VENV)/.serve-installed
 setup: $(VENV)/.serve-installed
 setup-test: $(VENV)/.test-installed
 
-# First lite's OpenVINO graphs (`crestereo-pp prepare`: minutes of CPU the first time, then read
+# First lite's OpenVINO graphs (`crestereo-pp prepare`: a minute or two the first time, then read
 # from the cache), so that the service computes compiled from its first request; where they cannot
 # be exported it computes on torch.
 serve: setup

@@ -15,7 +15,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "Export the OpenVINO graphs of MODEL at --iters, for cold and warm starts (two passes and the frames "
         "of a sequence start warm), into the cache ($CRESTEREO_CACHE_DIR, else $XDG_CACHE_HOME/crestereo-pp, "
         "else ~/.cache/crestereo-pp), where predict, eval, the service and the Python API read them: until "
-        "then they compute on torch, 2-3x slower on a CPU. Each graph takes minutes of CPU, once per weights "
+        "then they compute on torch, 2-3x slower on a CPU. Each graph takes a minute or two of one core (they are "
+        "exported side by side), once per weights "
         "and iterations; a graph already in the cache is not exported again."
     )
     add_network_options(parser)
@@ -35,22 +36,30 @@ def run(args: argparse.Namespace) -> int:
 
     iters = parse_iterations(args.iters)
     predictor = load_model(args.model, args.weights, "cpu", backend="openvino")
-    assert predictor.openvino is not None  # asked for by name: ValueError where it cannot run
-    failed = False
-    for warm_start in (False, True):
-        kind = "warm" if warm_start else "cold"
-        what = f"{args.model}'s graphs for iterations {predictor.iterations(iters)} ({kind} start)"
-        if predictor.ready(iters, warm_start=warm_start):
-            print(f"{what}: in the cache already")
-            continue
-        print(f"{what}: exporting...", flush=True)
+    openvino = predictor.openvino
+    assert openvino is not None  # asked for by name: ValueError where it cannot run
+    uses: dict[tuple[int, int, int], str] = {}  # every graph of cold and warm starts, two passes included
+    for counts, use in zip(
+        predictor.graph_iterations(iters, warm_start=True),
+        ("cold starts and a sequence's warm frames", "the second of two passes"),
+        strict=True,
+    ):
+        uses[counts] = f"{uses[counts]}, and {use}" if counts in uses else use
+    missing = [counts for counts in uses if not openvino.ready(counts)]
+    for counts in uses:
+        if counts not in missing:
+            print(f"{args.model}'s graph for iterations {counts} ({uses[counts]}): in the cache already")
+    if missing:
+        graphs = " and ".join(f"iterations {counts} ({uses[counts]})" for counts in missing)
+        print(f"exporting {args.model}'s graphs for {graphs}, side by side...", flush=True)
         start = time.monotonic()
-        ready = predictor.prepare(iters, warm_start=warm_start)
-        print(f"{what}: {'ready' if ready else 'failed'} after {time.monotonic() - start:.0f} s")
-        failed = failed or not ready
-    print(f"cache: {predictor.openvino.graph_dir or 'none (weights without a hash: in memory only)'}")
+        predictor.prepare(iters, warm_start=True)
+        for counts in missing:
+            print(f"{args.model}'s graph for iterations {counts}: {'ready' if openvino.ready(counts) else 'failed'}")
+        print(f"exported in {time.monotonic() - start:.0f} s")
+    print(f"cache: {openvino.graph_dir or 'none (weights without a hash: in memory only)'}")
     _other_versions(prune=args.prune)
-    return 1 if failed else 0
+    return 0 if predictor.ready(iters, warm_start=True) else 1
 
 
 def _other_versions(*, prune: bool) -> None:

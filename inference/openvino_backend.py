@@ -11,8 +11,9 @@ where the CPU computes bf16 natively (AVX512-BF16, AMX).
 
 A graph is exported only when asked for (``prepare``; ``crestereo-pp prepare`` from the shell),
 never by a call: a call whose graph is neither in memory nor in the disk cache runs on torch in
-fp32. An export takes minutes of CPU (README, "Benchmarks"); it runs in a child process (one at a
-time per process, watched by a background thread) that ends with the process that started it.
+fp32. An export takes a minute or two of one core (README, "Backends"); it runs in a child process
+(watched by a background thread) that ends with the process that started it: side by side with
+the others asked for while the caller waits, one at a time in the background.
 Its files reach the cache complete, under their final names; partial ones are removed, by the
 process that started it or, where that was killed, by the next one to use the cache. A graph
 whose export fails runs on torch from then on (logged once).
@@ -20,6 +21,7 @@ whose export fails runs on torch from then on (logged once).
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import re
@@ -28,6 +30,7 @@ import threading
 import time
 import uuid
 from collections import OrderedDict
+from collections.abc import Sequence
 from dataclasses import dataclass
 from importlib.util import find_spec
 from pathlib import Path
@@ -77,7 +80,8 @@ models and weights using one cache root): each image size a server meets adds a 
 the bound the oldest blobs go before the next compile (a size met again compiles once more)."""
 
 _EXPORT_LOCK = threading.Lock()
-"""One export at a time in a process: each keeps every core busy for minutes."""
+"""One background export at a time in a process: a service that exports while it serves leaves
+the other cores to its requests."""
 
 
 def openvino_available() -> bool:
@@ -230,24 +234,31 @@ class OpenVINOForward:
         with self._lock:
             return self._cached((*iters,)) is not None
 
-    def prepare(self, iters: StageCounts, *, wait: bool = True) -> bool:
-        """Load the graph for these iterations from the disk cache, else export it (in the
-        background unless `wait`); returns whether it is ready (False after a failed export:
-        those iterations run on torch)."""
-        counts: StageCounts = (*iters,)
+    def prepare(self, graphs: Sequence[StageCounts], *, wait: bool = True) -> bool:
+        """Load the graphs for these iterations from the disk cache, else export them: where
+        `wait`, side by side (each in a process of its own, which keeps about one core busy) while
+        the caller waits for them all; else in the background, one at a time in this process (a
+        service exporting while it serves). Returns whether they are all ready (False after a
+        failed export: those iterations run on torch)."""
+        pending = []
         with self._lock:
-            if self._cached(counts) is not None:
-                return True
-            if counts not in self.failed and counts not in self._pending:
-                self._pending[counts] = threading.Event()
-                # A daemon thread: an export under way never holds up the process's exit (its
-                # child process ends with this process, see ``openvino_export._end_with_parent``).
-                thread = threading.Thread(target=self._export, args=(counts,), name="openvino-export", daemon=True)
-                thread.start()
-            pending = self._pending.get(counts)
-        if wait and pending is not None:
-            pending.wait()
-        return self.ready(iters)
+            for iters in graphs:
+                counts: StageCounts = (*iters,)
+                if self._cached(counts) is not None or counts in self.failed:
+                    continue
+                if counts not in self._pending:
+                    self._pending[counts] = threading.Event()
+                    # A daemon thread: an export under way never holds up the process's exit (its
+                    # child process ends with this process, see ``openvino_export._end_with_parent``).
+                    thread = threading.Thread(
+                        target=self._export, args=(counts, not wait), name="openvino-export", daemon=True
+                    )
+                    thread.start()
+                pending.append(self._pending[counts])
+        if wait:
+            for event in pending:
+                event.wait()
+        return all(self.ready(iters) for iters in graphs)
 
     def _path(self, counts: StageCounts) -> Path | None:
         return None if self.graph_dir is None else self.graph_dir / f"{graph_stem(counts)}.xml"
@@ -263,8 +274,8 @@ class OpenVINOForward:
             logger.info("openvino: the graph for %s is ready, read from the cache", _described(counts))
         return self.graphs[counts]
 
-    def _export(self, counts: StageCounts) -> None:
-        with _EXPORT_LOCK:
+    def _export(self, counts: StageCounts, one_at_a_time: bool) -> None:
+        with _EXPORT_LOCK if one_at_a_time else contextlib.nullcontext():
             self._export_one(counts)
         with self._lock:
             self._pending.pop(counts).set()

@@ -116,12 +116,12 @@ class StereoPredictor:
     def prepare(self, iters: Iterations = None, *, warm_start: bool = False, wait: bool = True) -> bool:
         """Make the fast path of this backend ready for these iterations (and a cold or warm
         start): on OpenVINO, read their graphs (``graph_iterations``) from the cache or export
-        them (minutes each; in the background unless ``wait``). Returns whether calls of that
-        kind now run on this backend (always True on torch)."""
+        them (a minute or two each; side by side while the caller waits, or in the background,
+        one at a time, where not ``wait``). Returns whether calls of that kind now run on this
+        backend (always True on torch)."""
         if self.openvino is None:
             return True
-        graphs = self.graph_iterations(iters, warm_start)  # a list below: every export starts, even after one not ready
-        return all([self.openvino.prepare(counts, wait=wait) for counts in graphs])
+        return self.openvino.prepare(self.graph_iterations(iters, warm_start), wait=wait)
 
     def ready(self, iters: Iterations = None, *, warm_start: bool = False) -> bool:
         """Whether calls with these iterations (and a cold or warm start) run on this predictor's

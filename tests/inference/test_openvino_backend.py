@@ -94,7 +94,7 @@ def first_call(cache_dir, tsukuba):
     logger.addHandler(messages)
     logger.setLevel(logging.INFO)
     try:
-        assert predictor.prepare(ITERS) and predictor.prepare(ITERS, warm_start=True)
+        assert predictor.prepare(ITERS, warm_start=True)  # both graphs, side by side
     finally:
         logger.removeHandler(messages)
         logger.setLevel(logging.NOTSET)
@@ -150,8 +150,12 @@ def test_prepare_says_which_graphs_are_in_the_cache_already(first_call, cache_di
     monkeypatch.setenv("CRESTEREO_CACHE_DIR", str(cache_dir))
     assert main(["prepare", "--iters", "1", "1", "1"]) == 0
     out = capsys.readouterr().out
-    for start in ("cold", "warm"):
-        assert f"lite's graphs for iterations (1, 1, 1) ({start} start): in the cache already" in out
+    for counts, use in (
+        ("1, 1, 1", "cold starts and a sequence's warm frames"),
+        ("0, 0, 1", "the second of two passes"),
+    ):
+        assert f"lite's graph for iterations ({counts}) ({use}): in the cache already" in out
+    assert "exporting" not in out
 
 
 def test_prepare_prunes_only_where_asked_the_graphs_of_other_versions_and_keeps_other_weights(
