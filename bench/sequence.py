@@ -119,8 +119,7 @@ def main() -> None:
         warnings.simplefilter("ignore", RuntimeWarning)  # untrained weights in a test checkout
         predictor = load_model("lite", backend=args.backend)
     for iters in args.warm_iters:  # OpenVINO: have every graph of the run ready before timing
-        predictor.prepare(iters)
-        predictor.prepare(iters, warm_start=True)
+        predictor.prepare(iters, warm_start=True)  # the graphs of cold and warm starts
     cameras = {"static": (0, 0), f"pan {pan[0]},{pan[1]}": pan}
     runs = {
         (camera, iters): run_camera(predictor, pair, args.frames, step, (height, width), iters)

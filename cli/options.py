@@ -153,15 +153,15 @@ def load_predictor(args: argparse.Namespace) -> StereoPredictor:
             file=sys.stderr,
         )
         return load("torch")
-    for iters, warm_start in graphs:
-        if not predictor.prepare(iters, warm_start=warm_start, wait=False):
-            print(
-                f"crestereo-pp: exporting {args.model}'s OpenVINO graph ({'warm' if warm_start else 'cold'} start), "
-                "once per weights (minutes; `crestereo-pp prepare` does it ahead)",
-                file=sys.stderr,
-            )
-            if not predictor.prepare(iters, warm_start=warm_start, wait=True):
-                print("crestereo-pp: the OpenVINO export failed (see the log); running on torch", file=sys.stderr)
+    assert predictor.openvino is not None  # not torch, so OpenVINO
+    counts = list(dict.fromkeys(c for iters, warm in graphs for c in predictor.graph_iterations(iters, warm)))
+    print(
+        f"crestereo-pp: exporting {args.model}'s OpenVINO graphs, once per weights (a minute or two; "
+        "`crestereo-pp prepare` does it ahead)",
+        file=sys.stderr,
+    )
+    if not predictor.openvino.prepare(counts, wait=True):  # side by side
+        print("crestereo-pp: the OpenVINO export failed (see the log); running on torch", file=sys.stderr)
     return predictor
 
 
