@@ -167,8 +167,8 @@ class OpenVINOForward:
     max_shapes, max_bytes: compiled shapes kept in memory, at most that many and that much
     estimated memory (``compiled_bytes``) together; the least recently used are dropped
     before another is compiled, and one shape larger than `max_bytes` is kept alone.
-    Thread-safe: calls may come from several threads; one export runs at a time, in a child
-    process that a daemon thread waits for.
+    Thread-safe: calls may come from several threads. Each export runs in a child process that a
+    daemon thread waits for (``prepare``).
     """
 
     def __init__(
