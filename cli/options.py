@@ -46,7 +46,7 @@ def add_model_options(parser: argparse.ArgumentParser) -> None:
         choices=["auto", "torch", "openvino"],
         default="auto",
         help="auto: $CRESTEREO_BACKEND if set, else OpenVINO on a CPU where `crestereo-pp prepare` has exported "
-        "its graphs (2-3x faster), torch elsewhere; openvino: exports any graph missing first (minutes) [auto]",
+        "its graphs (2-3x faster), torch elsewhere; openvino: exports any graph missing first (a minute or two) [auto]",
     )
     parser.add_argument(
         "--precision",
