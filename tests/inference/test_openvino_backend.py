@@ -191,6 +191,32 @@ def test_load_model_reads_the_graphs_it_is_asked_to_prepare_from_the_cache(first
     assert loaded.ready(ITERS) and loaded.ready(ITERS, warm_start=True) and loaded.openvino.exports == 0
 
 
+def test_a_command_asked_to_run_openvino_exports_its_missing_graphs_side_by_side_saying_so_once(
+    tmp_path, openvino_cache, monkeypatch, capsys
+):
+    # openvino_cache only orders this test with the others that run OpenVINO here (tests/conftest.py)
+    cache = tmp_path / "cache"
+    monkeypatch.setenv("CRESTEREO_CACHE_DIR", str(cache))
+    logger, messages = logging.getLogger("crestereo_pp.inference.openvino_backend"), Messages()
+    logger.addHandler(messages)
+    logger.setLevel(logging.INFO)
+    try:
+        arguments = [str(PAIR / "left.png"), str(PAIR / "right.png"), "-o", str(tmp_path / "d.pfm")]
+        options = ["--backend", "openvino", "--precision", "fp32", "--iters", "1", "1", "1", "--two-pass", "on"]
+        assert main(["predict", *arguments, *options]) == 0
+    finally:
+        logger.removeHandler(messages)
+        logger.setLevel(logging.NOTSET)
+    err = capsys.readouterr().err
+    assert err.count("exporting lite's OpenVINO graphs") == 1 and "running on torch" not in err, err
+    assert sorted(path.name for path in cache.rglob("*.xml")) == ["iters0-0-1.xml", "iters1-1-1.xml"]
+    log = messages.messages
+    started = [i for i, m in enumerate(log) if m.startswith("openvino: exporting the graph")]
+    ended = [i for i, m in enumerate(log) if "exported in" in m]
+    assert len(started) == len(ended) == 2 and max(started) < min(ended), log  # both under way at once
+    assert (tmp_path / "d.pfm").is_file()
+
+
 def test_the_partial_files_of_an_export_whose_process_ended_are_removed(tmp_path, openvino_cache):
     # openvino_cache only orders this test with the others that run OpenVINO here (tests/conftest.py)
     predictor = load_model("lite", backend="openvino", cache_dir=tmp_path)
