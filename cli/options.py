@@ -154,7 +154,7 @@ def load_predictor(args: argparse.Namespace) -> StereoPredictor:
         )
         return load("torch")
     assert predictor.openvino is not None  # not torch, so OpenVINO
-    counts = list(dict.fromkeys(c for iters, warm in graphs for c in predictor.graph_iterations(iters, warm)))
+    counts = [c for iters, warm in graphs for c in predictor.graph_iterations(iters, warm)]  # a repeat is exported once
     print(
         f"crestereo-pp: exporting {args.model}'s OpenVINO graphs, once per weights (a minute or two; "
         "`crestereo-pp prepare` does it ahead)",

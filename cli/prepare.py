@@ -6,8 +6,12 @@ import argparse
 import shutil
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from .options import add_iterations_option, add_network_options
+
+if TYPE_CHECKING:
+    from crestereo_pp.inference.options import StageCounts
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -38,7 +42,7 @@ def run(args: argparse.Namespace) -> int:
     predictor = load_model(args.model, args.weights, "cpu", backend="openvino")
     openvino = predictor.openvino
     assert openvino is not None  # asked for by name: ValueError where it cannot run
-    uses: dict[tuple[int, int, int], str] = {}  # every graph of cold and warm starts, two passes included
+    uses: dict[StageCounts, str] = {}  # every graph of cold and warm starts, two passes included
     for counts, use in zip(
         predictor.graph_iterations(iters, warm_start=True),
         ("cold starts and a sequence's warm frames", "the second of two passes"),
