@@ -27,6 +27,10 @@ _RESULT_HEADERS = {
     "X-Batch-Size": _header("Requests computed together with this one.", "integer"),
     "X-Queue-Ms": _header("Time queued before the batch started.", "number"),
     "X-Compute-Ms": _header("Network time of the batch.", "number"),
+    "X-Camera": _header(
+        "A raw pair's only (sent with a `calibration` part): the rectified left camera that disparity and depth "
+        "refer to, as in the JSON answer's `camera`: `focal_px=F; baseline_m=B; cx_px=CX; cy_px=CY`."
+    ),
 }
 _RETRY_AFTER = {"Retry-After": _header("Seconds to wait before retrying.", "integer")}
 

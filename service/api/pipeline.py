@@ -13,8 +13,8 @@ from starlette.concurrency import run_in_threadpool
 
 from crestereo_pp.inference import WarmStart
 from crestereo_pp.service.api.errors import bad_input
-from crestereo_pp.service.api.response_bodies import response_body
-from crestereo_pp.service.api.schemas import DisparityOptions
+from crestereo_pp.service.api.response_bodies import rectified_camera, response_body
+from crestereo_pp.service.api.schemas import DisparityOptions, RectifiedCamera
 from crestereo_pp.service.batching.batcher import JobResult
 from crestereo_pp.service.batching.runtime import ServiceRuntime, StereoBatcher, weights_identity
 from crestereo_pp.service.batching.stereo import Predictor, StereoMaps, StereoPair, stereo_key
@@ -25,11 +25,13 @@ from crestereo_pp.service.uploads.sandbox import Stop
 @dataclass(frozen=True)
 class Answer:
     """A computed pair: its result (maps, batch size, timings), the predictor that computed it and
-    its weights' identity, and the answer's body and media type."""
+    its weights' identity, a raw pair's rectified left camera (None for a rectified pair), and the
+    answer's body and media type."""
 
     result: JobResult[StereoMaps]
     predictor: Predictor
     weights: str
+    camera: RectifiedCamera | None
     body: bytes
     media_type: str
 
@@ -88,5 +90,8 @@ async def answer_pair(
             frames.record(result.output.disparity)
         predictor = runtime.predictors[options.model]
         weights = weights_identity(predictor)
-        body, media_type = await run_in_threadpool(response_body, options, result, left, weights, header, rectifier)
-    return Answer(result, predictor, weights, body, media_type)
+        camera = None if rectifier is None else rectified_camera(rectifier)
+        body, media_type = await run_in_threadpool(
+            response_body, options, result, left, weights, predictor.trained, header, rectifier
+        )
+    return Answer(result, predictor, weights, camera, body, media_type)

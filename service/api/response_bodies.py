@@ -32,6 +32,7 @@ def response_body(
     result: JobResult[StereoMaps],
     left: np.ndarray,
     weights: str,
+    trained: bool,
     size: ImageHeader,
     rectifier: Rectifier | None = None,
 ) -> tuple[bytes, str]:
@@ -39,7 +40,8 @@ def response_body(
 
     result: the request's maps (float32 HxW: disparity in px of the left image the network saw,
     uncertainty in [0, 1]) and timings; left: that left image, uint8 HxWx3 RGB (colours of the point
-    cloud); weights: the weights' identity (`service.batching.runtime.weights_identity`); size: the
+    cloud); weights: the weights' identity (`service.batching.runtime.weights_identity`); trained:
+    whether the model's weights are trained (`Predictor.trained`); size: the
     input images' size; rectifier: a raw pair's (it gives the focal length and baseline, and with
     `frame=original` the maps are resampled into the original left image's pixels).
     """
@@ -62,6 +64,7 @@ def response_body(
         case OutputFormat.json:
             body = DisparityResponse(
                 model=options.model,
+                model_status="trained" if trained else "untrained",
                 weights=weights,
                 image_size=ImageSize(width=size.width, height=size.height),
                 batch_size=result.batch_size,

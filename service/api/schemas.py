@@ -37,6 +37,10 @@ class Frame(StrEnum):
 _DECIMAL = re.compile(r"[+-]?([0-9]+\.?[0-9]*|\.[0-9]+)([eE][+-]?[0-9]+)?")
 
 
+TrainingStatus = Literal["trained", "untrained"]
+"""`untrained`: the weights have no validation on real pairs within 50 % bad-2; their maps are not usable."""
+
+
 class DisparityOptions(BaseModel):
     """Query parameters of `POST /disparity` (options go in the query string, never the form)."""
 
@@ -268,6 +272,7 @@ class DisparityResponse(BaseModel):
             "examples": [
                 {
                     "model": "lite",
+                    "model_status": "trained",
                     "weights": "9f2c4e1a7b3d5c60",
                     "image_size": {"width": 2, "height": 1},
                     "batch_size": 3,
@@ -286,6 +291,9 @@ class DisparityResponse(BaseModel):
     )
 
     model: ModelName
+    model_status: TrainingStatus = Field(
+        description="`untrained`: the model's maps are not usable (see `GET /models`); as `X-Model-Status`."
+    )
     weights: str = Field(description="First 16 hex digits of the weights' sha256, or `random-init`.")
     image_size: ImageSize
     batch_size: int = Field(description="How many requests were computed together with this one.")
@@ -305,7 +313,9 @@ class DisparityResponse(BaseModel):
     )
     frame: Frame = Field(Frame.rectified, description="The pixel grid of the maps (see the `frame` option).")
     camera: RectifiedCamera | None = Field(
-        None, description="With a calibration part: the rectified left camera that disparity and depth refer to."
+        None,
+        description="With a calibration part: the rectified left camera that disparity and depth refer to "
+        "(in every format as `X-Camera`).",
     )
 
 
@@ -403,7 +413,7 @@ class ModelInfo(BaseModel):
     )
     inputs: list[TensorMetadata]
     outputs: list[TensorMetadata]
-    status: Literal["trained", "untrained"] = Field(
+    status: TrainingStatus = Field(
         description="`untrained`: the weights have no validation on real pairs within 50 % bad-2; their "
         "maps are not usable (answers carry `X-Model-Status: untrained`). `training.dev_metrics` has the numbers."
     )

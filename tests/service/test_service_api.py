@@ -54,6 +54,7 @@ async def test_json_answer_has_maps_equal_to_the_predictor_and_says_how_it_was_c
     assert response.headers["x-weights"] == weights
     assert response.headers["x-image-size"] == f"{WIDTH}x{HEIGHT}"
     assert response.headers["x-batch-size"] == "1"
+    assert "x-camera" not in response.headers  # a rectified pair's camera is the caller's own
     assert float(response.headers["x-compute-ms"]) == pytest.approx(body["timings"]["compute_ms"], abs=0.01)
 
 
@@ -269,6 +270,7 @@ async def test_an_untrained_model_says_so_in_its_listing_and_on_every_answer(tmp
     assert listing["full"]["training"]["dev_metrics"]["bad2"] == UNTRAINED_BAD2  # its record's, shown
     assert full.status_code == 200 and full.headers["X-Model-Status"] == "untrained"
     assert lite.headers["X-Model-Status"] == "trained"
+    assert full.json()["model_status"] == "untrained" and lite.json()["model_status"] == "trained"  # in the body too
 
 
 async def test_a_metric_point_cloud_is_served_as_binary_ply():

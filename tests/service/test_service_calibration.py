@@ -73,6 +73,10 @@ async def test_a_raw_pair_with_its_calibration_gives_metric_depth_in_either_fram
     assert body["frame"] == "rectified" and body_original["frame"] == "original"
     camera = body["camera"]
     assert camera["baseline_m"] == pytest.approx(0.12, abs=1e-3) and 380 < camera["focal_px"] < 440
+    # every format names the camera in a header, to the last digit
+    for answer in (rectified, original):
+        named = dict(item.split("=") for item in answer.headers["X-Camera"].split("; "))
+        assert {name: float(value) for name, value in named.items()} == camera
     depth, depth_original = decode_array(body["depth"]), decode_array(body_original["depth"])
     assert depth.shape == depth_original.shape == (HEIGHT, WIDTH)
     assert np.median(depth[MIDDLE]) == pytest.approx(PLANE_Z, rel=0.08)  # metres, from the calibration alone

@@ -162,9 +162,9 @@ def _refuse_repeated_headers(request: Request) -> None:
 
 
 def _result_headers(answer: Answer, size: ImageHeader) -> dict[str, str]:
-    """The result facts every answer carries as headers."""
+    """The result facts every answer carries as headers (`X-Camera` a raw pair's only)."""
     result = answer.result
-    return {
+    headers = {
         "X-Model": answer.predictor.name,
         "X-Model-Status": "trained" if answer.predictor.trained else "untrained",
         "X-Weights": answer.weights,
@@ -173,3 +173,6 @@ def _result_headers(answer: Answer, size: ImageHeader) -> dict[str, str]:
         "X-Queue-Ms": f"{result.queue_seconds * 1000:.2f}",
         "X-Compute-Ms": f"{result.compute_seconds * 1000:.2f}",
     }
+    if answer.camera is not None:
+        headers["X-Camera"] = "; ".join(f"{name}={value!r}" for name, value in answer.camera.model_dump().items())
+    return headers
