@@ -5,12 +5,33 @@
         result = service.disparity(left_rgb, right_rgb, model="lite")
     result.disparity, result.uncertainty            # float32 HxW
 
-`AsyncStereoClient` is the same with `await`. `service.stream(warm_iters=3)` opens a WebSocket
-for a video's pairs (`DisparityStream.send(left, right)`, each frame warm-started from the
-previous one). Only httpx, websockets, numpy and OpenCV (to encode arrays as PNG) are needed;
-nothing of the server is imported.
+`service.point_cloud(left, right, focal_px=721.0, baseline_m=0.54)` gives a `PointCloud`. The
+options of each call are `Options` keywords. `AsyncStereoClient` is the same with `await`.
+`service.stream(warm_iters=3)` opens a WebSocket for a video's pairs (`DisparityStream.send(left,
+right)`, each frame warm-started from the previous one). Only httpx, websockets, numpy and OpenCV
+(to encode arrays as PNG) are needed; nothing of the server is imported.
 """
 
-from .stereo_client import AsyncStereoClient, DisparityResult, DisparityStream, ServiceError, StereoClient
+from .stereo_client import (
+    AsyncStereoClient,
+    Camera,
+    Computation,
+    DisparityResult,
+    DisparityStream,
+    Options,
+    PointCloud,
+    ServiceError,
+    StereoClient,
+)
 
-__all__ = ["AsyncStereoClient", "DisparityResult", "DisparityStream", "ServiceError", "StereoClient"]
+__all__ = [
+    "AsyncStereoClient",
+    "Camera",
+    "Computation",
+    "DisparityResult",
+    "DisparityStream",
+    "Options",
+    "PointCloud",
+    "ServiceError",
+    "StereoClient",
+]

@@ -1,4 +1,4 @@
-"""`StereoClient` and `AsyncStereoClient`: one request builder and one response reader, two loops."""
+"""`StereoClient` and `AsyncStereoClient`: one request builder and one reader per answer, two loops."""
 
 from __future__ import annotations
 
@@ -8,17 +8,20 @@ import io
 import json
 import os
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Mapping, Sequence
 from contextlib import ExitStack
 from dataclasses import dataclass
+from itertools import count
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal, TypedDict, TypeVar, Unpack
 
 import cv2
 import httpx
 import numpy as np
 from websockets.exceptions import ConnectionClosed, InvalidStatus
 from websockets.sync.client import connect
+
+from crestereo_pp.stereo_data.pointcloud import METRIC_FRAME, decode_ply
 
 Image = np.ndarray | bytes | str | os.PathLike[str]
 """An image: HxW or HxWx3 RGB array (uint8 or uint16), encoded file bytes, or a file path."""
@@ -34,6 +37,39 @@ RETRIED_CODES = frozenset({"queue_full", "loading"})
 """503 codes worth retrying after `Retry-After`; others (draining, deadline_exceeded, ...) are not."""
 
 
+class Options(TypedDict, total=False):
+    """How the service computes a pair: the options of `disparity`, `point_cloud` and `stream`, as
+    keywords. One left out takes the service's default (in brackets; the service's README has each
+    in full).
+
+    model: "lite" or "full" ["lite"]. iters: iterations at 1/4 resolution, or (1/16, 1/8, 1/4)
+    [the model's]. scale: in (0, 1], the pair resized by it (faster, coarser) [1]. two_pass: True,
+    False or "auto" (a quick pass decides: two passes where it finds large disparities, one
+    elsewhere, the pair enlarged up to 1.5x as far as their range allows, or shrunk where two
+    passes could not hold it) ["auto"]. raw_uncertainty: the paper's U instead of P(error > 2 px)
+    [False]. flip: also compute the pair upside down and merge the two answers (about twice the
+    time, fewer errors) [False]. blend_sgbm: the answer averaged with OpenCV's SGBM where the two
+    agree within 4 px (fewer errors) [True]. refine_edges: depth edges put where the left image's
+    colour edges are, and the strip along the image's left edge raised [True]; both False: the
+    network's own answer. focal_px, baseline_m: a rectified pair's camera (both or neither), for
+    metric depth. min_disparity: no depth nor point at or below it (px) [1]. max_depth_m: none
+    deeper (metres) [no limit].
+    """
+
+    model: Literal["lite", "full"]
+    iters: int | tuple[int, int, int]
+    scale: float
+    two_pass: bool | Literal["auto"]
+    raw_uncertainty: bool
+    flip: bool
+    blend_sgbm: bool
+    refine_edges: bool
+    focal_px: float
+    baseline_m: float
+    min_disparity: float
+    max_depth_m: float
+
+
 class ServiceError(Exception):
     """An error answer of the service: HTTP `status`, its stable `code` and `message`, and the
     `retry_after` seconds it suggested (None without the header)."""
@@ -44,21 +80,56 @@ class ServiceError(Exception):
 
 
 @dataclass(frozen=True)
-class DisparityResult:
-    """The maps (float32 HxW: disparity in px of the left image, uncertainty, depth in m when
-    a calibration or focal length and baseline were given) and the facts the service reports
-    about the computation. A raw pair's maps are in the rectified left image, or with
-    `frame="original"` in the original left image's pixels (+inf disparity and depth,
-    uncertainty 1, where a pixel has no rectified counterpart)."""
+class Camera:
+    """The rectified left camera of a raw pair, which its disparity and depth refer to: depth =
+    focal_px x baseline_m / disparity; pixel (x, y) looks along ((x - cx_px) / focal_px,
+    (y - cy_px) / focal_px, 1)."""
 
-    disparity: np.ndarray
-    uncertainty: np.ndarray
-    depth: np.ndarray | None
+    focal_px: float
+    baseline_m: float
+    cx_px: float
+    cy_px: float
+
+
+@dataclass(frozen=True)
+class Computation:
+    """What the service says of a computation: the model, whether its weights are trained (False:
+    its maps are not usable), the weights' identity (first 16 hex digits of their sha256), how many
+    requests ran in its batch, its time queued and the batch's network time, and a raw pair's
+    rectified left camera (None for a rectified pair)."""
+
     model: str
+    trained: bool
     weights: str
     batch_size: int
     queue_ms: float
     compute_ms: float
+    camera: Camera | None
+
+
+@dataclass(frozen=True)
+class DisparityResult(Computation):
+    """The maps (float32 HxW: disparity in px of the left image, uncertainty, depth in m when
+    a calibration or focal length and baseline were given). A raw pair's maps are in the rectified
+    left image, or with `frame="original"` in the original left image's pixels (+inf disparity
+    and depth, uncertainty 1, where a pixel has no rectified counterpart)."""
+
+    disparity: np.ndarray
+    uncertainty: np.ndarray
+    depth: np.ndarray | None
+
+
+@dataclass(frozen=True)
+class PointCloud(Computation):
+    """The pair's points, one per kept pixel in row-major order: `points` float32 Nx3, metres in the
+    (rectified) left camera's frame (x right, y down, z forward) where `metric`, else image-space
+    (column px, row px, disparity px); `colors` uint8 Nx3 RGB of the left image; `ply` the binary
+    PLY file as the service sent it (write it to a `.ply` file as it is)."""
+
+    points: np.ndarray
+    colors: np.ndarray
+    metric: bool
+    ply: bytes
 
 
 @dataclass
@@ -91,31 +162,15 @@ def _encode(image: Image) -> bytes:
     return encoded.tobytes()
 
 
-_UNSENT_DEFAULTS: dict[str, Any] = {"flip": False, "blend_sgbm": True, "refine_edges": True, "frame": "rectified"}
-"""Options left out of the query at these values, the service's defaults: a service older than the
-option then still answers a request that does not use it."""
-
-
-def _query(response_format: str, options: dict[str, Any]) -> dict[str, str]:
-    """The query string of a request: `format` and the options given (None, and the
-    `_UNSENT_DEFAULTS`, left out: the service's default)."""
-    given = {
-        k: _query_value(v)
-        for k, v in options.items()
-        if v is not None and not (k in _UNSENT_DEFAULTS and v == _UNSENT_DEFAULTS[k])
-    }
-    return {"format": response_format, **given}
-
-
-def _request(left: Image, right: Image, calibration: Calibration | None, options: dict[str, Any]) -> dict[str, Any]:
-    params = _query("npz", options)
-    files = [("left", ("left.png", _encode(left))), ("right", ("right.png", _encode(right)))]
-    if calibration is not None:
-        parts = [calibration] if isinstance(calibration, bytes | str | os.PathLike) else list(calibration)
-        for part in parts:
-            data = part if isinstance(part, bytes) else Path(part).read_bytes()
-            files.append(("calibration", ("calibration.yaml", data)))
-    return {"params": params, "files": files}
+def _query(response_format: str, options: Mapping[str, Any], **extra: Any) -> dict[str, str]:
+    """The query string of a request: `format`, the `options` a caller gave (TypeError for a keyword
+    that is no `Options` key: a typo would otherwise reach the service) and the method's own
+    `extra` ones; None left out (the service's default)."""
+    unknown = sorted(set(options) - Options.__optional_keys__)
+    if unknown:
+        raise TypeError(f"unknown option {unknown[0]!r}; the options are {', '.join(Options.__annotations__)}")
+    given = {**options, **extra}
+    return {"format": response_format, **{k: _query_value(v) for k, v in given.items() if v is not None}}
 
 
 def _query_value(value: Any) -> str:
@@ -124,6 +179,26 @@ def _query_value(value: Any) -> str:
     if isinstance(value, (tuple, list)):
         return ",".join(str(v) for v in value)
     return str(value)
+
+
+def _request(
+    response_format: str,
+    left: Image,
+    right: Image,
+    calibration: Calibration | None,
+    deadline_ms: int | None,
+    options: Mapping[str, Any],
+    **extra: Any,
+) -> dict[str, Any]:
+    """The keywords of `httpx.post` for one pair (`POST /disparity`); `options` and `extra` as `_query`."""
+    files = [("left", ("left.png", _encode(left))), ("right", ("right.png", _encode(right)))]
+    if calibration is not None:
+        parts = [calibration] if isinstance(calibration, bytes | str | os.PathLike) else list(calibration)
+        for part in parts:
+            data = part if isinstance(part, bytes) else Path(part).read_bytes()
+            files.append(("calibration", ("calibration.yaml", data)))
+    headers = {} if deadline_ms is None else {"X-Request-Timeout-Ms": str(deadline_ms)}
+    return {"params": _query(response_format, options, **extra), "files": files, "headers": headers}
 
 
 def _error(status: int, body: bytes, retry_after: str | None) -> ServiceError:
@@ -137,27 +212,48 @@ def _error(status: int, body: bytes, retry_after: str | None) -> ServiceError:
     return ServiceError(status, code, message, float(retry_after) if retry_after else None)
 
 
-def _result(response: httpx.Response) -> DisparityResult:
+def _answered(response: httpx.Response) -> dict[str, Any]:
+    """The `Computation` facts of a 200 answer, from its headers (ServiceError for an error answer)."""
     if response.status_code != 200:
         raise _error(response.status_code, response.content, response.headers.get("retry-after"))
-    maps = np.load(io.BytesIO(response.content))
     headers = response.headers
-    return DisparityResult(
-        disparity=maps["disparity"],
-        uncertainty=maps["uncertainty"],
-        depth=maps["depth"] if "depth" in maps.files else None,
+    camera = None
+    if "x-camera" in headers:
+        named = dict(item.split("=", 1) for item in headers["x-camera"].split("; "))
+        camera = Camera(**{name: float(value) for name, value in named.items()})
+    return dict(
         model=headers["x-model"],
+        trained=headers["x-model-status"] == "trained",
         weights=headers["x-weights"],
         batch_size=int(headers["x-batch-size"]),
         queue_ms=float(headers["x-queue-ms"]),
         compute_ms=float(headers["x-compute-ms"]),
+        camera=camera,
     )
+
+
+def _disparity_result(response: httpx.Response) -> DisparityResult:
+    """The result of a `format=npz` answer."""
+    facts = _answered(response)
+    maps = np.load(io.BytesIO(response.content))
+    depth = maps["depth"] if "depth" in maps.files else None
+    return DisparityResult(**facts, disparity=maps["disparity"], uncertainty=maps["uncertainty"], depth=depth)
+
+
+def _point_cloud(response: httpx.Response) -> PointCloud:
+    """The result of a `format=ply` answer."""
+    facts = _answered(response)
+    points, colors, frame = decode_ply(response.content)
+    return PointCloud(**facts, points=points, colors=colors, metric=frame == METRIC_FRAME, ply=response.content)
 
 
 def _json(response: httpx.Response) -> Any:
     if response.status_code >= 400 and response.status_code != 503:
         raise _error(response.status_code, response.content, response.headers.get("retry-after"))
     return response.json()
+
+
+Result = TypeVar("Result")
 
 
 class StereoClient:
@@ -182,86 +278,55 @@ class StereoClient:
         left: Image,
         right: Image,
         *,
-        model: str = "lite",
-        iters: int | tuple[int, int, int] | None = None,
-        scale: float | None = None,
-        two_pass: bool | str = "auto",
-        raw_uncertainty: bool = False,
-        flip: bool = False,
-        blend_sgbm: bool = True,
-        refine_edges: bool = True,
-        focal_px: float | None = None,
-        baseline_m: float | None = None,
         calibration: Calibration | None = None,
-        frame: str = "rectified",
+        frame: Literal["rectified", "original"] | None = None,
+        deadline_ms: int | None = None,
+        **options: Unpack[Options],
     ) -> DisparityResult:
         """Disparity and uncertainty of a rectified pair, or of a raw pair with its `calibration`
-        (raises `ServiceError` on an error answer). `two_pass`: True, False or "auto" (a quick pass
-        decides: two passes where it finds large disparities, one elsewhere, the pair enlarged up
-        to 1.5x as far as their range allows, or shrunk where two passes could not hold it).
-        `flip`: also compute the pair upside down and merge the two answers (about twice the time,
-        fewer errors). `blend_sgbm`: the answer averaged with OpenCV's SGBM where the two agree
-        within 4 px (fewer errors). `refine_edges`: the answer refined at its edges: its depth edges
-        put where the left image's colour edges are, the strip along the image's left edge whose
-        matches fall outside the right image raised (fewer errors at the edges of objects and of
-        the image). Both False: the network's own answer."""
+        (the maps in the rectified left image, or with `frame="original"` in the original one's
+        pixels). `deadline_ms`: the service drops the request, answering 503 `deadline_exceeded`,
+        where it cannot answer within this many milliseconds of its arrival. `options`: how to
+        compute it (`Options`). Raises `ServiceError` on an error answer."""
+        request = _request("npz", left, right, calibration, deadline_ms, options, frame=frame)
+        return self._post(request, _disparity_result)
+
+    def point_cloud(
+        self,
+        left: Image,
+        right: Image,
+        *,
+        calibration: Calibration | None = None,
+        max_uncertainty: float | None = None,
+        cx_px: float | None = None,
+        cy_px: float | None = None,
+        deadline_ms: int | None = None,
+        **options: Unpack[Options],
+    ) -> PointCloud:
+        """The pair's point cloud, coloured by the left image: metric with a `calibration` (raw
+        pair) or `focal_px` and `baseline_m` (principal point `cx_px`, `cy_px`, default the image
+        centre), else image-space; pixels whose uncertainty is above `max_uncertainty` left out.
+        The rest as `disparity`."""
         request = _request(
+            "ply",
             left,
             right,
             calibration,
-            dict(
-                model=model,
-                iters=iters,
-                scale=scale,
-                two_pass=two_pass,
-                raw_uncertainty=raw_uncertainty,
-                flip=flip,
-                blend_sgbm=blend_sgbm,
-                refine_edges=refine_edges,
-                focal_px=focal_px,
-                baseline_m=baseline_m,
-                frame=frame,
-            ),
+            deadline_ms,
+            options,
+            max_uncertainty=max_uncertainty,
+            cx_px=cx_px,
+            cy_px=cy_px,
         )
-        for attempt in range(self._retries.max_retries + 1):
-            try:
-                return _result(self._http.post("/disparity", **request))
-            except ServiceError as error:
-                wait = self._retries.wait_for(error, attempt)
-                if wait is None:
-                    raise
-                time.sleep(wait)
-        raise AssertionError("unreachable: the last attempt returns or raises")
+        return self._post(request, _point_cloud)
 
     def stream(
-        self,
-        *,
-        model: str = "lite",
-        iters: int | tuple[int, int, int] | None = None,
-        warm_iters: int | None = None,
-        scale: float | None = None,
-        raw_uncertainty: bool = False,
-        flip: bool = False,
-        blend_sgbm: bool = True,
-        refine_edges: bool = True,
-        focal_px: float | None = None,
-        baseline_m: float | None = None,
+        self, *, warm_iters: int | tuple[int, int, int] | None = None, **options: Unpack[Options]
     ) -> DisparityStream:
         """A WebSocket stream (`/disparity/stream`) for the rectified pairs of one camera, each
         frame warm-started from the previous one (`warm_iters` iterations; see `DisparityStream`)."""
-        options = dict(
-            model=model,
-            iters=iters,
-            warm_iters=warm_iters,
-            scale=scale,
-            raw_uncertainty=raw_uncertainty,
-            flip=flip,
-            blend_sgbm=blend_sgbm,
-            refine_edges=refine_edges,
-            focal_px=focal_px,
-            baseline_m=baseline_m,
-        )
-        url = httpx.URL(str(self._http.base_url)).join("disparity/stream").copy_merge_params(_query("json", options))
+        query = _query("json", options, warm_iters=warm_iters)
+        url = httpx.URL(str(self._http.base_url)).join("disparity/stream").copy_merge_params(query)
         ws_url = str(url).replace("http://", "ws://", 1).replace("https://", "wss://", 1)
         return DisparityStream(ws_url, self._http.headers.get("Authorization"), self._http.timeout.read)
 
@@ -281,6 +346,18 @@ class StereoClient:
 
     def __exit__(self, *_: object) -> None:
         self.close()
+
+    def _post(self, request: dict[str, Any], read: Callable[[httpx.Response], Result]) -> Result:
+        """`POST /disparity`, read by `read`, retried as `_Retries` says."""
+        for attempt in count():
+            try:
+                return read(self._http.post("/disparity", **request))
+            except ServiceError as error:
+                wait = self._retries.wait_for(error, attempt)
+                if wait is None:
+                    raise
+                time.sleep(wait)
+        raise AssertionError("unreachable: the attempts never end")
 
 
 class DisparityStream:
@@ -331,19 +408,21 @@ def _json_result(body: dict[str, Any]) -> DisparityResult:
 
     timings = body["timings"]
     return DisparityResult(
-        disparity=array(body["disparity"]),
-        uncertainty=array(body["uncertainty"]),
-        depth=array(body["depth"]) if body.get("depth") else None,
         model=body["model"],
+        trained=body["model_status"] == "trained",
         weights=body["weights"],
         batch_size=int(body["batch_size"]),
         queue_ms=float(timings["queue_ms"]),
         compute_ms=float(timings["compute_ms"]),
+        camera=Camera(**body["camera"]) if body.get("camera") else None,
+        disparity=array(body["disparity"]),
+        uncertainty=array(body["uncertainty"]),
+        depth=array(body["depth"]) if body.get("depth") else None,
     )
 
 
 class AsyncStereoClient:
-    """`StereoClient` for asyncio: the same methods, awaited."""
+    """`StereoClient` for asyncio: the same methods (but `stream`), awaited."""
 
     def __init__(
         self,
@@ -363,46 +442,40 @@ class AsyncStereoClient:
         left: Image,
         right: Image,
         *,
-        model: str = "lite",
-        iters: int | tuple[int, int, int] | None = None,
-        scale: float | None = None,
-        two_pass: bool | str = "auto",
-        raw_uncertainty: bool = False,
-        flip: bool = False,
-        blend_sgbm: bool = True,
-        refine_edges: bool = True,
-        focal_px: float | None = None,
-        baseline_m: float | None = None,
         calibration: Calibration | None = None,
-        frame: str = "rectified",
+        frame: Literal["rectified", "original"] | None = None,
+        deadline_ms: int | None = None,
+        **options: Unpack[Options],
     ) -> DisparityResult:
+        """`StereoClient.disparity`, awaited."""
+        request = _request("npz", left, right, calibration, deadline_ms, options, frame=frame)
+        return await self._post(request, _disparity_result)
+
+    async def point_cloud(
+        self,
+        left: Image,
+        right: Image,
+        *,
+        calibration: Calibration | None = None,
+        max_uncertainty: float | None = None,
+        cx_px: float | None = None,
+        cy_px: float | None = None,
+        deadline_ms: int | None = None,
+        **options: Unpack[Options],
+    ) -> PointCloud:
+        """`StereoClient.point_cloud`, awaited."""
         request = _request(
+            "ply",
             left,
             right,
             calibration,
-            dict(
-                model=model,
-                iters=iters,
-                scale=scale,
-                two_pass=two_pass,
-                raw_uncertainty=raw_uncertainty,
-                flip=flip,
-                blend_sgbm=blend_sgbm,
-                refine_edges=refine_edges,
-                focal_px=focal_px,
-                baseline_m=baseline_m,
-                frame=frame,
-            ),
+            deadline_ms,
+            options,
+            max_uncertainty=max_uncertainty,
+            cx_px=cx_px,
+            cy_px=cy_px,
         )
-        for attempt in range(self._retries.max_retries + 1):
-            try:
-                return _result(await self._http.post("/disparity", **request))
-            except ServiceError as error:
-                wait = self._retries.wait_for(error, attempt)
-                if wait is None:
-                    raise
-                await asyncio.sleep(wait)
-        raise AssertionError("unreachable: the last attempt returns or raises")
+        return await self._post(request, _point_cloud)
 
     async def health(self) -> dict[str, Any]:
         return dict(_json(await self._http.get("/health")))
@@ -418,3 +491,15 @@ class AsyncStereoClient:
 
     async def __aexit__(self, *_: object) -> None:
         await self.close()
+
+    async def _post(self, request: dict[str, Any], read: Callable[[httpx.Response], Result]) -> Result:
+        """`StereoClient._post`, awaited."""
+        for attempt in count():
+            try:
+                return read(await self._http.post("/disparity", **request))
+            except ServiceError as error:
+                wait = self._retries.wait_for(error, attempt)
+                if wait is None:
+                    raise
+                await asyncio.sleep(wait)
+        raise AssertionError("unreachable: the attempts never end")

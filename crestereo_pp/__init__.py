@@ -19,7 +19,7 @@ import importlib
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
-    from .client import AsyncStereoClient, DisparityResult, DisparityStream, ServiceError, StereoClient
+    from .client import AsyncStereoClient, DisparityResult, DisparityStream, PointCloud, ServiceError, StereoClient
     from .inference import FrameStream, Prediction, StereoPredictor, TensorPrediction, load_model
     from .model import ModelConfig
 
@@ -35,6 +35,7 @@ _OWNERS = {
     "AsyncStereoClient": "client",
     "DisparityResult": "client",
     "DisparityStream": "client",
+    "PointCloud": "client",
     "ServiceError": "client",
 }
 
@@ -44,6 +45,7 @@ __all__ = [
     "DisparityStream",
     "FrameStream",
     "ModelConfig",
+    "PointCloud",
     "Prediction",
     "ServiceError",
     "StereoClient",

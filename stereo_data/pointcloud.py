@@ -1,4 +1,4 @@
-"""Metric depth and point clouds from a disparity map; point clouds written as binary PLY.
+"""Metric depth and point clouds from a disparity map; point clouds written (and read back) as binary PLY.
 
 With a focal length and baseline (`FocalBaseline`: focal length f in px, baseline B in m, principal
 point (cx, cy) in px) the points are metric, in the left camera's frame (x right, y down, z forward, metres):
@@ -97,20 +97,42 @@ METRIC_FRAME = "units metres; frame: left camera, x right, y down, z forward"
 IMAGE_FRAME = "units pixels; x = column, y = row, z = disparity (left image)"
 
 
+_VERTEX = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")])
+"""One vertex of the PLY files written here."""
+_END_HEADER = b"end_header\n"
+
+
 def encode_ply(points: np.ndarray, colors: np.ndarray, frame: str) -> bytes:
     """Binary little-endian PLY of float32 x, y, z and uint8 red, green, blue per vertex; `frame`
     (METRIC_FRAME or IMAGE_FRAME) is written as a header comment."""
     if points.ndim != 2 or points.shape[1] != 3 or colors.shape != points.shape:
         raise ValueError(f"expected Nx3 points and Nx3 colours, got {points.shape} and {colors.shape}")
-    vertex = np.empty(
-        len(points), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")]
-    )
+    vertex = np.empty(len(points), dtype=_VERTEX)
     vertex["x"], vertex["y"], vertex["z"] = points[:, 0], points[:, 1], points[:, 2]
     vertex["red"], vertex["green"], vertex["blue"] = colors[:, 0], colors[:, 1], colors[:, 2]
     header = (
         f"ply\nformat binary_little_endian 1.0\ncomment crestereo-pp point cloud\ncomment {frame}\n"
         f"element vertex {len(points)}\n"
         "property float x\nproperty float y\nproperty float z\n"
-        "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n"
+        "property uchar red\nproperty uchar green\nproperty uchar blue\n"
     )
-    return header.encode("ascii") + vertex.tobytes()
+    return header.encode("ascii") + _END_HEADER + vertex.tobytes()
+
+
+def decode_ply(data: bytes) -> tuple[np.ndarray, np.ndarray, str]:
+    """(points float32 Nx3, colours uint8 Nx3 RGB, frame) of a PLY file `encode_ply` wrote; frame is
+    METRIC_FRAME or IMAGE_FRAME. ValueError for any other file."""
+    end = data.find(_END_HEADER)
+    lines = data[: max(end, 0)].decode("ascii", errors="replace").splitlines()
+    frames = [frame for frame in (METRIC_FRAME, IMAGE_FRAME) if f"comment {frame}" in lines]
+    counts = [line.removeprefix("element vertex ") for line in lines if line.startswith("element vertex ")]
+    if end < 0 or len(frames) != 1 or len(counts) != 1 or not counts[0].isdigit():
+        raise ValueError("not a point cloud of this project's binary PLY")
+    body = data[end + len(_END_HEADER) :]
+    count = int(counts[0])
+    if len(body) != count * _VERTEX.itemsize:
+        raise ValueError(f"the PLY file says {count} points but holds {len(body)} bytes of them")
+    vertex = np.frombuffer(body, dtype=_VERTEX)
+    points = np.stack([vertex["x"], vertex["y"], vertex["z"]], axis=1)
+    colors = np.stack([vertex["red"], vertex["green"], vertex["blue"]], axis=1)
+    return points, colors, frames[0]

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import io
 import threading
 
 import numpy as np
 import pytest
+from plyfile import PlyData
 
 from crestereo_pp.client import AsyncStereoClient, ServiceError, StereoClient
 from service_helpers import encode, quiet_load_model, run_uvicorn, stereo_pair
@@ -22,7 +24,8 @@ def test_the_sync_client_returns_the_library_maps_as_arrays(default_server):
     np.testing.assert_allclose(result.disparity, direct.disparity, rtol=1e-4, atol=1e-3)
     np.testing.assert_allclose(result.uncertainty, direct.uncertainty, rtol=1e-4, atol=1e-4)
     assert result.depth is not None and result.depth.shape == left.shape[:2]
-    assert result.model == "lite" and result.batch_size >= 1 and result.compute_ms > 0
+    assert result.model == "lite" and result.trained and result.batch_size >= 1 and result.compute_ms > 0
+    assert result.camera is None  # a rectified pair: its camera is the caller's
     assert [m["name"] for m in models] == ["lite"] and health["status"] == "ready"
 
 
@@ -58,17 +61,65 @@ def test_error_answers_raise_typed_errors_with_the_services_code(default_server)
     assert (bad_option.value.status, bad_option.value.code) == (422, "invalid_request")
 
 
+def test_a_point_cloud_comes_back_as_points_colours_and_the_ply_file(default_server):
+    right, left = stereo_pair()  # each left pixel 4 px right of its match: disparities about 4
+    rig = {"focal_px": 500.0, "baseline_m": 0.12}
+    with StereoClient(default_server.base_url) as service:
+        maps = service.disparity(left, right, **rig)
+        cloud = service.point_cloud(left, right, cx_px=0.0, cy_px=0.0, **rig)
+        image_space = service.point_cloud(left, right, max_uncertainty=0.001)
+    kept = maps.disparity > 1.0  # the service's default min_disparity
+    assert cloud.metric and cloud.trained and len(cloud.points) == int(kept.sum())
+    rows, columns = np.nonzero(kept)  # the points are the kept pixels in row-major order
+    np.testing.assert_allclose(cloud.points[:, 2], maps.depth[kept], rtol=1e-6)
+    np.testing.assert_allclose(cloud.points[:, 0], columns * maps.depth[kept] / 500.0, rtol=1e-5)
+    np.testing.assert_array_equal(cloud.colors, left[kept])
+    vertex = PlyData.read(io.BytesIO(cloud.ply))["vertex"]  # the file, as any PLY reader sees it
+    np.testing.assert_array_equal(np.stack([vertex["x"], vertex["y"], vertex["z"]], axis=1), cloud.points)
+    certain = kept & (maps.uncertainty <= 0.001)
+    assert not image_space.metric and 0 < len(image_space.points) < len(cloud.points)
+    np.testing.assert_array_equal(image_space.points[:, 2], maps.disparity[certain])
+
+
+def test_depth_bounds_and_a_deadline_reach_the_service(default_server):
+    right, left = stereo_pair()  # disparities about 4 px
+    rig = {"focal_px": 500.0, "baseline_m": 0.12}
+    with StereoClient(default_server.base_url) as service:
+        everything = service.disparity(left, right, deadline_ms=60_000, **rig)
+        assert everything.depth is not None
+        limit = float(np.median(everything.depth))
+        bounded = service.disparity(left, right, max_depth_m=limit, min_disparity=0.5, **rig)
+        with pytest.raises(ServiceError) as too_soon:
+            service.disparity(left, right, deadline_ms=5)  # under the service's least deadline: refused at once
+    assert bounded.depth is not None
+    deeper = everything.depth > limit
+    assert 0 < deeper.mean() < 1 and np.isinf(bounded.depth[deeper]).all()
+    np.testing.assert_array_equal(bounded.depth[~deeper], everything.depth[~deeper])
+    assert (too_soon.value.status, too_soon.value.code) == (503, "deadline_exceeded")
+
+
+def test_a_mistyped_option_is_refused_before_anything_is_sent():
+    left, right = stereo_pair()
+    with StereoClient("http://127.0.0.1:9") as nowhere:  # nothing listens: a request sent would fail otherwise
+        with pytest.raises(TypeError, match="unknown option 'flp'.*flip"):
+            nowhere.disparity(left, right, flp=True)  # type: ignore[call-arg]
+        with pytest.raises(TypeError, match="unknown option 'warm_iter'"):
+            nowhere.stream(warm_iter=3)  # type: ignore[call-arg]
+
+
 @pytest.mark.anyio
 async def test_the_async_client_gives_the_same_answer(default_server):
     left, right = stereo_pair()
     async with AsyncStereoClient(default_server.base_url) as service:
         result = await service.disparity(left, right)
         flipped = await service.disparity(left, right, flip=True)
+        cloud = await service.point_cloud(left, right, focal_px=500.0, baseline_m=0.12)
         with pytest.raises(ServiceError):
             await service.disparity(left, right[:, :-1])
     with StereoClient(default_server.base_url) as service:
         np.testing.assert_array_equal(result.disparity, service.disparity(left, right).disparity)
         np.testing.assert_array_equal(flipped.disparity, service.disparity(left, right, flip=True).disparity)
+        assert cloud.ply == service.point_cloud(left, right, focal_px=500.0, baseline_m=0.12).ply
     direct = quiet_load_model("lite").predict(left, right, flip=True)
     np.testing.assert_allclose(flipped.disparity, direct.disparity, rtol=1e-4, atol=1e-3)
     assert np.abs(flipped.disparity - result.disparity).max() > 0.1  # the option reached the service

@@ -233,11 +233,20 @@ def test_the_client_sends_a_calibration_file_over_http(default_server, raw_pair,
     left, right = raw_pair["left"][1], raw_pair["right"][1]
     with StereoClient(default_server.base_url) as service:
         result = service.disparity(left, right, calibration=calibration, frame="original")
+        rectified = service.disparity(left, right, calibration=calibration)
         with pytest.raises(ServiceError) as refused:
             service.disparity(left, right, calibration=opencv_file(tmp_path / "bad.yaml", T=np.zeros(3)))
     assert result.depth is not None and result.depth.shape == (HEIGHT, WIDTH)
     assert np.median(result.depth[MIDDLE]) == pytest.approx(PLANE_Z, rel=0.08)
     assert np.isinf(result.disparity).any()  # the original frame's uncovered corners
+    # the rectified camera the maps refer to: depth = focal x baseline / disparity
+    camera = rectified.camera
+    assert camera is not None and camera == result.camera and camera.baseline_m == pytest.approx(0.12, abs=1e-3)
+    assert rectified.depth is not None
+    finite = np.isfinite(rectified.depth)
+    np.testing.assert_allclose(
+        rectified.disparity[finite], camera.focal_px * camera.baseline_m / rectified.depth[finite], rtol=1e-4
+    )
     assert (refused.value.status, refused.value.code) == (422, "invalid_calibration")
     assert "calibration `T`" in refused.value.message
 
