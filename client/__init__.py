@@ -6,13 +6,15 @@
     result.disparity, result.uncertainty            # float32 HxW
 
 `service.point_cloud(left, right, focal_px=721.0, baseline_m=0.54)` gives a `PointCloud`. The
-options of each call are `Options` keywords. `AsyncStereoClient` is the same with `await`.
-`service.stream(warm_iters=3)` opens a WebSocket for a video's pairs (`DisparityStream.send(left,
-right)`, each frame warm-started from the previous one). Only httpx, websockets, numpy and OpenCV
-(to encode arrays as PNG) are needed; nothing of the server is imported.
+options of each call are `Options` keywords. `service.stream(warm_iters=3)` opens a WebSocket for
+a video's pairs (`DisparityStream.send(left, right)`, each frame warm-started from the previous
+one). `AsyncStereoClient` is the same with `await` (its stream with `async with`). Only httpx,
+websockets, numpy and OpenCV (to encode arrays as PNG) are needed; nothing of the server is
+imported.
 """
 
 from .stereo_client import (
+    AsyncDisparityStream,
     AsyncStereoClient,
     Camera,
     Computation,
@@ -25,6 +27,7 @@ from .stereo_client import (
 )
 
 __all__ = [
+    "AsyncDisparityStream",
     "AsyncStereoClient",
     "Camera",
     "Computation",

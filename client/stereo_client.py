@@ -18,6 +18,8 @@ from typing import Any, Literal, TypedDict, TypeVar, Unpack
 import cv2
 import httpx
 import numpy as np
+from websockets.asyncio.client import ClientConnection
+from websockets.asyncio.client import connect as connect_async
 from websockets.exceptions import ConnectionClosed, InvalidStatus
 from websockets.sync.client import connect
 
@@ -325,10 +327,8 @@ class StereoClient:
     ) -> DisparityStream:
         """A WebSocket stream (`/disparity/stream`) for the rectified pairs of one camera, each
         frame warm-started from the previous one (`warm_iters` iterations; see `DisparityStream`)."""
-        query = _query("json", options, warm_iters=warm_iters)
-        url = httpx.URL(str(self._http.base_url)).join("disparity/stream").copy_merge_params(query)
-        ws_url = str(url).replace("http://", "ws://", 1).replace("https://", "wss://", 1)
-        return DisparityStream(ws_url, self._http.headers.get("Authorization"), self._http.timeout.read)
+        url = _stream_url(self._http, _query("json", options, warm_iters=warm_iters))
+        return DisparityStream(url, self._http.headers.get("Authorization"), self._http.timeout.read)
 
     def health(self) -> dict[str, Any]:
         """`GET /health` (also when the service answers 503: the body says why)."""
@@ -360,6 +360,31 @@ class StereoClient:
         raise AssertionError("unreachable: the attempts never end")
 
 
+def _stream_url(http: httpx.Client | httpx.AsyncClient, query: dict[str, str]) -> str:
+    """The WebSocket URL of `/disparity/stream` on `http`'s service, with `query`."""
+    url = httpx.URL(str(http.base_url)).join("disparity/stream").copy_merge_params(query)
+    return str(url).replace("http://", "ws://", 1).replace("https://", "wss://", 1)
+
+
+def _refused(refused: InvalidStatus) -> ServiceError:
+    """A stream's handshake refused (a key, a place), in the service's JSON."""
+    answer = refused.response
+    return _error(answer.status_code, bytes(answer.body or b""), answer.headers.get("Retry-After"))
+
+
+def _closed(closed: ConnectionClosed) -> ServiceError:
+    """A stream the service closed (an idle stream, bad options, a protocol error), with its reason."""
+    return ServiceError(0, "stream_closed", closed.rcvd.reason if closed.rcvd else "connection closed")
+
+
+def _frame_result(message: str | bytes) -> DisparityResult:
+    """A stream's answer to one pair: its maps, or ServiceError for a pair it could not compute."""
+    body = json.loads(message)
+    if "error" in body:
+        raise ServiceError(0, str(body["error"]["code"]), str(body["error"]["message"]))
+    return _json_result(body)
+
+
 class DisparityStream:
     """One WebSocket connection to `/disparity/stream`: `send(left, right)` sends the next pair
     and returns its maps (a `DisparityResult`), or raises `ServiceError` for a frame the service
@@ -372,23 +397,17 @@ class DisparityStream:
             self._socket = self._connection.enter_context(
                 connect(url, additional_headers=headers, max_size=None, open_timeout=timeout_s)
             )
-        except InvalidStatus as refused:  # a key or a place refused at the handshake, in the service's JSON
-            answer = refused.response
-            raise _error(answer.status_code, bytes(answer.body or b""), answer.headers.get("Retry-After")) from None
+        except InvalidStatus as refused:
+            raise _refused(refused) from None
         self._timeout_s = timeout_s
 
     def send(self, left: Image, right: Image) -> DisparityResult:
         self._socket.send(_encode(left))
         self._socket.send(_encode(right))
         try:
-            message = self._socket.recv(timeout=self._timeout_s)
+            return _frame_result(self._socket.recv(timeout=self._timeout_s))
         except ConnectionClosed as closed:
-            reason = closed.rcvd.reason if closed.rcvd else "connection closed"
-            raise ServiceError(0, "stream_closed", reason) from None
-        body = json.loads(message)
-        if "error" in body:
-            raise ServiceError(0, str(body["error"]["code"]), str(body["error"]["message"]))
-        return _json_result(body)
+            raise _closed(closed) from None
 
     def close(self) -> None:
         self._connection.close()
@@ -398,6 +417,46 @@ class DisparityStream:
 
     def __exit__(self, *_: object) -> None:
         self.close()
+
+
+class AsyncDisparityStream:
+    """`DisparityStream` for asyncio: `async with service.stream(...) as stream` opens the
+    connection, `await stream.send(left, right)` computes each next pair."""
+
+    def __init__(self, url: str, authorization: str | None, timeout_s: float | None) -> None:
+        self._url, self._timeout_s = url, timeout_s
+        self._headers = {"Authorization": authorization} if authorization else None
+        self._socket: ClientConnection | None = None
+
+    async def open(self) -> None:
+        """Connect (ServiceError where the service refuses the stream)."""
+        try:
+            self._socket = await connect_async(
+                self._url, additional_headers=self._headers, max_size=None, open_timeout=self._timeout_s
+            )
+        except InvalidStatus as refused:
+            raise _refused(refused) from None
+
+    async def send(self, left: Image, right: Image) -> DisparityResult:
+        if self._socket is None:
+            raise RuntimeError("the stream is not open: use `async with service.stream(...) as stream`")
+        await self._socket.send(_encode(left))
+        await self._socket.send(_encode(right))
+        try:
+            return _frame_result(await asyncio.wait_for(self._socket.recv(), self._timeout_s))
+        except ConnectionClosed as closed:
+            raise _closed(closed) from None
+
+    async def close(self) -> None:
+        if self._socket is not None:
+            await self._socket.close()
+
+    async def __aenter__(self) -> AsyncDisparityStream:
+        await self.open()
+        return self
+
+    async def __aexit__(self, *_: object) -> None:
+        await self.close()
 
 
 def _json_result(body: dict[str, Any]) -> DisparityResult:
@@ -422,7 +481,7 @@ def _json_result(body: dict[str, Any]) -> DisparityResult:
 
 
 class AsyncStereoClient:
-    """`StereoClient` for asyncio: the same methods (but `stream`), awaited."""
+    """`StereoClient` for asyncio: the same methods, awaited (`stream` with `async with`)."""
 
     def __init__(
         self,
@@ -476,6 +535,13 @@ class AsyncStereoClient:
             cy_px=cy_px,
         )
         return await self._post(request, _point_cloud)
+
+    def stream(
+        self, *, warm_iters: int | tuple[int, int, int] | None = None, **options: Unpack[Options]
+    ) -> AsyncDisparityStream:
+        """`StereoClient.stream` for asyncio (`async with` it)."""
+        url = _stream_url(self._http, _query("json", options, warm_iters=warm_iters))
+        return AsyncDisparityStream(url, self._http.headers.get("Authorization"), self._http.timeout.read)
 
     async def health(self) -> dict[str, Any]:
         return dict(_json(await self._http.get("/health")))

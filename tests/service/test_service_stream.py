@@ -5,6 +5,7 @@ refused with a clear message and close code; the client's `stream`."""
 
 from __future__ import annotations
 
+import asyncio
 import json
 
 import numpy as np
@@ -12,7 +13,7 @@ import pytest
 from websockets.exceptions import ConnectionClosed, InvalidStatus
 from websockets.sync.client import connect
 
-from crestereo_pp.client import ServiceError, StereoClient
+from crestereo_pp.client import AsyncStereoClient, ServiceError, StereoClient
 from crestereo_pp.inference import InferenceOptions
 from crestereo_pp.stereo_data.synthetic import SceneConfig, SceneGenerator
 from service_helpers import assert_same_maps, encode, quiet_load_model, run_uvicorn, ws_url
@@ -32,6 +33,23 @@ def test_a_stream_answers_each_pair_in_order_warm_started_as_the_library_compute
     for result, reference in zip(results, expected, strict=True):
         assert result.model == "lite" and result.trained and result.disparity.shape == (64, 96)
         assert_same_maps(result.disparity, reference.disparity)
+
+
+@pytest.mark.anyio
+async def test_the_async_client_streams_the_same_maps_and_goes_on_past_a_bad_frame(default_server):
+    frames = panned_frames(3)
+    with StereoClient(default_server.base_url) as service, service.stream(iters=(1, 1, 2), warm_iters=3) as stream:
+        expected = [stream.send(left, right) for left, right in frames]
+    async with AsyncStereoClient(default_server.base_url) as service:
+        async with service.stream(iters=(1, 1, 2), warm_iters=3) as async_stream:
+            results = [await async_stream.send(left, right) for left, right in frames]
+            with pytest.raises(ServiceError) as bad_frame:
+                await async_stream.send(b"not an image", frames[0][1])
+            after = await async_stream.send(*frames[0])
+    for result, reference in zip(results, expected, strict=True):
+        np.testing.assert_array_equal(result.disparity, reference.disparity)
+    assert bad_frame.value.code == "unsupported_media_type"
+    assert after.disparity.shape == frames[0][0].shape[:2] and after.trained
 
 
 def test_a_bad_frame_gets_an_error_naming_it_and_the_stream_goes_on(default_server):
@@ -84,8 +102,16 @@ def test_a_stream_needs_the_bearer_key_when_the_server_has_one(tmp_path):
             service.stream()
         with StereoClient(server.base_url, api_key="s3cret") as service, service.stream() as stream:
             result = stream.send(left, right)
+
+        async def open_async_stream() -> None:
+            async with AsyncStereoClient(server.base_url, api_key="wrong") as service, service.stream():
+                pass
+
+        with pytest.raises(ServiceError) as async_refused:
+            asyncio.run(open_async_stream())
     # refused at the handshake, with the service's JSON error (the connection never opens)
     assert refused.value.response.status_code == 403
     assert json.loads(refused.value.response.body)["error"]["code"] == "unauthorized"
     assert client_refused.value.status == 403 and client_refused.value.code == "unauthorized"
+    assert (async_refused.value.status, async_refused.value.code) == (403, "unauthorized")
     assert result.disparity.shape == left.shape[:2]
