@@ -26,7 +26,9 @@ from websockets.sync.client import connect
 from crestereo_pp.stereo_data.pointcloud import METRIC_FRAME, decode_ply
 
 Image = np.ndarray | bytes | str | os.PathLike[str]
-"""An image: HxW or HxWx3 RGB array (uint8 or uint16), encoded file bytes, or a file path."""
+"""An image: an array as `load_model(...).predict` takes it (HxW or HxWx1 grey, HxWx3 RGB, HxWx4
+RGBA with the alpha dropped; uint8 and uint16 as they are, other numbers taken as 0-255), encoded
+file bytes, or a file path."""
 
 CalibrationFile = bytes | str | os.PathLike[str]
 """A calibration file: its bytes, or its path."""
@@ -149,15 +151,23 @@ class _Retries:
 
 
 def _encode(image: Image) -> bytes:
+    """The image as the file that is sent: bytes and files as they are, an array as a PNG (uint8
+    and uint16 as they are; other numbers, taken as 0-255, as a 16-bit PNG of 257 x the value)."""
     if isinstance(image, bytes):
         return image
     if isinstance(image, (str, os.PathLike)):
         return Path(image).read_bytes()
     array = np.asarray(image)
-    if array.ndim == 3 and array.shape[2] == 3:
-        array = np.ascontiguousarray(array[:, :, ::-1])  # RGB -> OpenCV's BGR
+    if array.ndim == 3 and array.shape[2] in (1, 3, 4):
+        array = array[:, :, 0] if array.shape[2] == 1 else np.ascontiguousarray(array[:, :, 2::-1])  # RGB -> BGR
     elif array.ndim != 2:
-        raise ValueError(f"expected an HxW or HxWx3 image, got shape {array.shape}")
+        raise ValueError(f"expected an HxW, HxWx1, HxWx3 or HxWx4 image, got shape {array.shape}")
+    if array.dtype not in (np.uint8, np.uint16):
+        if array.dtype == np.bool_ or not np.issubdtype(array.dtype, np.number):
+            raise ValueError(f"expected an image of numbers, got dtype {array.dtype}")
+        if not (np.isfinite(array).all() and array.min() >= 0 and array.max() <= 255):
+            raise ValueError(f"a {array.dtype} image is taken as 0-255, but its values run outside that range")
+        array = np.round(array.astype(np.float64) * 257).astype(np.uint16)
     ok, encoded = cv2.imencode(".png", array)
     if not ok:
         raise ValueError("could not encode the image as PNG")

@@ -5,11 +5,13 @@ from __future__ import annotations
 import io
 import threading
 
+import cv2
 import numpy as np
 import pytest
 from plyfile import PlyData
 
 from crestereo_pp.client import AsyncStereoClient, ServiceError, StereoClient
+from crestereo_pp.client.stereo_client import _encode
 from service_helpers import encode, quiet_load_model, run_uvicorn, stereo_pair
 
 
@@ -48,6 +50,25 @@ def test_files_and_bytes_are_sent_as_they_are(default_server, tmp_path):
         from_files = service.disparity(tmp_path / "l.png", encode(right))
         from_arrays = service.disparity(left, right)
     np.testing.assert_array_equal(from_files.disparity, from_arrays.disparity)
+
+
+def test_arrays_are_sent_as_the_library_takes_them_and_out_of_range_values_refused(default_server):
+    left, right = stereo_pair()
+    between_levels = left.astype(np.float32) * 0.7 + 0.45  # what an 8-bit PNG cannot hold
+    sent = cv2.imdecode(np.frombuffer(_encode(between_levels), np.uint8), cv2.IMREAD_UNCHANGED)
+    assert sent.dtype == np.uint16  # read by the service as 0-255 again, within 1/514 of a level
+    np.testing.assert_allclose(sent[:, :, ::-1] * (255 / 65535), between_levels, atol=1 / 514 + 1e-6)
+    alpha = np.full(left.shape[:2], 7, np.uint8)
+    with StereoClient(default_server.base_url) as service:
+        plain = service.disparity(left, right)
+        with_alpha = service.disparity(np.dstack([left, alpha]), right)  # the alpha dropped
+        as_numbers = service.disparity(between_levels, right.astype(np.int64))  # taken as 0-255
+        with pytest.raises(ValueError, match="taken as 0-255"):
+            service.disparity(left / 255.0 * 300.0, right)
+        with pytest.raises(ValueError, match="HxWx4"):
+            service.disparity(left[:, :, :2], right)
+    np.testing.assert_array_equal(with_alpha.disparity, plain.disparity)
+    assert as_numbers.disparity.shape == left.shape[:2]
 
 
 def test_error_answers_raise_typed_errors_with_the_services_code(default_server):
