@@ -6,7 +6,9 @@ The graphs here run one iteration per stage: an export costs CPU time in proport
 iterations it unrolls, and the equality of the maps does not depend on their number.
 """
 
+import contextlib
 import ctypes
+import io
 import logging
 import os
 import re
@@ -16,6 +18,7 @@ import subprocess
 import sys
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -81,24 +84,40 @@ class Messages(logging.Handler):
 
 
 @pytest.fixture(scope="module")
-def first_call(cache_dir, tsukuba):
-    """An OpenVINO predictor with an empty cache: its first call (before any graph exists), then
-    the graphs for cold and warm starts prepared, and what that logged."""
+def first_call(cache_dir, tsukuba, tmp_path_factory):
+    """An OpenVINO predictor with an empty cache and its first call (before any graph exists);
+    then a command asked to run OpenVINO at the same iterations, which exports the graphs for cold
+    and warm starts (one export serves every spec here: each takes a core for half a minute), and
+    what it printed and logged."""
     with pytest.MonkeyPatch.context() as patch:
         patch.setenv("CRESTEREO_CACHE_DIR", str(cache_dir))
         predictor = load_model("lite", backend="openvino", precision="fp32")
-    before = predictor.predict(*tsukuba, iters=ITERS)
-    counts = (predictor.openvino.runs, predictor.openvino.fallback_runs, predictor.openvino.exports)
-    exporting = [thread.name for thread in threading.enumerate() if thread.name == "openvino-export"]
-    logger, messages = logging.getLogger("crestereo_pp.inference.openvino_backend"), Messages()
-    logger.addHandler(messages)
-    logger.setLevel(logging.INFO)
-    try:
-        assert predictor.prepare(ITERS, warm_start=True)  # both graphs, side by side
-    finally:
-        logger.removeHandler(messages)
-        logger.setLevel(logging.NOTSET)
-    return predictor, before, "\n".join(messages.messages), (*counts, exporting)
+        before = predictor.predict(*tsukuba, iters=ITERS)
+        counts = (predictor.openvino.runs, predictor.openvino.fallback_runs, predictor.openvino.exports)
+        exporting = [thread.name for thread in threading.enumerate() if thread.name == "openvino-export"]
+        output = tmp_path_factory.mktemp("predict") / "d.pfm"
+        arguments = [str(PAIR / "left.png"), str(PAIR / "right.png"), "-o", str(output)]
+        options = ["--backend", "openvino", "--precision", "fp32", "--iters", *map(str, ITERS), "--two-pass", "on"]
+        logger, messages = logging.getLogger("crestereo_pp.inference.openvino_backend"), Messages()
+        logger.addHandler(messages)
+        logger.setLevel(logging.INFO)
+        try:
+            with contextlib.redirect_stderr(io.StringIO()) as printed:
+                assert main(["predict", *arguments, *options]) == 0
+        finally:
+            logger.removeHandler(messages)
+            logger.setLevel(logging.NOTSET)
+    command = Command(printed.getvalue(), messages.messages, output)
+    return predictor, before, command, (*counts, exporting)
+
+
+@dataclass(frozen=True)
+class Command:
+    """What `crestereo-pp predict --backend openvino` printed (stderr), logged and wrote."""
+
+    err: str
+    log: list[str]
+    output: Path
 
 
 def assert_maps_agree(actual, expected) -> None:
@@ -110,22 +129,28 @@ def assert_maps_agree(actual, expected) -> None:
 
 
 def test_a_call_whose_graph_is_not_prepared_runs_on_torch_and_starts_no_export(first_call, torch_lite, tsukuba):
-    predictor, before, log, (runs, fallback_runs, exports, exporting) = first_call
+    predictor, before, _, (runs, fallback_runs, exports, exporting) = first_call
     assert (runs, fallback_runs, exports, exporting) == (0, 2, 0, [])  # auto's quick pass, then the pass
     expected = torch_lite.predict(*tsukuba, iters=ITERS)
     np.testing.assert_array_equal(before.disparity, expected.disparity)  # torch itself computed it
 
 
-def test_prepare_exports_into_the_cache_saying_when_each_graph_is_ready_and_leaves_no_partial_file(first_call):
-    predictor, _, log, _ = first_call
+def test_a_command_asked_to_run_openvino_exports_its_missing_graphs_side_by_side_into_the_cache_saying_so_once(
+    first_call,
+):
+    predictor, _, command, _ = first_call
+    assert command.err.count("exporting lite's OpenVINO graphs") == 1 and "running on torch" not in command.err
+    log = "\n".join(command.log)
     # one graph per iterations, cold and warm alike; a warm start's second pass runs the 1/4 stage alone
     for counts in ("1, 1, 1", "0, 0, 1"):
         assert f"exporting the graph for iterations ({counts})" in log
         assert re.search(rf"iterations \({counts}\) is ready, exported in \d+ s", log), log
+    started = [i for i, m in enumerate(command.log) if m.startswith("openvino: exporting the graph")]
+    ended = [i for i, m in enumerate(command.log) if "exported in" in m]
+    assert len(started) == len(ended) == 2 and max(started) < min(ended), log  # both under way at once
     files = {path.name for path in predictor.openvino.graph_dir.iterdir()}
-    assert {f"iters{counts}.{suffix}" for counts in ("1-1-1", "0-0-1") for suffix in ("xml", "bin")} <= files
-    assert not [name for name in files if name.startswith(".")]  # no partial file
-    assert predictor.openvino.exports == len(files) // 2 == 2  # the cache was empty: every graph there is its export
+    assert files == {f"iters{counts}.{suffix}" for counts in ("1-1-1", "0-0-1") for suffix in ("xml", "bin")}
+    assert command.output.is_file()
 
 
 def test_the_cli_runs_openvino_where_the_graphs_are_cached_and_else_torch_exporting_nothing(
@@ -189,32 +214,6 @@ def test_prepare_prunes_only_where_asked_the_graphs_of_other_versions_and_keeps_
 def test_load_model_reads_the_graphs_it_is_asked_to_prepare_from_the_cache(first_call, cache_dir):
     loaded = load_model("lite", backend="openvino", precision="fp32", cache_dir=cache_dir, prepare_iters=[ITERS])
     assert loaded.ready(ITERS) and loaded.ready(ITERS, warm_start=True) and loaded.openvino.exports == 0
-
-
-def test_a_command_asked_to_run_openvino_exports_its_missing_graphs_side_by_side_saying_so_once(
-    tmp_path, openvino_cache, monkeypatch, capsys
-):
-    # openvino_cache only orders this test with the others that run OpenVINO here (tests/conftest.py)
-    cache = tmp_path / "cache"
-    monkeypatch.setenv("CRESTEREO_CACHE_DIR", str(cache))
-    logger, messages = logging.getLogger("crestereo_pp.inference.openvino_backend"), Messages()
-    logger.addHandler(messages)
-    logger.setLevel(logging.INFO)
-    try:
-        arguments = [str(PAIR / "left.png"), str(PAIR / "right.png"), "-o", str(tmp_path / "d.pfm")]
-        options = ["--backend", "openvino", "--precision", "fp32", "--iters", "1", "1", "1", "--two-pass", "on"]
-        assert main(["predict", *arguments, *options]) == 0
-    finally:
-        logger.removeHandler(messages)
-        logger.setLevel(logging.NOTSET)
-    err = capsys.readouterr().err
-    assert err.count("exporting lite's OpenVINO graphs") == 1 and "running on torch" not in err, err
-    assert sorted(path.name for path in cache.rglob("*.xml")) == ["iters0-0-1.xml", "iters1-1-1.xml"]
-    log = messages.messages
-    started = [i for i, m in enumerate(log) if m.startswith("openvino: exporting the graph")]
-    ended = [i for i, m in enumerate(log) if "exported in" in m]
-    assert len(started) == len(ended) == 2 and max(started) < min(ended), log  # both under way at once
-    assert (tmp_path / "d.pfm").is_file()
 
 
 def test_the_partial_files_of_an_export_whose_process_ended_are_removed(tmp_path, openvino_cache):
