@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 from typing import Generic, Protocol, TypeVar
 
 from crestereo_pp.service.api.metrics import Metrics
-from crestereo_pp.service.batching.policy import BatchKey, BatchLimits, ComputeTime, ComputeTimes, choose_batch
+from crestereo_pp.service.batching.policy import BatchKey, BatchLimits, ComputeTimes, choose_batch
 from crestereo_pp.service.settings import Settings
 
 logger = logging.getLogger(__name__)
@@ -215,22 +215,26 @@ class Batcher(Generic[KeyT, PayloadT, OutputT]):
         return dict(self._pending)
 
     def work_ahead_s(self, model: str) -> float | None:
-        """Estimated seconds of compute ahead of a request of `model` admitted now: what remains
-        of the running batch, plus every queued request at its padded size and every request
-        still being received or decoded at the mean size seen so far, at the measured seconds
-        per pixel. None before any batch of the model has been measured."""
-        times = self._times.get(model)
-        return None if times is None else self._work_ahead_s(model, times)
+        """Estimated seconds of compute ahead of a request of `model` admitted now. One inference
+        thread computes every model's batches, so this is what remains of the running batch,
+        whichever model's, plus every request of every model admitted and not yet computing
+        (queued ones at their padded size, those still being received or decoded at their model's
+        mean size), each at its model's measured seconds per unit of work; a model not measured
+        yet adds nothing. None before any batch of `model` itself has been measured."""
+        return None if self._times.get(model) is None else self._work_ahead_s()
 
-    def _work_ahead_s(self, model: str, times: ComputeTime) -> float:
-        queued = self._queues[model]
-        decoding = self._pending[model] - len(queued)
-        work = sum(self.work(job.key) for job in queued) + decoding * times.work_per_request
-        running = 0.0
-        if self._running and self._running[0].key.model == model:
+    def _work_ahead_s(self) -> float:
+        ahead = 0.0
+        for model, queued in self._queues.items():
+            times = self._times.get(model)
+            if times is not None:
+                decoding = self._pending[model] - len(queued)
+                ahead += times.seconds(sum(self.work(job.key) for job in queued) + decoding * times.work_per_request)
+        running = self._times.get(self._running[0].key.model) if self._running else None
+        if running is not None:
             batch_work = len(self._running) * self.work(self._running[0].key)
-            running = max(0.0, times.seconds(batch_work) - (time.monotonic() - self._running_since))
-        return running + times.seconds(work)
+            ahead += max(0.0, running.seconds(batch_work) - (time.monotonic() - self._running_since))
+        return ahead
 
     def work(self, key: KeyT) -> float:
         """Units of compute of one request of `key` (the adapter's count)."""
@@ -256,7 +260,7 @@ class Batcher(Generic[KeyT, PayloadT, OutputT]):
             raise QueueFull(self.retry_after(model))
         times = self._times.get(model)
         if deadline is not None and key is not None and times is not None:
-            finish = time.monotonic() + self._work_ahead_s(model, times) + times.seconds(self.work(key))
+            finish = time.monotonic() + self._work_ahead_s() + times.seconds(self.work(key))
             if finish > deadline:
                 raise DeadlineExceeded(
                     f"deadline cannot be met: about {finish - time.monotonic():.1f} s of compute would be needed",

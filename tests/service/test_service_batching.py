@@ -148,6 +148,28 @@ async def test_lite_and_full_never_share_a_batch():
         assert (response.json()["model"], response.json()["batch_size"]) == (name, 1)
 
 
+async def test_a_deadline_counts_the_work_of_every_model_queued_ahead_on_the_one_inference_thread():
+    pair = stereo_pair()
+    async with serve_asgi(Settings()) as h:  # lite and full, computed by one inference thread
+        for model in ("lite", "full"):  # each model's compute time measured once
+            measured = await h.client.post("/disparity", params={"model": model}, files=pair_files(*pair))
+            assert measured.status_code == 200
+            h.predictors[model].calls.clear()
+        async with worker_held(h, pair=pair) as requests:
+            for number in range(4):
+                requests.post(f"full {number}", *pair, params={"model": "full"})
+            await eventually(lambda: requests_queued(h) == 4)
+            ahead = h.app.state.runtime.batcher.work_ahead_s("lite")
+            refused = await h.client.post(
+                "/disparity", files=pair_files(*pair), headers={"X-Request-Timeout-Ms": "500"}
+            )
+    assert ahead is not None and ahead > 0.5  # four of full's requests, each a few tenths of a second here
+    assert refused.status_code == 503 and refused.json()["error"]["code"] == "deadline_exceeded"
+    assert "cannot be met" in refused.json()["error"]["message"]  # at once, at admission
+    assert int(refused.headers["retry-after"]) >= 1
+    assert h.predictors["lite"].calls == [1] and sum(h.predictors["full"].calls) == 4  # the refused one never computed
+
+
 def requests_queued(h: Harness) -> int:
     return sum(h.app.state.runtime.batcher.queue_depths().values())
 
