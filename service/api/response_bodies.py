@@ -41,9 +41,9 @@ def response_body(
     result: the request's maps (float32 HxW: disparity in px of the left image the network saw,
     uncertainty in [0, 1]) and timings; left: that left image, uint8 HxWx3 RGB (colours of the point
     cloud); weights: the weights' identity (`service.batching.runtime.weights_identity`); trained:
-    whether the model's weights are trained (`Predictor.trained`); size: the
-    input images' size; rectifier: a raw pair's (it gives the focal length and baseline, and with
-    `frame=original` the maps are resampled into the original left image's pixels).
+    whether the model's weights are trained (`Predictor.trained`); size: the input images' size;
+    rectifier: a raw pair's (it gives the focal length and baseline, and with `frame=original` the
+    maps are resampled into the original left image's pixels).
     """
     outputs = PredictionOutputs(
         result.output.disparity,
