@@ -84,6 +84,29 @@ _EXPORT_LOCK = threading.Lock()
 the other cores to its requests."""
 
 
+_CORE_LOCK = threading.Lock()
+_core: Any = None
+
+
+def shared_core() -> Any:
+    """The process's one ``openvino.Core``, which every model compiled here shares.
+
+    One, and kept for the process's life: each Core loads a CPU plugin of its own, and the plugin
+    gives the thread that first compiles with it an alternate signal stack of its own, and on its
+    destruction puts back the stack that thread had before. Two Cores whose models are let go in
+    the order they were made (a model loaded again in a notebook, a service's models, a test
+    session) leave that thread's signal stack on memory already freed, and the next signal
+    handled there (Ctrl-C, or a child's exit with a handler installed) kills the process with
+    SIGSEGV."""
+    global _core
+    with _CORE_LOCK:
+        if _core is None:
+            import openvino as ov
+
+            _core = ov.Core()
+        return _core
+
+
 def openvino_available() -> bool:
     """Whether the ``openvino`` package can be imported."""
     return find_spec("openvino") is not None
@@ -183,8 +206,6 @@ class OpenVINOForward:
         max_bytes: int = MAX_COMPILED_BYTES,
         max_blob_bytes: int = MAX_BLOB_CACHE_BYTES,
     ) -> None:
-        import openvino as ov
-
         if max_shapes < 1:
             raise ValueError(f"max_shapes must be positive, got {max_shapes}")
         self.network = network
@@ -197,11 +218,9 @@ class OpenVINOForward:
         self.graph_dir = None if cache_key is None else directory / graph_folder_name(cache_key)
         if self.graph_dir is not None and self.graph_dir.is_dir():
             _remove_abandoned_exports(self.graph_dir)
-        self.core = ov.Core()
+        self.core = shared_core()
         compiled_dir = directory / "compiled"
         self.blob_dir = compiled_dir if cache_key is not None and _writable(compiled_dir) else None
-        if self.blob_dir is not None:
-            self.core.set_property({"CACHE_DIR": str(self.blob_dir)})
         self.graphs: dict[StageCounts, Any] = {}
         self.compiled: OrderedDict[tuple[StageCounts, tuple[int, ...], bool], _Compiled] = OrderedDict()
         self.failed: set[StageCounts] = set()
@@ -341,6 +360,7 @@ class OpenVINOForward:
             batch, _, height, width = shape
             images, init = [batch, 3, height, width], [batch, 1, height, width]
             static.reshape({port: images if i < 2 else init for i, port in enumerate(static.inputs)})
+            blobs = {} if self.blob_dir is None else {"CACHE_DIR": str(self.blob_dir)}
             model = self.core.compile_model(
                 static,
                 "CPU",
@@ -348,6 +368,7 @@ class OpenVINOForward:
                     "INFERENCE_PRECISION_HINT": "bf16" if bf16 else "f32",
                     "INFERENCE_NUM_THREADS": torch.get_num_threads(),
                     "PERFORMANCE_HINT": "LATENCY",
+                    **blobs,
                 },
             )
             compiled = _Compiled(model, model.create_infer_request(), threading.Lock())

@@ -320,6 +320,32 @@ def test_a_restart_reads_its_graphs_from_the_disk_cache_without_exporting(first_
     assert (restarted.openvino.runs, restarted.openvino.fallback_runs, restarted.openvino.exports) == (2, 0, 0)
 
 
+LET_GO_IN_ORDER_THEN_INTERRUPTED = """
+import gc, os, signal
+import numpy as np
+from crestereo_pp.inference import load_model
+image = np.random.default_rng(0).integers(0, 256, (96, 128, 3), dtype=np.uint8)
+models = [load_model("lite", backend="openvino", precision="fp32") for _ in range(2)]
+for index in range(2):
+    assert models[index].ready((1, 1, 1))
+    models[index].predict(image, image, iters=(1, 1, 1))  # compiled
+while models:
+    models.pop(0)  # let go in the order they were made, as a notebook that loads a model again
+    gc.collect()
+try:
+    os.kill(os.getpid(), signal.SIGINT)  # Ctrl-C
+except KeyboardInterrupt:
+    print("interrupted")
+"""
+
+
+def test_ctrl_c_after_models_were_let_go_in_the_order_they_were_made_is_a_keyboard_interrupt(first_call, cache_dir):
+    environment = {**os.environ, "CRESTEREO_CACHE_DIR": str(cache_dir)}
+    script = [sys.executable, "-c", LET_GO_IN_ORDER_THEN_INTERRUPTED]
+    done = subprocess.run(script, env=environment, cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert (done.returncode, done.stdout) == (0, "interrupted\n"), done.stderr[-2000:]
+
+
 def test_compiled_shapes_are_kept_up_to_a_bound_least_recently_used_first(first_call, tsukuba):
     predictor, *_ = first_call
     backend = predictor.openvino
