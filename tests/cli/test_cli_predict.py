@@ -29,8 +29,8 @@ from raw_camera import (
 from crestereo_pp.cli.main import main
 from crestereo_pp.cli.prediction import find_pairs
 from crestereo_pp.stereo_data.formats import read_kitti_disparity, read_pfm
-from crestereo_pp.stereo_data.synthetic import SceneConfig, SceneGenerator
 from crestereo_pp.stereo_data.visualize import BAR_HEIGHT
+from panned_frames import panned_frames
 
 REPO = Path(__file__).resolve().parents[2]
 pytestmark = pytest.mark.filterwarnings("ignore:no weights at:RuntimeWarning")
@@ -365,14 +365,8 @@ def test_a_real_pair_made_raw_gives_its_true_depth_about_as_well_as_the_rectifie
     assert baseline > 0.4 and share >= baseline - 0.05
 
 
-def panned_frames(count: int) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Consecutive RGB pairs (64x128) of a static procedural scene seen by a panning camera."""
-    generator = SceneGenerator(SceneConfig(height=64, width=128, surfaces=6, min_surfaces=3, photometric=None))
-    return [batch.pair() for batch in generator.pan(seed=5, frames=count, step=(4.0, 0.0))]
-
-
 def test_a_sequence_of_frames_warm_starts_each_frame_and_a_stereo_video_is_read_frame_by_frame(tmp_path, capsys):
-    frames = panned_frames(3)
+    frames = panned_frames(3, seed=5)
     for side in ("left", "right"):
         (tmp_path / side).mkdir()
     for index, (left, right) in enumerate(frames):

@@ -14,6 +14,7 @@ from crestereo_pp.model.network import finest_stage_only
 from crestereo_pp.model.weights import file_sha256
 from crestereo_pp.stereo_data.readers import open_dataset
 from crestereo_pp.stereo_data.synthetic import SceneConfig, SceneGenerator
+from panned_frames import panned_frames
 from tests.shared_data import SMALL_STEREO_DEV_PAIR, STEREO_DEV
 
 REPO = Path(__file__).resolve().parents[2]
@@ -413,12 +414,6 @@ def test_a_scale_that_leaves_the_network_too_few_pixels_is_refused_not_extrapola
             scaled_size(64, 256, scale)
     with pytest.raises(ValueError, match="scale must be in"):
         scaled_size(64, 256, 0.0)
-
-
-def panned_frames(count: int, height: int = 64, width: int = 128) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Consecutive pairs of a static procedural scene seen by a camera panning 4 px per frame."""
-    generator = SceneGenerator(SceneConfig(height=height, width=width, surfaces=6, min_surfaces=3, photometric=None))
-    return [batch.pair() for batch in generator.pan(seed=11, frames=count, step=(4.0, 0.0))]
 
 
 def test_a_sequence_starts_cold_and_warm_starts_every_next_frame_from_the_previous_one(lite):

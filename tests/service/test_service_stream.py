@@ -15,18 +15,12 @@ from websockets.sync.client import connect
 
 from crestereo_pp.client import AsyncStereoClient, ServiceError, StereoClient
 from crestereo_pp.inference import InferenceOptions
-from crestereo_pp.stereo_data.synthetic import SceneConfig, SceneGenerator
+from panned_frames import panned_frames
 from service_helpers import assert_same_maps, encode, quiet_load_model, run_uvicorn, ws_url
 
 
-def panned_frames(count: int) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Consecutive RGB pairs (64x96) of a static procedural scene seen by a panning camera."""
-    generator = SceneGenerator(SceneConfig(height=64, width=96, surfaces=6, min_surfaces=3, photometric=None))
-    return [batch.pair() for batch in generator.pan(seed=7, frames=count, step=(3.0, 0.0))]
-
-
 def test_a_stream_answers_each_pair_in_order_warm_started_as_the_library_computes_a_sequence(default_server):
-    frames = panned_frames(3)
+    frames = panned_frames(3, width=96, seed=7, step_px=3.0)
     with StereoClient(default_server.base_url) as service, service.stream(iters=(1, 1, 2), warm_iters=3) as stream:
         results = [stream.send(left, right) for left, right in frames]
     expected = list(quiet_load_model("lite").predict_sequence(frames, InferenceOptions(iters=(1, 1, 2)), warm_iters=3))
@@ -37,7 +31,7 @@ def test_a_stream_answers_each_pair_in_order_warm_started_as_the_library_compute
 
 @pytest.mark.anyio
 async def test_the_async_client_streams_the_same_maps_and_goes_on_past_a_bad_frame(default_server):
-    frames = panned_frames(3)
+    frames = panned_frames(3, width=96, seed=7, step_px=3.0)
     with StereoClient(default_server.base_url) as service, service.stream(iters=(1, 1, 2), warm_iters=3) as stream:
         expected = [stream.send(left, right) for left, right in frames]
     async with AsyncStereoClient(default_server.base_url) as service:
@@ -53,7 +47,7 @@ async def test_the_async_client_streams_the_same_maps_and_goes_on_past_a_bad_fra
 
 
 def test_a_bad_frame_gets_an_error_naming_it_and_the_stream_goes_on(default_server):
-    (left, right), (next_left, next_right) = panned_frames(2)
+    (left, right), (next_left, next_right) = panned_frames(2, width=96, seed=7, step_px=3.0)
     with connect(ws_url(default_server.base_url, "format=npz")) as socket:
         socket.send(b"not an image")
         socket.send(encode(right))
@@ -94,7 +88,7 @@ def test_protocol_errors_and_bad_options_close_the_stream_saying_why(default_ser
 
 
 def test_a_stream_needs_the_bearer_key_when_the_server_has_one(tmp_path):
-    left, right = panned_frames(1)[0]
+    left, right = panned_frames(1, width=96, seed=7, step_px=3.0)[0]
     with run_uvicorn(tmp_path, api_key="s3cret") as server:
         with pytest.raises(InvalidStatus) as refused, connect(ws_url(server.base_url)):
             pass
