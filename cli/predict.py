@@ -7,6 +7,7 @@ when it runs.
 from __future__ import annotations
 
 import argparse
+import os
 from pathlib import Path
 
 from crestereo_pp.stereo_data.pointcloud import MIN_DISPARITY
@@ -121,6 +122,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="write the paper's raw U instead of the calibrated P(error > 2 px) the weights define",
     )
     add_model_options(parser)
+    service = parser.add_argument_group("a running service (the pairs computed there)")
+    service.add_argument(
+        "--url",
+        help="compute the pairs on the service at this address (`crestereo-pp serve`, the container) with "
+        "--model and the options above, instead of with a model here; the outputs are written here as ever "
+        "(raw pairs rectified here first; with --sequence the frames go over one stream)",
+    )
+    service.add_argument(
+        "--api-key",
+        default=os.environ.get("CRESTEREO_API_KEY") or None,
+        help="--url: the service's bearer key [$CRESTEREO_API_KEY]",
+    )
     ray = parser.add_argument_group("Ray (many pairs over a cluster)")
     ray.add_argument(
         "--ray",

@@ -5,15 +5,17 @@ from __future__ import annotations
 import argparse
 import glob
 import os
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from contextlib import ExitStack, closing
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Protocol
 
 import cv2
 import numpy as np
 from tqdm import tqdm
 
-from crestereo_pp.inference import FrameStream, parse_iterations
+from crestereo_pp.inference import parse_iterations
 from crestereo_pp.stereo_data.formats import (
     encode_png,
     read_image,
@@ -205,6 +207,15 @@ def check_outputs(targets: list[Output], single: bool, mkdir: bool) -> None:
             )
 
 
+LOCAL_MODEL_FLAGS: dict[str, Callable[[argparse.Namespace], bool]] = {
+    "--weights": lambda args: args.weights is not None,
+    "--device": lambda args: args.device != "auto",
+    "--backend": lambda args: args.backend != "auto",
+    "--precision": lambda args: args.precision != "auto",
+}
+"""The options that choose how a model here computes (none applies to a service's, `--url`)."""
+
+
 @dataclass(frozen=True)
 class Job:
     """What the command computes for each pair and where it writes it (from its arguments)."""
@@ -234,6 +245,11 @@ def plan(args: argparse.Namespace) -> Job:
             raise ValueError(f"{flag} needs --calibration, or --focal-px and --baseline-m")
     if args.warm_iters is not None and not args.sequence:
         raise ValueError("--warm-iters needs --sequence (only a sequence's frames start warm)")
+    if args.url is not None:
+        chosen_here = [flag for flag, given in LOCAL_MODEL_FLAGS.items() if given(args)]
+        if chosen_here or args.ray:
+            flags = ", ".join([*chosen_here, *(["--ray"] if args.ray else [])])
+            raise ValueError(f"{flags}: with --url the service computes the pairs, with its own model")
     rectifier = None if args.calibration is None else Rectifier(read_rig(args.calibration))
     single = is_single_pair(args.left, args.right)
     targets = outputs(args)
@@ -262,7 +278,26 @@ def is_complete(job: Job, pair: PairPaths) -> bool:
     return all(output.file(pair, job.single).is_file() for output in job.targets)
 
 
-def predict_and_write(job: Job, stream: FrameStream, images: PairImages) -> None:
+class Maps(Protocol):
+    """A pair's maps: disparity (float32 HxW, px of the left image) and uncertainty (float32 HxW)."""
+
+    @property
+    def disparity(self) -> np.ndarray: ...
+
+    @property
+    def uncertainty(self) -> np.ndarray: ...
+
+
+class Frames(Protocol):
+    """What computes a job's pairs one after the other: a model here (`FrameStream`), or a running
+    service (`cli.service_frames.ServiceFrames`, with --url)."""
+
+    def predict(self, left: np.ndarray, right: np.ndarray) -> Maps: ...
+
+    def restart(self) -> None: ...
+
+
+def predict_and_write(job: Job, stream: Frames, images: PairImages) -> None:
     """Compute one pair (rectified first where the job has a calibration; warm-started from the
     stream's previous pair only with --sequence) and write its outputs, each to a temporary name
     first and then renamed: an interrupted run leaves no partial file."""
@@ -314,19 +349,33 @@ def prepare(args: argparse.Namespace) -> Job:
 
 
 def run(job: Job) -> int:
-    """Compute the job's pairs here, one after the other (a sequence's each from the previous one)."""
+    """Compute the job's pairs one after the other (a sequence's each from the previous one), here
+    or, with --url, on a running service."""
     args = job.args
     if args.address is not None or args.workers is not None:
         raise ValueError("--address and --workers only apply with --ray")
-    warm_iters = parse_iterations(args.warm_iters)
     count, frames = read_frames(args.left, args.right)
-    predictor = load_predictor(args)
-    stream = predictor.stream(inference_options(args), warm_iters)
     written = 0
-    for images in tqdm(frames, total=count, desc=f"predict {args.model}", unit="pair", disable=job.single):
-        predict_and_write(job, stream, images)
-        written += 1
+    with ExitStack() as resources:
+        stream = frames_of(job, resources)
+        for images in tqdm(frames, total=count, desc=f"predict {args.model}", unit="pair", disable=job.single):
+            predict_and_write(job, stream, images)
+            written += 1
     if not job.single:  # every output was written once per pair (any failure stops the command)
         for output in job.targets:
             print(f"wrote {written} {output.what} files to {output.path}")
     return 0
+
+
+def frames_of(job: Job, resources: ExitStack) -> Frames:
+    """What computes the job's pairs: with --url the service there (its connection closed with
+    `resources`), else the model the options name, loaded here."""
+    args = job.args
+    if args.url is not None:
+        from .service_frames import ServiceFrames
+
+        service = ServiceFrames(
+            args.url, args.api_key, args.model, inference_options(args), args.sequence, args.warm_iters
+        )
+        return resources.enter_context(closing(service))
+    return load_predictor(args).stream(inference_options(args), parse_iterations(args.warm_iters))
