@@ -278,7 +278,7 @@ def is_complete(job: Job, pair: PairPaths) -> bool:
     return all(output.file(pair, job.single).is_file() for output in job.targets)
 
 
-class Maps(Protocol):
+class ComputedMaps(Protocol):
     """A pair's maps: disparity (float32 HxW, px of the left image) and uncertainty (float32 HxW)."""
 
     @property
@@ -292,7 +292,7 @@ class Frames(Protocol):
     """What computes a job's pairs one after the other: a model here (`FrameStream`), or a running
     service (`cli.service_frames.ServiceFrames`, with --url)."""
 
-    def predict(self, left: np.ndarray, right: np.ndarray) -> Maps: ...
+    def predict(self, left: np.ndarray, right: np.ndarray) -> ComputedMaps: ...
 
     def restart(self) -> None: ...
 
