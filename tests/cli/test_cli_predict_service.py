@@ -73,6 +73,10 @@ def test_a_service_that_refuses_or_cannot_be_reached_and_local_model_options_are
     assert "answered 422 scale_too_small" in capsys.readouterr().err
     assert main(["predict", *inputs, "--url", "http://127.0.0.1:9"]) == 2  # nothing listens there
     assert "no answer from the service at http://127.0.0.1:9" in capsys.readouterr().err
+    assert main(["predict", *inputs, "--url", "127.0.0.1:8000"]) == 2  # no scheme
+    assert "the service's address starts with http:// or https:// (for example http://127.0.0.1:8000)" in (
+        capsys.readouterr().err
+    )
     assert main(["predict", *inputs, "--url", default_server.base_url, "--weights", "w.pt", "--backend", "torch"]) == 2
     assert "--weights, --backend: with --url the service computes the pairs" in capsys.readouterr().err
     assert not (tmp_path / "d.pfm").exists()
