@@ -46,12 +46,13 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
 
 
 def run_order(item: pytest.Item) -> int:
-    """Tests that run OpenVINO in this process go after the others (its thread pool does not
-    survive a fork, and tests that fork data-loader workers come later in the alphabet; a run once
-    crashed there), the OpenVINO backend's spec first among them (it starts from the session's
-    cache empty, whichever files a command names and in whatever order), and the web tests last
-    of all (Playwright's sync API after the async tests). The sort is stable: within each group
-    the usual order holds."""
+    """Tests that run OpenVINO in this process go after the others (so they ran when a full run
+    crashed among the data-loader tests: their workers' exits were signals to a main thread whose
+    signal stack OpenVINO had left on freed memory, since mended by one Core per process,
+    ``inference.openvino_backend.shared_core``), the OpenVINO backend's spec first among them (it
+    starts from the session's cache empty, whichever files a command names and in whatever order),
+    and the web tests last of all (Playwright's sync API after the async tests). The sort is
+    stable: within each group the usual order holds."""
     if item.path.parent.name == "web":
         return 3
     if "openvino_cache" not in getattr(item, "fixturenames", ()):
