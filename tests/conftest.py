@@ -46,7 +46,7 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
 
 
 def run_order(item: pytest.Item) -> int:
-    """Tests that run OpenVINO in this process go after the others (so they ran when a full run
+    """Tests that run OpenVINO in this process go after the others (the order since a full run
     crashed among the data-loader tests: their workers' exits were signals to a main thread whose
     signal stack OpenVINO had left on freed memory, since mended by one Core per process,
     ``inference.openvino_backend.shared_core``), the OpenVINO backend's spec first among them (it
