@@ -10,7 +10,6 @@ from contextlib import ExitStack, closing
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
-from urllib.parse import urlsplit
 
 import cv2
 import numpy as np
@@ -247,10 +246,12 @@ def plan(args: argparse.Namespace) -> Job:
     if args.warm_iters is not None and not args.sequence:
         raise ValueError("--warm-iters needs --sequence (only a sequence's frames start warm)")
     if args.url is not None:
-        address = urlsplit(args.url)
-        if address.scheme not in ("http", "https") or not address.netloc:
-            example = f" (for example http://{args.url})" if "://" not in args.url else ""
-            raise ValueError(f"--url {args.url}: the service's address starts with http:// or https://{example}")
+        from crestereo_pp.client import service_address
+
+        try:
+            service_address(args.url)
+        except ValueError as error:
+            raise ValueError(f"--url {error}") from None
         chosen_here = [flag for flag, given in LOCAL_MODEL_FLAGS.items() if given(args)]
         if chosen_here or args.ray:
             flags = ", ".join([*chosen_here, *(["--ray"] if args.ray else [])])

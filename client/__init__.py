@@ -24,6 +24,7 @@ from .stereo_client import (
     PointCloud,
     ServiceError,
     StereoClient,
+    service_address,
 )
 
 __all__ = [
@@ -37,4 +38,5 @@ __all__ = [
     "PointCloud",
     "ServiceError",
     "StereoClient",
+    "service_address",
 ]

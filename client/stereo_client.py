@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from itertools import count
 from pathlib import Path
 from typing import Any, Literal, TypedDict, TypeVar, Unpack
+from urllib.parse import urlsplit
 
 import cv2
 import httpx
@@ -268,6 +269,16 @@ def _json(response: httpx.Response) -> Any:
 Result = TypeVar("Result")
 
 
+def service_address(url: str) -> str:
+    """`url` as the address of a service (``http://host:port``, ``https://...``); a ValueError
+    naming the form where it has no such scheme or no host (``localhost:8000``)."""
+    address = urlsplit(url)
+    if address.scheme not in ("http", "https") or not address.netloc:
+        example = f" (for example http://{url})" if "://" not in url else ""
+        raise ValueError(f"{url}: the service's address starts with http:// or https://{example}")
+    return url
+
+
 class StereoClient:
     """Synchronous client. `max_retries`: retries of a request refused with 503 `queue_full` or
     `loading`, each after the `Retry-After` the service sent (capped at `max_retry_wait_s`)."""
@@ -282,7 +293,7 @@ class StereoClient:
         max_retry_wait_s: float = 30.0,
     ) -> None:
         headers = {"Authorization": f"Bearer {api_key}"} if api_key else {}
-        self._http = httpx.Client(base_url=base_url, headers=headers, timeout=timeout_s)
+        self._http = httpx.Client(base_url=service_address(base_url), headers=headers, timeout=timeout_s)
         self._retries = _Retries(max_retries, max_retry_wait_s)
 
     def disparity(
@@ -503,7 +514,7 @@ class AsyncStereoClient:
         max_retry_wait_s: float = 30.0,
     ) -> None:
         headers = {"Authorization": f"Bearer {api_key}"} if api_key else {}
-        self._http = httpx.AsyncClient(base_url=base_url, headers=headers, timeout=timeout_s)
+        self._http = httpx.AsyncClient(base_url=service_address(base_url), headers=headers, timeout=timeout_s)
         self._retries = _Retries(max_retries, max_retry_wait_s)
 
     async def disparity(

@@ -128,6 +128,16 @@ def test_a_mistyped_option_is_refused_before_anything_is_sent():
             nowhere.stream(warm_iter=3)  # type: ignore[call-arg]
 
 
+def test_an_address_without_http_or_https_is_refused_at_once_naming_the_form():
+    for client in (StereoClient, AsyncStereoClient):
+        with pytest.raises(
+            ValueError, match=r"localhost:8000: .* http:// or https:// \(for example http://localhost:8000\)"
+        ):
+            client("localhost:8000")
+        with pytest.raises(ValueError, match="ftp://host: the service's address starts with http:// or https://$"):
+            client("ftp://host")
+
+
 @pytest.mark.anyio
 async def test_the_async_client_gives_the_same_answer(default_server):
     left, right = stereo_pair()
