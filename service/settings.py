@@ -176,6 +176,15 @@ class Settings(BaseModel):
         "beyond). On a 2-core CPU a 2048x2048 pair took 306 s and 7.9 GB on `full`, 78 s and "
         "3.5 GB on `lite`: the default keeps one `full` request near a minute (1 MP).",
     )
+    max_request_cost: float = Field(
+        4.0,
+        ge=1.0,
+        description="Most compute one request may ask for, in plain requests (the model's iterations, one "
+        "pass, no flip, scale 1) of the model's largest image: its pixels times what its options cost "
+        "(iterations, `two_pass`, `scale`, `flip`); 422 `request_too_costly` beyond, before its images are "
+        "decoded. One inference thread computes every request, so this bounds how long one request can hold "
+        "it: `iters=99,99,99&flip=true` counts as 25-30 plain requests.",
+    )
     min_image_side: int = Field(32, ge=1, description="Smallest image width or height (422 below).")
     body_timeout_s: float = Field(
         60.0, gt=0, description="Longest a request body may take to arrive (408 beyond), from the end of its headers."

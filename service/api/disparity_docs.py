@@ -95,6 +95,9 @@ RESPONSES: dict[int | str, dict[str, Any]] = {
             "image_too_small": "left is 16x480; width and height must be at least 32",
             "undecodable_image": "right: cannot decode the PNG data",
             "scale_too_small": "scale 0.05 would run the 256x64 pair at 13x3; each side must stay at least 16 px",
+            "request_too_costly": "this pair (2048x2048) with these options would cost 29.5 times a plain request "
+            "of the largest image `lite` takes (4194304 pixels); this server allows 4: ask for fewer iterations, "
+            "no flip or a smaller scale, or send a smaller pair",
             "decode_too_costly": "reading these images took more than 5 s of CPU; re-encode them plainly "
             "(baseline JPEG, PNG) and try again",
             "model_not_loaded": "model `full` is not loaded by this server (loaded: lite)",

@@ -17,7 +17,15 @@ from crestereo_pp.service.api.response_bodies import rectified_camera, response_
 from crestereo_pp.service.api.schemas import DisparityOptions, RectifiedCamera
 from crestereo_pp.service.batching.batcher import JobResult
 from crestereo_pp.service.batching.runtime import ServiceRuntime, StereoBatcher, weights_identity
-from crestereo_pp.service.batching.stereo import Predictor, StereoMaps, StereoPair, stereo_key
+from crestereo_pp.service.batching.stereo import (
+    Predictor,
+    StereoKey,
+    StereoMaps,
+    StereoPair,
+    options_cost,
+    stereo_key,
+)
+from crestereo_pp.service.uploads.images import ImageHeader
 from crestereo_pp.service.uploads.multipart import Upload
 from crestereo_pp.service.uploads.sandbox import Stop
 
@@ -56,8 +64,9 @@ async def answer_pair(
     drops such requests); deadline: `time.monotonic()` by which the answer is due; frames: a
     stream's warm starts, made from `options.inference` (each pair starts from the previous one's
     disparity), None for a pair on its own. 422 `scale_too_small` before anything is admitted
-    where `options.scale` leaves the network too little of the image; otherwise what admission,
-    decoding and batching raise.
+    where `options.scale` leaves the network too little of the image, 422 `request_too_costly`
+    where the pair and its options ask for more compute than the server allows one request
+    (`cost_problem`); otherwise what admission, decoding and batching raise.
     """
     header = upload.header
     problem = options.scale_problem(header.height, header.width)
@@ -71,6 +80,9 @@ async def answer_pair(
         header.width,
         warm_start=init is not None,
     )
+    problem = cost_problem(runtime, key, header)
+    if problem is not None:
+        raise bad_input(422, "request_too_costly", problem)
     # Admitted before a raw pair's rectifier is built: building one is work, bounded like decoding.
     async with (
         batcher.admit(options.model, key, deadline=deadline) as admission,
@@ -95,3 +107,20 @@ async def answer_pair(
             response_body, options, result, left, weights, predictor.trained, header, rectifier
         )
     return Answer(result, predictor, weights, camera, body, media_type)
+
+
+def cost_problem(runtime: ServiceRuntime, key: StereoKey, header: ImageHeader) -> str | None:
+    """What is wrong with the compute a pair of `header`'s size asks for with `key`'s options (None:
+    nothing): at most `max_request_cost` plain requests of the model's largest image, counted as
+    the pair's pixels times `options_cost`. One inference thread computes every request, so this
+    bounds how long one small request (a few KB of flat PNGs) can hold it."""
+    settings = runtime.settings
+    limit = settings.pixel_limit(key.model)
+    cost = options_cost(runtime.predictors[key.model], key.options) * header.pixels / limit
+    if cost <= settings.max_request_cost:
+        return None
+    return (
+        f"this pair ({header.width}x{header.height}) with these options would cost {cost:.1f} times a plain request "
+        f"of the largest image `{key.model}` takes ({limit} pixels); this server allows {settings.max_request_cost:g}: "
+        "ask for fewer iterations, no flip or a smaller scale, or send a smaller pair"
+    )

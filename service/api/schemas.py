@@ -432,6 +432,11 @@ class ModelInfo(BaseModel):
     training: TrainingSummary | None = Field(None, description="None for weights without a record.")
     max_image_pixels: int
     min_image_side: int
+    max_request_cost: float = Field(
+        description="Most compute one request may ask for, in plain requests of a `max_image_pixels` image: "
+        "its pixels times what its options cost (more iterations and `flip` cost more, a "
+        "`scale` below 1 less); beyond it 422 `request_too_costly`."
+    )
 
 
 class ModelList(BaseModel):

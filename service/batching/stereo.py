@@ -1,6 +1,6 @@
 """The stereo side of batching, the adapter `service.batching.batcher.Batcher` runs: which requests may
-share a batch (`StereoKey`, `stereo_key`), what a request costs (`relative_cost`), and how a batch
-of pairs is computed (`StereoBatches`)."""
+share a batch (`StereoKey`, `stereo_key`), what a request costs (`relative_cost`, `options_cost`),
+and how a batch of pairs is computed (`StereoBatches`)."""
 
 from __future__ import annotations
 
@@ -106,6 +106,14 @@ def relative_cost(
     return 2.0 * cost if flip else cost
 
 
+def options_cost(predictor: Predictor, options: InferenceOptions) -> float:
+    """`relative_cost` of what `options` ask of `predictor`: their iterations (resolved against
+    the model's own), scale, two passes and flip. 1.0 for the defaults; the enlargement "auto"
+    may choose is the server's, not counted here."""
+    counts = predictor.iterations(options.iters)
+    return relative_cost(counts, predictor.config.iters, options.scale, options.two_pass, options.flip)
+
+
 @dataclass(frozen=True)
 class StereoPair:
     """One request's input: a decoded pair (uint8 HxWx3 RGB) and its warm start (float32 HxW px,
@@ -137,13 +145,11 @@ class StereoBatches:
         return list(self.predictors)
 
     def work(self, key: StereoKey) -> float:
-        """Units of compute of one request of `key`: its padded pixels times `relative_cost`, and,
+        """Units of compute of one request of `key`: its padded pixels times `options_cost`, and,
         where "auto" may enlarge the pair, times the square of the largest factor it may take (an
         upper bound: a pair whose disparities are too large for that factor is computed smaller)."""
-        predictor = self.predictors[key.model]
         options = key.options
-        counts = predictor.iterations(options.iters)
-        cost = relative_cost(counts, predictor.config.iters, options.scale, options.two_pass, options.flip)
+        cost = options_cost(self.predictors[key.model], options)
         if options.two_pass == "auto" and options.scale == 1.0 and not key.warm_start:
             cost *= largest_enlargement(key.height, key.width) ** 2
         return key.pixels * cost

@@ -222,11 +222,33 @@ async def test_models_describe_each_loaded_model_in_open_inference_protocol_shap
     ]
     assert info["parameters"] == predictor.num_parameters and info["iterations"] == [2, 4, 6]
     assert info["max_image_pixels"] == 4_194_304 and info["min_image_side"] == 32
+    assert info["max_request_cost"] == 4.0
     assert info["training"]["pairs"] == predictor.training["total_pairs"] > 0
     assert set(info["training"]["dev_metrics"]) == {"epe", "bad1", "bad2", "bad3", "d1_all"}
     assert (missing.status_code, missing.json()["error"]["code"]) == (404, "model_not_found")
     assert info["status"] == "trained"
     assert (info["backend"], info["precision"], info["compiled"]) == ("torch", "fp32", True)
+
+
+async def test_a_request_may_cost_up_to_the_limit_in_plain_requests_of_the_largest_image_and_no_more():
+    # lite's largest image here is the pair's size, and a request may cost two plain ones of it:
+    # flip computes everything twice, one more iteration at 1/4 costs 1/12 more, half the scale 1/4.
+    settings = lite_settings(model_max_pixels={"lite": HEIGHT * WIDTH}, max_request_cost=2.0)
+    files = pair_files(*stereo_pair())
+    async with serve_asgi(settings) as h:
+        at_limit = await h.client.post("/disparity", params={"flip": "true", "two_pass": "false"}, files=files)
+        over = await h.client.post("/disparity", params={"flip": "true", "iters": "7"}, files=files)
+        scaled = await h.client.post("/disparity", params={"flip": "true", "iters": "7", "scale": "0.5"}, files=files)
+        info = (await h.client.get("/models/lite")).json()
+    assert at_limit.status_code == 200 and scaled.status_code == 200
+    assert over.status_code == 422
+    assert over.json()["error"]["code"] == "request_too_costly"
+    assert (
+        "would cost 2.2 times a plain request of the largest image `lite` takes (6144 pixels)"
+        in (over.json()["error"]["message"])
+    )
+    assert h.predictors["lite"].calls == [1, 1]  # the two within the limit, each a batch of one
+    assert info["max_request_cost"] == 2.0
 
 
 async def test_models_platform_names_what_computes_default_requests_now_not_only_pytorch():

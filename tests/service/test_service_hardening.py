@@ -299,6 +299,33 @@ def test_a_scale_that_leaves_the_network_too_few_pixels_is_refused(default_serve
     assert response.status_code == 422 and response.json()["error"]["code"] == "scale_too_small"
 
 
+def test_a_few_kb_asking_for_many_times_the_largest_plain_compute_is_refused_before_it_is_computed(default_server):
+    # Two flat 2048x2048 PNGs (lite's largest image) with 99 iterations a stage and flip: computed,
+    # they would hold the one inference thread for minutes (19x a plain pair's time at 512x384).
+    flat = encode(np.full((2048, 2048, 3), 128, np.uint8))
+    assert len(flat) < 64 * 1024
+    url = default_server.base_url + "/disparity"
+    computed_before = computed_pairs(default_server.base_url)
+    costly = httpx.post(
+        url + "?iters=99,99,99&flip=true", files={"left": ("l.png", flat), "right": ("r.png", flat)}, timeout=60
+    )
+    assert costly.status_code == 422
+    error = costly.json()["error"]
+    assert error["code"] == "request_too_costly"
+    assert "(2048x2048)" in error["message"] and "29.5 times a plain request" in error["message"]
+    assert "allows 4:" in error["message"]
+    assert computed_pairs(default_server.base_url) == computed_before
+    left, right = stereo_pair()
+    plain = httpx.post(url, files={"left": ("l.png", encode(left)), "right": ("r.png", encode(right))}, timeout=60)
+    assert plain.status_code == 200
+    assert computed_pairs(default_server.base_url) == computed_before + 1
+
+
+def computed_pairs(base_url: str) -> float:
+    """Pairs the server has computed (the sum of its batch sizes), from `/metrics`."""
+    return metric_total(httpx.get(base_url + "/metrics").text, "crestereo_batch_size_sum", model="lite")
+
+
 @pytest.mark.parametrize("scale", ["nan", "1_0", "inf", "0x1p-3"])
 def test_numbers_in_the_query_are_plain_decimals(default_server, scale):
     left, right = stereo_pair()

@@ -66,6 +66,22 @@ def test_a_bad_frame_gets_an_error_naming_it_and_the_stream_goes_on(default_serv
     assert isinstance(answer, bytes) and answer.startswith(b"PK")  # an npz archive
 
 
+def test_a_pair_asking_for_more_compute_than_one_request_may_is_refused_and_the_stream_goes_on(default_server):
+    # 45 iterations at 1/4 cost 4.25 plain requests of the pair's size; lite's largest image is
+    # 2048x2048, and the default limit is 4 of those.
+    flat = encode(np.full((2048, 2048, 3), 128, np.uint8))
+    ((left, right),) = panned_frames(1, width=96, seed=7, step_px=3.0)
+    with connect(ws_url(default_server.base_url, "format=npz&iters=45")) as socket:
+        socket.send(flat)
+        socket.send(flat)
+        refused = json.loads(socket.recv(timeout=60))
+        socket.send(encode(left))
+        socket.send(encode(right))
+        answer = socket.recv(timeout=60)
+    assert refused["frame"] == 0 and refused["error"]["code"] == "request_too_costly"
+    assert isinstance(answer, bytes) and answer.startswith(b"PK")
+
+
 def test_protocol_errors_and_bad_options_close_the_stream_saying_why(default_server):
     with connect(ws_url(default_server.base_url)) as socket:
         socket.send("hello")  # text where the left image is expected

@@ -82,6 +82,7 @@ def model_info(runtime: ServiceRuntime, name: str) -> ModelInfo:
         training=training_summary(predictor.training),
         max_image_pixels=settings.pixel_limit(name),
         min_image_side=settings.min_image_side,
+        max_request_cost=settings.max_request_cost,
     )
 
 
