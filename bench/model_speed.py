@@ -11,7 +11,7 @@ GFLOP/s they make, the OpenVINO graph's preparation time (its export, or reading
 cache) and the first call's time (OpenVINO compiles the shape there), and peak memory; then
 OpenCV SGBM on the same pairs. Each row runs in a fresh child process, so that its peak RSS is its
 own. torch rows with bf16 run under autocast. Each timing is the network's one pass
-(``two_pass=False``, ``blend_sgbm=False``, ``refine_edges=False``: the SGBM rows time the matcher
+(``two_pass=False``, ``NETWORK_ONLY``: the SGBM rows time the matcher
 the default blends with); the default ``two_pass="auto"`` adds a pass at quarter resolution, and either a
 half-resolution one for pairs with large disparities or, for pairs with small ones, runs the pass
 on the pair enlarged up to 1.5x (``crestereo-pp eval`` times the default).
@@ -41,7 +41,7 @@ from timing import timed_calls  # bench/'s sibling script
 from torch.utils.flop_counter import FlopCounterMode
 
 from crestereo_pp.evaluation.sgbm import sgbm_disparity
-from crestereo_pp.inference import load_model
+from crestereo_pp.inference import NETWORK_ONLY, load_model
 from crestereo_pp.inference.backend_choice import Backend, Precision
 from crestereo_pp.inference.openvino_backend import native_bf16
 from crestereo_pp.model.config import MODEL_NAMES
@@ -75,7 +75,7 @@ def measure(
 
     def one_pass() -> None:
         """The network once at the pair's size: no quick pass, no enlarging, no host refinement."""
-        predictor.predict(left, right, two_pass=False, blend_sgbm=False, refine_edges=False)
+        predictor.predict(left, right, two_pass=False, **NETWORK_ONLY)
 
     start = time.perf_counter()
     if backend == "torch":

@@ -56,9 +56,10 @@ class Options(TypedDict, total=False):
     time, fewer errors) [False]. blend_sgbm: the answer averaged with OpenCV's SGBM where the two
     agree within 4 px (fewer errors) [True]. refine_edges: depth edges put where the left image's
     colour edges are, and the strip along the image's left edge raised [True]; both False: the
-    network's own answer. focal_px, baseline_m: a rectified pair's camera (both or neither), for
-    metric depth. min_disparity: no depth nor point at or below it (px) [1]. max_depth_m: none
-    deeper (metres) [no limit].
+    network's answer. align_rows: where the right image's rows are off the left's by a quarter
+    pixel or more (measured on the pair), resample it onto them first [True]. focal_px,
+    baseline_m: a rectified pair's camera (both or neither), for metric depth. min_disparity: no
+    depth nor point at or below it (px) [1]. max_depth_m: none deeper (metres) [no limit].
     """
 
     model: Literal["lite", "full"]
@@ -69,6 +70,7 @@ class Options(TypedDict, total=False):
     flip: bool
     blend_sgbm: bool
     refine_edges: bool
+    align_rows: bool
     focal_px: float
     baseline_m: float
     min_disparity: float

@@ -231,6 +231,7 @@ def evaluate(
             "flip": options.flip,
             "blend_sgbm": options.blend_sgbm,
             "refine_edges": options.refine_edges,
+            "align_rows": options.align_rows,
             "uncertainty": (
                 f"P(error > {predictor.calibration.threshold_px:g} px), fitted on {predictor.calibration.fitted_on}"
                 if predictor.calibration is not None

@@ -11,6 +11,7 @@ Disparity is positive everywhere, in pixels of the left image (the right match i
 from .batching import PairMaps
 from .loading import load_model
 from .options import (
+    NETWORK_ONLY,
     TWO_PASS_CHOICES,
     InferenceOptions,
     Iterations,
@@ -24,6 +25,7 @@ from .predictor import StereoPredictor
 from .warm_start import FrameStream, WarmStart
 
 __all__ = [
+    "NETWORK_ONLY",
     "TWO_PASS_CHOICES",
     "FrameStream",
     "InferenceOptions",

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Any, Literal, TypedDict
 
 StageCounts = tuple[int, int, int]
 """ARM iterations of the three stages, at 1/16, 1/8 and 1/4 resolution (what the network runs)."""
@@ -83,6 +83,20 @@ def parse_scale(scale: float) -> float:
     return scale
 
 
+class HostSteps(TypedDict):
+    """The classical steps around the network, as ``predict`` keywords (see ``InferenceOptions``)."""
+
+    blend_sgbm: bool
+    refine_edges: bool
+    align_rows: bool
+
+
+NETWORK_ONLY: HostSteps = {"blend_sgbm": False, "refine_edges": False, "align_rows": False}
+"""``predict`` keywords for the network's own answer on the pair as given: no row alignment
+before it, no SGBM blend or edge refinement after it (the calibration's fit, training's
+validation, speed benchmarks of the network)."""
+
+
 @dataclass(frozen=True, init=False)
 class InferenceOptions:
     """The options of one prediction (``StereoPredictor.predict`` and ``predict_batch``), read once
@@ -107,6 +121,10 @@ class InferenceOptions:
         matches fall outside the right image towards the surface beside it, by 4 px at most
         (``inference.border_strip``): under 10 % more time on a CPU, fewer errors at the edges of
         objects and of the image. With ``blend_sgbm`` False too, the network's own answer is served.
+    align_rows: where the right image's rows are off the left's by a quarter pixel or more
+        (measured on the pair from tracked corners: ``inference.row_alignment``), resample the
+        right image onto them first: about 20 ms a pair on a CPU; residual misrectification
+        costs the network much of its precision.
     Hashable: requests with equal options (and shapes) may share a batch.
     """
 
@@ -117,6 +135,7 @@ class InferenceOptions:
     flip: bool
     blend_sgbm: bool
     refine_edges: bool
+    align_rows: bool
 
     def __init__(
         self,
@@ -127,6 +146,7 @@ class InferenceOptions:
         flip: bool = False,
         blend_sgbm: bool = True,
         refine_edges: bool = True,
+        align_rows: bool = True,
     ) -> None:
         object.__setattr__(self, "iters", parse_iterations(iters))
         object.__setattr__(self, "two_pass", parse_two_pass(two_pass))
@@ -135,6 +155,7 @@ class InferenceOptions:
         object.__setattr__(self, "flip", flip)
         object.__setattr__(self, "blend_sgbm", blend_sgbm)
         object.__setattr__(self, "refine_edges", refine_edges)
+        object.__setattr__(self, "align_rows", align_rows)
 
     def keywords(self) -> dict[str, Any]:
         """The options as ``predict`` / ``predict_batch`` keywords."""
@@ -146,4 +167,5 @@ class InferenceOptions:
             "flip": self.flip,
             "blend_sgbm": self.blend_sgbm,
             "refine_edges": self.refine_edges,
+            "align_rows": self.align_rows,
         }

@@ -35,6 +35,7 @@ from .options import InferenceOptions, Iterations, IterationsGiven, StageCounts,
 from .padding import Padding
 from .prediction import Prediction, TensorPrediction, as_image_batch, image_size
 from .refinement import HostRefinement
+from .row_alignment import align_rows
 from .scaling import maps_at, resize_images, scaled_size
 from .torch_backend import autocast_bf16
 from .two_pass import PaddedForward, cold_maps, large_disparity_percentile
@@ -161,6 +162,7 @@ class StereoPredictor:
         flip: bool = False,
         blend_sgbm: bool = True,
         refine_edges: bool = True,
+        align_rows: bool = True,
     ) -> Prediction: ...
 
     @overload
@@ -177,6 +179,7 @@ class StereoPredictor:
         flip: bool = False,
         blend_sgbm: bool = True,
         refine_edges: bool = True,
+        align_rows: bool = True,
     ) -> TensorPrediction: ...
 
     @torch.inference_mode()
@@ -193,11 +196,12 @@ class StereoPredictor:
         flip: bool = False,
         blend_sgbm: bool = True,
         refine_edges: bool = True,
+        align_rows: bool = True,
     ) -> Prediction | TensorPrediction:
         """Disparity and uncertainty of a rectified pair of any size (see ``as_image_batch``).
 
-        iters, two_pass, scale, raw_uncertainty, flip, blend_sgbm, refine_edges: read once, here, as
-            ``InferenceOptions`` (see there).
+        iters, two_pass, scale, raw_uncertainty, flip, blend_sgbm, refine_edges, align_rows: read
+            once, here, as ``InferenceOptions`` (see there).
         init_disparity: warm start (e.g. the previous video frame's result), HxW array or
             (B, H, W) tensor, positive pixels: every stage runs (``iters``), the coarsest
             starting from it instead of from zero (see ``FrameStream``).
@@ -222,10 +226,12 @@ class StereoPredictor:
             colour edges are (``inference.depth_edges``), the strip along the image's left edge
             whose matches fall outside the right image raised (``inference.border_strip``). With
             both False: the network's own answer.
+        align_rows: where the right image's rows are off the left's by a quarter pixel or more,
+            resample it onto them first (``inference.row_alignment``).
         A ``left`` array gives a ``Prediction`` (numpy arrays, copied from the device once); a
         ``left`` tensor a ``TensorPrediction`` (tensors on the predictor's device).
         """
-        options = InferenceOptions(iters, two_pass, scale, raw_uncertainty, flip, blend_sgbm, refine_edges)
+        options = InferenceOptions(iters, two_pass, scale, raw_uncertainty, flip, blend_sgbm, refine_edges, align_rows)
         # arrays go as given (uploaded once, in predict_pairs; the refinement reads them on the host)
         lefts, rights = (pairs_of(image, self.device) for image in (left, right))
         inits = None
@@ -249,12 +255,13 @@ class StereoPredictor:
         flip: bool = False,
         blend_sgbm: bool = True,
         refine_edges: bool = True,
+        align_rows: bool = True,
         init_disparities: Sequence[np.ndarray] | None = None,
     ) -> list[Prediction]:
         """Several pairs (arrays, as ``predict`` takes them) in as few forward passes as their sizes
         allow (``batching.batch_groups``): ``predict_pairs`` with the options read once, here, as
         ``InferenceOptions``, its maps copied to the host."""
-        options = InferenceOptions(iters, two_pass, scale, raw_uncertainty, flip, blend_sgbm, refine_edges)
+        options = InferenceOptions(iters, two_pass, scale, raw_uncertainty, flip, blend_sgbm, refine_edges, align_rows)
         return self.predict_pairs(lefts, rights, options, init_disparities).on_host()
 
     @torch.inference_mode()
@@ -294,6 +301,8 @@ class StereoPredictor:
             raise ValueError(f"left and right differ in size: {sizes} vs {right_sizes}")
         if init_disparities is not None and len(init_disparities) != len(lefts):
             raise ValueError(f"need one warm start per pair, got {len(init_disparities)} for {len(lefts)}")
+        if options.align_rows:
+            rights = [align_rows(*pair) for pair in zip(lefts, rights, strict=True)]
         iters = self.iterations(options.iters)
         forward = self.padded_forward(graphed)
         batches: list[tuple[list[int], PaddedBatch, Tensor, Tensor]] = []

@@ -76,6 +76,7 @@ class PairPredictor(Protocol):
         flip: bool = False,
         blend_sgbm: bool = True,
         refine_edges: bool = True,
+        align_rows: bool = True,
     ) -> Prediction: ...
 
 

@@ -14,7 +14,7 @@ import torch
 import torch.nn.functional as F
 from scipy.optimize import isotonic_regression
 
-from crestereo_pp.inference import StereoPredictor, load_model
+from crestereo_pp.inference import NETWORK_ONLY, StereoPredictor, load_model
 from crestereo_pp.inference.uncertainty_calibration import (
     FEATURES,
     UncertaintyCalibration,
@@ -106,9 +106,7 @@ def calibrate(
         count = min(batch_size, scenes - first)
         batch = generator.generate(count, seed=CALIBRATION_SEED + first)
         # the network's own answer: the served uncertainty is computed from it, before any host refinement
-        prediction = predictor.predict(
-            batch.left, batch.right, raw_uncertainty=True, blend_sgbm=False, refine_edges=False
-        )
+        prediction = predictor.predict(batch.left, batch.right, raw_uncertainty=True, **NETWORK_ONLY)
         assert isinstance(prediction.disparity, torch.Tensor)
         disparity = prediction.disparity[:, None]
         known = batch.valid[:, 0]

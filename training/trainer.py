@@ -14,7 +14,7 @@ from torch.nn.parallel import DistributedDataParallel
 from tqdm import tqdm
 
 from crestereo_pp.evaluation.evaluate import evaluate
-from crestereo_pp.inference import InferenceOptions, StereoPredictor
+from crestereo_pp.inference import NETWORK_ONLY, InferenceOptions, StereoPredictor
 from crestereo_pp.inference.device import resolve_device
 from crestereo_pp.inference.torch_backend import autocast_bf16
 from crestereo_pp.inference.two_pass import half_resolution_start
@@ -401,7 +401,7 @@ def validate(network: CREStereoPP, config: TrainConfig, device: torch.device) ->
         open_dataset(config.val_data),
         predictor,
         dataset_name=config.val_data,
-        options=InferenceOptions(two_pass=False, blend_sgbm=False, refine_edges=False),
+        options=InferenceOptions(two_pass=False, **NETWORK_ONLY),
         progress=False,
     )
     network.train()

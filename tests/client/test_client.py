@@ -12,6 +12,7 @@ from plyfile import PlyData
 
 from crestereo_pp.client import AsyncStereoClient, ServiceError, StereoClient
 from crestereo_pp.client.stereo_client import _encode
+from crestereo_pp.inference import NETWORK_ONLY
 from service_helpers import encode, quiet_load_model, run_uvicorn, stereo_pair
 
 
@@ -36,8 +37,8 @@ def test_the_network_answer_without_the_host_refinements_is_asked_for_by_options
     with StereoClient(default_server.base_url) as service:
         default = service.disparity(left, right)
         blended = service.disparity(left, right, refine_edges=False)
-        own = service.disparity(left, right, blend_sgbm=False, refine_edges=False)
-    direct = quiet_load_model("lite").predict(left, right, blend_sgbm=False, refine_edges=False)
+        own = service.disparity(left, right, **NETWORK_ONLY)
+    direct = quiet_load_model("lite").predict(left, right, **NETWORK_ONLY)
     np.testing.assert_allclose(own.disparity, direct.disparity, rtol=1e-4, atol=1e-3)
     assert 0.1 < np.abs(blended.disparity - own.disparity).max() <= 2.0 + 1e-3  # blend_sgbm reached the service
     assert np.abs(default.disparity - blended.disparity).max() > 0.1  # and refine_edges

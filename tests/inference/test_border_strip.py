@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 from raw_camera import dev_sample
 
+from crestereo_pp.inference import NETWORK_ONLY
 from crestereo_pp.inference.border_strip import STRIP_RAISE_PX, raise_border_strip, strip_ends
 
 SURFACE = 20.0  # px: the disparity of a fronto-parallel surface reaching the left edge
@@ -75,7 +76,7 @@ def test_on_a_real_driving_pair_the_strip_gets_fewer_pixels_wrong(lite):
     sample = dev_sample("kitti2015_000001_10")
     columns = slice(0, 320)  # the left of the pair: the strip, and the road and cars beside it
     left, right, truth = sample.left[:, columns], sample.right[:, columns], sample.disparity[:, columns]
-    answer = lite.predict(left, right, blend_sgbm=False, refine_edges=False).disparity
+    answer = lite.predict(left, right, **NETWORK_ONLY).disparity
     raised = raise_border_strip(answer, left)
     strip = np.arange(320)[None, :] < strip_ends(answer)[:, None]
     known = strip & sample.valid[:, columns] & np.isfinite(truth)

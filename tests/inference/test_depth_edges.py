@@ -5,7 +5,7 @@ import pytest
 import torch
 from raw_camera import small_dev_sample
 
-from crestereo_pp.inference import depth_edges
+from crestereo_pp.inference import NETWORK_ONLY, depth_edges
 from crestereo_pp.inference.border_strip import raise_border_strip
 from crestereo_pp.inference.depth_edges import MEDIAN_RADIUS_PX, depth_edge_pixels, refine_depth_edges
 
@@ -43,7 +43,7 @@ def test_pixels_away_from_depth_edges_keep_their_answer():
 def test_each_refined_pixel_takes_one_of_its_neighbours_answers(lite):
     sample = small_dev_sample()
     left, right = sample.left[:160, :224], sample.right[:160, :224]
-    answer = lite.predict(left, right, blend_sgbm=False, refine_edges=False).disparity
+    answer = lite.predict(left, right, **NETWORK_ONLY).disparity
     refined = refine_depth_edges(answer, left)
     changed = refined != answer
     assert changed.any() and not (changed & ~depth_edge_pixels(answer)).any()
@@ -100,7 +100,7 @@ def test_device_tensors_are_refined_too_and_the_maps_stay_tensors(lite):
 def test_edge_pixels_refined_a_chunk_at_a_time_give_the_answer_of_one_go(lite, monkeypatch):
     sample = small_dev_sample()
     left, right = sample.left[:160, :224], sample.right[:160, :224]
-    answer = lite.predict(left, right, blend_sgbm=False, refine_edges=False).disparity
+    answer = lite.predict(left, right, **NETWORK_ONLY).disparity
     in_one_go = refine_depth_edges(answer, left)
     monkeypatch.setattr(depth_edges, "EDGE_PIXELS_PER_CHUNK", 250)  # chunks ending mid-row, a short last one
     assert depth_edge_pixels(answer).sum() > 500

@@ -5,7 +5,7 @@ import pytest
 import torch
 from raw_camera import small_dev_sample
 
-from crestereo_pp.inference import InferenceOptions
+from crestereo_pp.inference import NETWORK_ONLY, InferenceOptions
 from crestereo_pp.inference.flip import AGREEMENT_PX, merge_flipped
 from crestereo_pp.inference.warm_start import WarmStart
 
@@ -34,19 +34,15 @@ def small_real_pair() -> tuple[np.ndarray, np.ndarray]:
 @pytest.mark.parametrize("raw_uncertainty", [False, True])
 def test_flip_merges_the_answer_with_that_of_the_pair_upside_down_turned_back(lite, raw_uncertainty):
     left, right = small_real_pair()
-    given = lite.predict(left, right, raw_uncertainty=raw_uncertainty, blend_sgbm=False, refine_edges=False)
-    upside_down = lite.predict(
-        left[::-1].copy(), right[::-1].copy(), raw_uncertainty=raw_uncertainty, blend_sgbm=False, refine_edges=False
-    )
+    given = lite.predict(left, right, raw_uncertainty=raw_uncertainty, **NETWORK_ONLY)
+    upside_down = lite.predict(left[::-1].copy(), right[::-1].copy(), raw_uncertainty=raw_uncertainty, **NETWORK_ONLY)
     expected = merge_flipped(
         *(
             torch.from_numpy(x.copy())[None, None]
             for x in (*given, upside_down.disparity[::-1], upside_down.uncertainty[::-1])
         )
     )
-    flipped = lite.predict(
-        left, right, raw_uncertainty=raw_uncertainty, flip=True, blend_sgbm=False, refine_edges=False
-    )
+    flipped = lite.predict(left, right, raw_uncertainty=raw_uncertainty, flip=True, **NETWORK_ONLY)
     np.testing.assert_allclose(flipped.disparity, expected[0][0, 0].numpy(), atol=1e-4)
     np.testing.assert_allclose(flipped.uncertainty, expected[1][0, 0].numpy(), atol=1e-5)
     # a real pair: the two answers differ somewhere, and the merge is neither of them
@@ -76,14 +72,13 @@ def test_a_streams_warm_frames_keep_its_flip():
 def test_a_warm_start_is_turned_with_its_pair(lite):
     left, right = small_real_pair()
     start = lite.predict(left, right, iters=(1, 1, 2)).disparity
-    given = lite.predict(left, right, iters=(1, 1, 2), init_disparity=start, blend_sgbm=False, refine_edges=False)
+    given = lite.predict(left, right, iters=(1, 1, 2), init_disparity=start, **NETWORK_ONLY)
     upside_down = lite.predict(
         left[::-1].copy(),
         right[::-1].copy(),
         iters=(1, 1, 2),
         init_disparity=start[::-1].copy(),
-        blend_sgbm=False,
-        refine_edges=False,
+        **NETWORK_ONLY,
     )
     expected = merge_flipped(
         *(
@@ -91,7 +86,5 @@ def test_a_warm_start_is_turned_with_its_pair(lite):
             for x in (*given, upside_down.disparity[::-1], upside_down.uncertainty[::-1])
         )
     )
-    flipped = lite.predict(
-        left, right, iters=(1, 1, 2), init_disparity=start, flip=True, blend_sgbm=False, refine_edges=False
-    )
+    flipped = lite.predict(left, right, iters=(1, 1, 2), init_disparity=start, flip=True, **NETWORK_ONLY)
     np.testing.assert_allclose(flipped.disparity, expected[0][0, 0].numpy(), atol=1e-4)

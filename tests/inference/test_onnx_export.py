@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from crestereo_pp.cli.main import main
-from crestereo_pp.inference import load_model
+from crestereo_pp.inference import NETWORK_ONLY, load_model
 from crestereo_pp.model.weights import WEIGHTS_DIR
 from crestereo_pp.stereo_data.synthetic import SceneConfig, SceneGenerator
 
@@ -40,7 +40,7 @@ def test_exported_model_in_onnx_runtime_matches_predict_within_a_thousandth_of_a
     predictor = load_model("lite", weights)
     assert predictor.calibration is not None
     # the graph is one pass of the network (no blend with SGBM)
-    expected = predictor.predict(left, right, iters=(1, 1, 2), two_pass=False, blend_sgbm=False, refine_edges=False)
+    expected = predictor.predict(left, right, iters=(1, 1, 2), two_pass=False, **NETWORK_ONLY)
     session = ort.InferenceSession(str(onnx_file), providers=["CPUExecutionProvider"])
     as_input = lambda image: np.ascontiguousarray(image.transpose(2, 0, 1)[None], dtype=np.float32)  # noqa: E731
     disparity, uncertainty = session.run(None, {"left": as_input(left), "right": as_input(right)})

@@ -30,9 +30,10 @@ def test_options_are_hashable_values_that_normalise_their_iterations_and_check_t
                 InferenceOptions(flip=True),
                 InferenceOptions(blend_sgbm=False),
                 InferenceOptions(refine_edges=False),
+                InferenceOptions(align_rows=False),
             }
         )
-        == 5
+        == 6
     )
     assert InferenceOptions(scale=0.5).keywords() == {
         "iters": None,
@@ -42,6 +43,7 @@ def test_options_are_hashable_values_that_normalise_their_iterations_and_check_t
         "flip": False,
         "blend_sgbm": True,
         "refine_edges": True,
+        "align_rows": True,
     }
     for scale in (0.0, 1.5, -1.0):
         with pytest.raises(ValueError, match="scale"):

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from crestereo_pp.inference import InferenceOptions, load_model
+from crestereo_pp.inference import NETWORK_ONLY, InferenceOptions, load_model
 from crestereo_pp.inference import two_pass as two_pass_module
 from crestereo_pp.inference.scaling import maps_at, resize_images
 from crestereo_pp.model import ModelConfig
@@ -108,21 +108,20 @@ def test_auto_enlarges_a_pair_with_small_disparities_and_brings_its_maps_back_to
     monkeypatch.setattr(two_pass_module, "ENLARGED_DISPARITY_PX", float(evidence[1]) * 1.5)
     ways = [two_pass_module.auto_way(float(value), 192, 224) for value in evidence]
     assert ways == [(True, 1.0), (False, 1.5)]  # the near scene's range is too wide to enlarge
-    auto = lite.predict(left, right, two_pass="auto", blend_sgbm=False, refine_edges=False)  # the network's own answers
+    auto = lite.predict(left, right, two_pass="auto", **NETWORK_ONLY)  # the network's own answers
     assert auto.disparity.shape == auto.uncertainty.shape == (2, 192, 224)
-    two_passes = lite.predict(left[:1], right[:1], two_pass=True, blend_sgbm=False, refine_edges=False)
+    two_passes = lite.predict(left[:1], right[:1], two_pass=True, **NETWORK_ONLY)
     np.testing.assert_allclose(auto.disparity[0].numpy(), two_passes.disparity[0].numpy(), atol=1e-3)
     enlarged = lite.predict(
         resize_images(left[1:], (288, 336)),
         resize_images(right[1:], (288, 336)),
         two_pass=False,
         raw_uncertainty=True,
-        blend_sgbm=False,
-        refine_edges=False,
+        **NETWORK_ONLY,
     )
     disparity, _ = maps_at((enlarged.disparity[:, None], enlarged.uncertainty[:, None]), 192, 224)
     np.testing.assert_allclose(auto.disparity[1].numpy(), disparity[0, 0].numpy(), atol=1e-3)
-    own_size = lite.predict(left[1:], right[1:], two_pass=False, blend_sgbm=False, refine_edges=False)
+    own_size = lite.predict(left[1:], right[1:], two_pass=False, **NETWORK_ONLY)
     assert not np.allclose(auto.disparity[1].numpy(), own_size.disparity[0].numpy(), atol=1e-2)
 
 
@@ -233,8 +232,7 @@ def test_the_quick_pass_reads_a_real_pairs_largest_disparities_and_auto_enlarges
     assert abs(evidence - truth) < 3.0
     assert two_pass_module.auto_way(evidence, *sample.left.shape[:2]) == (False, 1.5)
     auto, one = (  # the network's own answers
-        lite.predict(sample.left, sample.right, two_pass=flag, blend_sgbm=False, refine_edges=False).disparity
-        for flag in ("auto", False)
+        lite.predict(sample.left, sample.right, two_pass=flag, **NETWORK_ONLY).disparity for flag in ("auto", False)
     )
     known = sample.valid & np.isfinite(sample.disparity)
     auto_bad2, one_bad2 = (compute_metrics(d, sample.disparity, known).bad2 for d in (auto, one))

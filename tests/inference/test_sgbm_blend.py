@@ -5,6 +5,7 @@ import pytest
 import torch
 from raw_camera import small_dev_sample
 
+from crestereo_pp.inference import NETWORK_ONLY
 from crestereo_pp.inference.sgbm import (
     BLEND_WITHIN_PX,
     blend_with_sgbm,
@@ -69,7 +70,7 @@ def test_images_too_narrow_for_the_search_are_answered_without_a_crash(width):
 def test_the_blend_moves_a_real_answer_by_at_most_half_the_agreement_and_can_be_turned_off(lite):
     sample = small_dev_sample()
     left, right = sample.left[:192, :256], sample.right[:192, :256]
-    own = lite.predict(left, right, blend_sgbm=False, refine_edges=False)
+    own = lite.predict(left, right, **NETWORK_ONLY)
     blended = lite.predict(left, right, refine_edges=False)
     moved = np.abs(blended.disparity - own.disparity)
     assert 0 < moved.max() <= BLEND_WITHIN_PX / 2 + 1e-4
@@ -93,7 +94,7 @@ def test_the_blend_gets_fewer_pixels_of_a_real_pair_wrong_by_over_1_px(lite):
     def wrong_by_over_1_px(disparity: np.ndarray) -> float:
         return float(np.mean(np.abs(disparity - sample.disparity)[known] > 1.0))
 
-    own = lite.predict(sample.left, sample.right, blend_sgbm=False, refine_edges=False).disparity
+    own = lite.predict(sample.left, sample.right, **NETWORK_ONLY).disparity
     blended = lite.predict(sample.left, sample.right, refine_edges=False).disparity
     assert wrong_by_over_1_px(blended) < 0.9 * wrong_by_over_1_px(own)
 
@@ -118,7 +119,7 @@ def test_device_tensors_are_blended_too_and_the_maps_stay_tensors(lite):
     left, right = (
         torch.from_numpy(x[:96, :160].copy()).permute(2, 0, 1)[None].float() for x in (sample.left, sample.right)
     )
-    own = lite.predict(left, right, blend_sgbm=False, refine_edges=False)
+    own = lite.predict(left, right, **NETWORK_ONLY)
     blended = lite.predict(left, right, refine_edges=False)
     assert isinstance(blended.disparity, torch.Tensor) and blended.disparity.shape == (1, 96, 160)
     moved = (blended.disparity - own.disparity).abs()

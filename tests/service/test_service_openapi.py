@@ -52,6 +52,7 @@ def test_every_disparity_answer_is_documented_with_examples_of_its_error_codes()
         "flip",
         "blend_sgbm",
         "refine_edges",
+        "align_rows",
         "color_min",
         "color_max",
         "cx_px",

@@ -112,7 +112,7 @@ def time_predict_batch(
         torch.cuda.reset_peak_memory_stats(predictor.device)
 
     def call() -> None:
-        # numpy out: the copy waits; one pass is the network alone, auto the default (with SGBM, on the CPU)
+        # numpy out: the copy waits; one pass is the network alone, auto the default (with its host steps)
         predictor.predict_batch(
             lefts,
             rights,
@@ -120,6 +120,7 @@ def time_predict_batch(
             two_pass=two_pass,
             blend_sgbm=two_pass == "auto",
             refine_edges=two_pass == "auto",
+            align_rows=two_pass == "auto",
         )
 
     for _ in range(plan.warmup_calls):
@@ -140,6 +141,8 @@ def accuracy(plan: Plan, name: str, eager: Any, graphed: Any, data_dir: Path | N
     """bf16 against fp32 and graph replay against eager on the dev pairs (or procedural scenes)."""
     import numpy as np
 
+    from crestereo_pp.inference import NETWORK_ONLY
+
     height, width = plan.sizes[0]
     samples, source = samples_for(data_dir, plan.accuracy_pairs, height, width, eager.device)
     bf16_differences: list[float] = []
@@ -151,22 +154,18 @@ def accuracy(plan: Plan, name: str, eager: Any, graphed: Any, data_dir: Path | N
             break
         known = sample.valid & np.isfinite(sample.disparity)
         eager.precision = "fp32"
-        fp32 = eager.predict(
-            sample.left, sample.right, iters=plan.iters, blend_sgbm=False, refine_edges=False
-        ).disparity
+        fp32 = eager.predict(sample.left, sample.right, iters=plan.iters, **NETWORK_ONLY).disparity
         eager.precision = "bf16"
-        bf16 = eager.predict(
-            sample.left, sample.right, iters=plan.iters, blend_sgbm=False, refine_edges=False
-        ).disparity
+        bf16 = eager.predict(sample.left, sample.right, iters=plan.iters, **NETWORK_ONLY).disparity
         bf16_differences.append(float(np.abs(bf16 - fp32).mean()))
         epe_fp32.append(float(np.abs(fp32 - sample.disparity)[known].mean()))
         epe_bf16.append(float(np.abs(bf16 - sample.disparity)[known].mean()))
         if graphed is not None:
             graphed.precision = "fp32"
             for _ in range(2):  # the second sighting of the shape is captured and replayed
-                replayed = graphed.predict_batch(
-                    [sample.left], [sample.right], iters=plan.iters, blend_sgbm=False, refine_edges=False
-                )[0].disparity
+                replayed = graphed.predict_batch([sample.left], [sample.right], iters=plan.iters, **NETWORK_ONLY)[
+                    0
+                ].disparity
             graph_differences.append(float(np.abs(replayed - fp32).max()))
             graphed.graphs.clear()
     return dict(

@@ -1,0 +1,83 @@
+"""Row alignment (`inference.row_alignment`, `InferenceOptions.align_rows`): a real pair's right
+image moved off the left's rows is measured from tracked corners and resampled back, so that the
+network answers it as it answers the pair as it was; a pair already on its rows, or one with
+nothing to track, is computed as given."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from crestereo_pp.inference import NETWORK_ONLY
+from crestereo_pp.inference.row_alignment import MIN_OFFSET_PX, align_rows, measure_row_offset
+from raw_camera import small_dev_sample
+
+
+def moved(image: np.ndarray, down_px: float, turn_deg: float = 0.0) -> np.ndarray:
+    """`image` moved down by `down_px` (its content) and turned by `turn_deg` about its centre:
+    bilinear, edges replicated."""
+    height, width = image.shape[:2]
+    warp = cv2.getRotationMatrix2D((width / 2, height / 2), turn_deg, 1.0)
+    warp[1, 2] += down_px
+    return cv2.warpAffine(image, warp, (width, height), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+
+
+def wrong_by_over_2_px(disparity: np.ndarray, truth: np.ndarray, known: np.ndarray) -> float:
+    return float(np.mean(np.abs(disparity - truth)[known] > 2.0))
+
+
+def test_a_right_image_moved_down_by_a_pixel_and_a_half_is_measured_within_a_tenth():
+    sample = small_dev_sample()  # Tsukuba: its own rows agree within about 0.1 px
+    offset = measure_row_offset(sample.left, moved(sample.right, 1.5))
+    assert offset is not None and offset.tracks >= 100
+    assert offset.centre_px == pytest.approx(1.5, abs=0.1)
+    assert abs(offset.across_px) < 0.2 and abs(offset.down_px) < 0.2
+    as_given = measure_row_offset(sample.left, sample.right)
+    assert as_given is not None and as_given.largest_px < MIN_OFFSET_PX
+
+
+def test_a_turned_right_image_is_measured_as_a_tilt_across_the_rows():
+    sample = small_dev_sample()
+    width = sample.left.shape[1]
+    offset = measure_row_offset(sample.left, moved(sample.right, 0.0, turn_deg=0.3))
+    # turned counterclockwise (OpenCV's positive angle) by 0.3 degrees: the right end rises
+    assert offset is not None
+    assert offset.across_px == pytest.approx(-np.radians(0.3) * width, abs=0.15)
+    assert abs(offset.centre_px) < 0.1
+
+
+def test_the_network_answers_a_pair_off_its_rows_as_it_answers_the_pair_on_them(lite):
+    sample = small_dev_sample()
+    known = sample.valid & np.isfinite(sample.disparity)
+    off = moved(sample.right, 2.0)
+    on_rows = lite.predict(sample.left, sample.right, **NETWORK_ONLY).disparity
+    off_rows = lite.predict(sample.left, off, **NETWORK_ONLY).disparity
+    aligned = lite.predict(sample.left, off, **{**NETWORK_ONLY, "align_rows": True}).disparity
+    error_on_rows = wrong_by_over_2_px(on_rows, sample.disparity, known)
+    assert wrong_by_over_2_px(off_rows, sample.disparity, known) > 2 * error_on_rows
+    assert wrong_by_over_2_px(aligned, sample.disparity, known) < error_on_rows + 0.01
+
+
+def test_a_pair_on_its_rows_or_without_texture_is_computed_as_given():
+    sample = small_dev_sample()
+    assert align_rows(sample.left, sample.right) is sample.right
+    flat = np.full((64, 96, 3), 90, np.uint8)
+    assert measure_row_offset(flat, flat) is None
+    assert align_rows(flat, flat) is flat
+
+
+def test_an_array_keeps_its_type_and_a_tensor_its_device_and_shape():
+    sample = small_dev_sample()
+    off = moved(sample.right, 1.0)
+    as_uint16 = align_rows(sample.left, off.astype(np.uint16) * 257)
+    assert isinstance(as_uint16, np.ndarray) and as_uint16.dtype == np.uint16 and as_uint16.shape == off.shape
+    grey = align_rows(sample.left, off[..., :1])
+    assert isinstance(grey, np.ndarray) and grey.shape == (*off.shape[:2], 1)
+    tensor = torch.from_numpy(off).permute(2, 0, 1)[None].float()
+    aligned = align_rows(sample.left, tensor)
+    assert isinstance(aligned, torch.Tensor) and aligned.shape == tensor.shape and aligned.device == tensor.device
+    as_array = align_rows(sample.left, off)
+    assert isinstance(as_array, np.ndarray)
+    np.testing.assert_allclose(aligned[0].permute(1, 2, 0).numpy(), as_array, atol=0.51)
