@@ -9,10 +9,10 @@ import cv2
 import numpy as np
 import pytest
 import torch
+from raw_camera import small_dev_sample
 
 from crestereo_pp.inference import NETWORK_ONLY
 from crestereo_pp.inference.row_alignment import MIN_OFFSET_PX, align_rows, measure_row_offset
-from raw_camera import small_dev_sample
 
 
 def moved(image: np.ndarray, down_px: float, turn_deg: float = 0.0) -> np.ndarray:
