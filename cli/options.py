@@ -102,9 +102,9 @@ def add_model_options(parser: argparse.ArgumentParser) -> None:
 
 
 def inference_options(args: argparse.Namespace) -> InferenceOptions:
-    """--iters, --two-pass, --scale, --flip, --blend-sgbm, --refine-edges, --align-rows (and --raw-uncertainty where
-    the command has it) as one value, read by `InferenceOptions` as the service reads its query; a
-    usage error where they are invalid."""
+    """--iters, --two-pass, --scale, --flip, --blend-sgbm, --refine-edges, --align-rows (and
+    --raw-uncertainty where the command has it) as one value, read by `InferenceOptions` as the
+    service reads its query; a usage error where they are invalid."""
     from crestereo_pp.inference import InferenceOptions
 
     try:

@@ -282,6 +282,8 @@ class StereoPredictor:
         lefts, rights: one image per pair, an array (as ``predict`` takes it) or a (1, 3|1, h, w)
         tensor. init_disparities: a warm start per pair (h x w px of its size), as ``predict``'s.
         graphed: on CUDA, replay the forward from a CUDA graph of the padded shape (``self.graphs``).
+        Where ``options.align_rows``, each right image is first put onto its left image's rows
+        (``inference.row_alignment``): the network, SGBM and the refinements all see it so.
 
         Pairs of different sizes but one padded shape (a multiple of INPUT_MULTIPLE) run as one
         batch, each replicate-padded at the bottom and right to it exactly as a single pair is
