@@ -124,7 +124,7 @@ class InferenceOptions:
     align_rows: where the right image's rows are off the left's by a quarter pixel or more
         (measured on the pair from tracked corners: ``inference.row_alignment``), resample the
         right image onto them first: about 20 ms a pair on a CPU; residual misrectification
-        costs the network much of its precision.
+        costs the network much of its precision. Pairs given as arrays; tensors go as given.
     Hashable: requests with equal options (and shapes) may share a batch.
     """
 

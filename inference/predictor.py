@@ -282,8 +282,9 @@ class StereoPredictor:
         lefts, rights: one image per pair, an array (as ``predict`` takes it) or a (1, 3|1, h, w)
         tensor. init_disparities: a warm start per pair (h x w px of its size), as ``predict``'s.
         graphed: on CUDA, replay the forward from a CUDA graph of the padded shape (``self.graphs``).
-        Where ``options.align_rows``, each right image is first put onto its left image's rows
-        (``inference.row_alignment``): the network, SGBM and the refinements all see it so.
+        Where ``options.align_rows``, each right array is first put onto its left image's rows
+        (``inference.row_alignment``; tensors go as given): the network, SGBM and the
+        refinements all see it so.
 
         Pairs of different sizes but one padded shape (a multiple of INPUT_MULTIPLE) run as one
         batch, each replicate-padded at the bottom and right to it exactly as a single pair is
@@ -303,8 +304,11 @@ class StereoPredictor:
             raise ValueError(f"left and right differ in size: {sizes} vs {right_sizes}")
         if init_disparities is not None and len(init_disparities) != len(lefts):
             raise ValueError(f"need one warm start per pair, got {len(init_disparities)} for {len(lefts)}")
-        if options.align_rows:
-            rights = [align_rows(*pair) for pair in zip(lefts, rights, strict=True)]
+        if options.align_rows:  # arrays only: a device tensor stays where it is until the network
+            rights = [
+                align_rows(left, right) if isinstance(left, np.ndarray) and isinstance(right, np.ndarray) else right
+                for left, right in zip(lefts, rights, strict=True)
+            ]
         iters = self.iterations(options.iters)
         forward = self.padded_forward(graphed)
         batches: list[tuple[list[int], PaddedBatch, Tensor, Tensor]] = []

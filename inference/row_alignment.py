@@ -8,7 +8,9 @@ measured on the pair itself: corners of the left image tracked into the right on
 Lucas-Kanade, each track checked by tracking it back), their vertical offsets fitted as a plane
 over the right image (a shift, a tilt across, a tilt down: what a residual rotation or focal
 length mismatch leaves), and the right image resampled onto the left's rows where the plane is
-off by more than MIN_OFFSET_PX anywhere. Elsewhere the pair is computed as it is.
+off by more than MIN_OFFSET_PX anywhere. Elsewhere the pair is computed as it is. Pairs given as
+arrays only: tensors on a device are computed as given, so that nothing crosses to the host before
+the network (``predict_pairs``).
 """
 
 from __future__ import annotations
@@ -17,10 +19,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-import torch
-from torch import Tensor
 
-from .prediction import as_image_batch
 from .sgbm import host_rgb8
 
 MIN_OFFSET_PX = 0.25
@@ -33,7 +32,6 @@ _CORNERS = 1000
 _WINDOW_PX = 21
 _LEVELS = 5  # a window of 21 px at 1/32 follows disparities of several hundred pixels
 _STOP = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
-CPU = torch.device("cpu")
 _ROUND_TRIP_PX = 0.5  # a track that does not come back within this of its corner is dropped
 
 
@@ -63,8 +61,8 @@ class RowOffset:
         return (self.centre_px + down[:, None] + across[None, :]).astype(np.float32)
 
 
-def measure_row_offset(left: np.ndarray | Tensor, right: np.ndarray | Tensor) -> RowOffset | None:
-    """The right image's row offset against the left's (images as ``as_image_batch`` reads them),
+def measure_row_offset(left: np.ndarray, right: np.ndarray) -> RowOffset | None:
+    """The right image's row offset against the left's (arrays as ``as_image_batch`` reads them),
     or None where too few corners can be tracked to say (a pair without texture)."""
     grey_left, grey_right = (cv2.cvtColor(host_rgb8(image), cv2.COLOR_RGB2GRAY) for image in (left, right))
     corners = cv2.goodFeaturesToTrack(grey_left, _CORNERS, 0.01, 7, blockSize=7)
@@ -103,21 +101,15 @@ def _track(source: np.ndarray, target: np.ndarray, points: np.ndarray) -> tuple[
     return moved, found
 
 
-def align_rows(left: np.ndarray | Tensor, right: np.ndarray | Tensor) -> np.ndarray | Tensor:
-    """``right``, resampled (bilinear, edges replicated) so that its rows lie on ``left``'s, where
-    ``measure_row_offset`` finds it off by MIN_OFFSET_PX or more somewhere; else ``right`` itself.
-    An array comes back as an array of its dtype and channels, a tensor as a (1, 3, H, W) float
-    tensor on its device (resampled on the host)."""
+def align_rows(left: np.ndarray, right: np.ndarray) -> np.ndarray:
+    """``right`` (an array, as ``as_image_batch`` reads it), resampled (bilinear, edges replicated)
+    so that its rows lie on ``left``'s, where ``measure_row_offset`` finds it off by MIN_OFFSET_PX
+    or more somewhere: an array of its dtype and channels. Else ``right`` itself."""
     offset = measure_row_offset(left, right)
     if offset is None or offset.largest_px < MIN_OFFSET_PX:
         return right
-    image = right if isinstance(right, np.ndarray) else as_image_batch(right, CPU)[0].permute(1, 2, 0).numpy()
-    height, width = image.shape[:2]
+    height, width = right.shape[:2]
     columns, rows = np.meshgrid(np.arange(width, dtype=np.float32), np.arange(height, dtype=np.float32))
     rows += offset.offsets(height, width)
-    aligned = cv2.remap(np.ascontiguousarray(image), columns, rows, cv2.INTER_LINEAR, None, cv2.BORDER_REPLICATE)
-    if image.ndim == 3 and aligned.ndim == 2:  # OpenCV drops a single channel's axis
-        aligned = aligned[..., None]
-    if isinstance(right, np.ndarray):
-        return aligned
-    return as_image_batch(aligned, right.device)
+    aligned = cv2.remap(np.ascontiguousarray(right), columns, rows, cv2.INTER_LINEAR, None, cv2.BORDER_REPLICATE)
+    return aligned[..., None] if right.ndim == 3 and aligned.ndim == 2 else aligned  # OpenCV drops a lone channel
