@@ -32,6 +32,13 @@ _CORNERS = 1000
 _WINDOW_PX = 21
 _LEVELS = 5  # a window of 21 px at 1/32 follows disparities of several hundred pixels
 _STOP = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
+_RESAMPLED_AS_IS = {
+    np.dtype(np.uint8),
+    np.dtype(np.uint16),
+    np.dtype(np.int16),
+    np.dtype(np.float32),
+    np.dtype(np.float64),
+}
 _ROUND_TRIP_PX = 0.5  # a track that does not come back within this of its corner is dropped
 
 
@@ -104,12 +111,14 @@ def _track(source: np.ndarray, target: np.ndarray, points: np.ndarray) -> tuple[
 def align_rows(left: np.ndarray, right: np.ndarray) -> np.ndarray:
     """``right`` (an array, as ``as_image_batch`` reads it), resampled (bilinear, edges replicated)
     so that its rows lie on ``left``'s, where ``measure_row_offset`` finds it off by MIN_OFFSET_PX
-    or more somewhere: an array of its dtype and channels. Else ``right`` itself."""
+    or more somewhere: an array of its channels, and of its dtype where OpenCV resamples that
+    (else float32, values as they were). Else ``right`` itself."""
     offset = measure_row_offset(left, right)
     if offset is None or offset.largest_px < MIN_OFFSET_PX:
         return right
     height, width = right.shape[:2]
     columns, rows = np.meshgrid(np.arange(width, dtype=np.float32), np.arange(height, dtype=np.float32))
     rows += offset.offsets(height, width)
-    aligned = cv2.remap(np.ascontiguousarray(right), columns, rows, cv2.INTER_LINEAR, None, cv2.BORDER_REPLICATE)
+    source = right if right.dtype in _RESAMPLED_AS_IS else right.astype(np.float32)  # int32/64, float16, bool
+    aligned = cv2.remap(np.ascontiguousarray(source), columns, rows, cv2.INTER_LINEAR, None, cv2.BORDER_REPLICATE)
     return aligned[..., None] if right.ndim == 3 and aligned.ndim == 2 else aligned  # OpenCV drops a lone channel

@@ -74,6 +74,9 @@ def test_an_array_keeps_its_type_and_channels_and_a_tensor_is_computed_as_given(
     as_uint16 = align_rows(sample.left, off.astype(np.uint16) * 257)
     assert as_uint16.dtype == np.uint16 and as_uint16.shape == off.shape
     np.testing.assert_allclose(as_uint16 / 257, align_rows(sample.left, off), atol=1.0)
+    as_int64 = align_rows(sample.left, off.astype(np.int64))  # OpenCV resamples no int64: float32, same values
+    assert as_int64.dtype == np.float32
+    np.testing.assert_allclose(as_int64, align_rows(sample.left, off), atol=1.0)
     grey = align_rows(sample.left, off[..., :1])
     assert grey.shape == (*off.shape[:2], 1)
     as_tensors = [torch.from_numpy(image).permute(2, 0, 1)[None].float() for image in (sample.left, off)]
