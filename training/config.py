@@ -135,6 +135,12 @@ class TrainConfig:
         "(car bodies and windows, glossy floors, glass: a second layer moving between the views by less than the "
         "surface)",
     )
+    row_offset_probability: float = _knob(
+        0.0,
+        "procedural scenes: fraction of the pairs whose right view's rows are off the left's (an imperfect "
+        "rectification: a shift and two tilts of vertical offsets, up to row_offset px)",
+    )
+    row_offset: float = _knob(2.0, "largest vertical offset (px) of the pairs whose rows are off")
     wide_max_disparity: float | None = _knob(
         None,
         "largest disparity (px) of the wide-range procedural scenes [256 * crop_width / 512, at least max_disparity]",
@@ -248,6 +254,8 @@ class TrainConfig:
             wide_range_probability=self.wide_range_probability,
             wide_max_disparity=self.wide_max_disparity,
             reflective_probability=self.reflective_probability,
+            row_offset_probability=self.row_offset_probability,
+            row_offset=self.row_offset,
         )
 
     @property

@@ -21,18 +21,19 @@ generators differ, so a seed gives different scenes on different device types.
 
 The modules, in the order a batch is made:
 
-    config       SceneConfig, PhotometricConfig: what is drawn
-    draw         Draw: the one source of randomness
-    sampling     draw_scenes: each surface's shape, disparity, look and lighting, as a Scene
-    hard_cases   thin, flat and repetitive surfaces, wide disparity ranges
-    layouts      road and room layouts (a ground plane seen in perspective)
-    textures     the texture banks
-    scene        Scene (the drawn parameters) and SyntheticBatch (the rendered pairs)
-    geometry     a surface's disparity, gradient and shape at a point
-    visibility   the z-buffer: which surface each sample sees
-    shading      the colour a view sees there
-    photometric  blur, gamma, vignetting, gain, offset, noise, JPEG after rendering
-    generator    SceneGenerator: all of the above on one device
+    config         SceneConfig, PhotometricConfig: what is drawn
+    draw           Draw: the one source of randomness
+    sampling       draw_scenes: each surface's shape, disparity, look and lighting, as a Scene
+    hard_cases     thin, flat and repetitive surfaces, wide disparity ranges
+    layouts        road and room layouts (a ground plane seen in perspective)
+    textures       the texture banks
+    scene          Scene (the drawn parameters) and SyntheticBatch (the rendered pairs)
+    geometry       a surface's disparity, gradient and shape at a point
+    visibility     the z-buffer: which surface each sample sees
+    shading        the colour a view sees there
+    rectification  the right view's rows moved off the left's (an imperfect rectification)
+    photometric    blur, gamma, vignetting, gain, offset, noise, JPEG after rendering
+    generator      SceneGenerator: all of the above on one device
 """
 
 from .config import PhotometricConfig, SceneConfig

@@ -88,6 +88,12 @@ class SceneConfig:
       between the views less than the surface does. The ground truth stays the surface's; its
       outline tells it apart. Never the background, which no outline would tell apart.
 
+    Imperfect rectification: with ``row_offset_probability`` a pair's right view is moved off the
+    left's rows after rendering (before the photometric changes) by a plane of vertical offsets
+    dy = centre + across * (x / W - 1/2) + down * (y / H - 1/2), each term uniform in
+    +-row_offset / 2, so that |dy| <= row_offset px everywhere (`rectification`). Vertical only: the
+    horizontal ground truth stays exact.
+
     Scale/crop augmentation: each scene is magnified by a random ``s = 2**U(log2_scale)``: every
     length (shape sizes, bar widths, texel sizes) is its unscaled length times s. A random crop of a
     procedural scene is distributed like the scene itself, so the crop is implicit: shapes are
@@ -128,6 +134,8 @@ class SceneConfig:
     repetitive_probability: float = 0.0  # surfaces painted with a pattern repeating every 4-40 px along the rows
     wide_range_probability: float = 0.0  # scenes whose largest disparity is drawn up to wide_max_disparity
     reflective_probability: float = 0.0  # foreground surfaces reflecting a farther scene over their own texture
+    row_offset_probability: float = 0.0  # pairs whose right view's rows are off the left's (vertical offsets)
+    row_offset: float = 2.0  # px: the largest vertical offset of such a pair, anywhere in the frame
     supersample: int = 1  # anti-aliasing: images are the mean of supersample x supersample samples per pixel
     photometric: PhotometricConfig | None = field(default_factory=PhotometricConfig)
 
@@ -162,9 +170,12 @@ class SceneConfig:
             "repetitive_probability",
             "wide_range_probability",
             "reflective_probability",
+            "row_offset_probability",
         ):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)}")
+        if not 0.0 <= self.row_offset <= 8.0:
+            raise ValueError(f"row_offset must be in [0, 8] px, got {self.row_offset}")
         if self.supersample < 1:
             raise ValueError(f"supersample must be a positive integer, got {self.supersample}")
         if 2 ** self.log2_scale[0] * self.texel_size[0] * self.supersample < 1:

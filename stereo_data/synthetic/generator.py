@@ -10,6 +10,7 @@ from ..readers import StereoSample
 from .config import SceneConfig
 from .draw import Draw
 from .photometric import apply_photometric
+from .rectification import draw_row_offsets, offset_rows
 from .sampling import draw_scenes
 from .scene import Scene, SyntheticBatch
 from .shading import shade
@@ -29,9 +30,13 @@ class SceneGenerator:
         self._photos = load_photos(config.texture_size, self.device) if config.photo_textures else []
 
     def generate(self, batch_size: int, seed: int) -> SyntheticBatch:
-        """Draw, render and (if configured) photometrically augment ``batch_size`` pairs."""
+        """Draw, render and (if configured) move the right views off their rows and photometrically
+        augment ``batch_size`` pairs."""
         draw = Draw.seeded(seed, self.device)
         batch = self.render(draw_scenes(batch_size, self.config, draw, self._photos))
+        if self.config.row_offset_probability > 0:  # drawn only then: other settings keep their scenes
+            batch.row_offset = draw_row_offsets(batch_size, self.config, draw)
+            batch.right = offset_rows(batch.right, batch.row_offset)
         if self.config.photometric is not None:
             batch.left = apply_photometric(batch.left, self.config.photometric, draw)
             batch.right = apply_photometric(batch.right, self.config.photometric, draw)

@@ -127,12 +127,15 @@ class SyntheticBatch:
 
     left, right: (B, 3, H, W) float32 RGB in [0, 255].
     disparity: (B, 1, H, W) float32 px of the LEFT view, in [0, max_disparity] (wide-range scenes:
-        [0, wide_max_disparity]); left pixel (x, y) matches right pixel (x - d, y). Dense and exact,
+        [0, wide_max_disparity]); left pixel (x, y) matches right pixel (x - d, y) (a row lower by
+        `row_offset`'s dy where that is set). Dense and exact,
         occluded pixels included.
     valid: (B, 1, H, W) bool, where the ground truth is defined: everywhere (kept for the contract
         shared with real datasets).
     occluded: (B, 1, H, W) bool, left pixels whose match is hidden by a nearer surface in the right
         view, or out of its frame (x - d < 0).
+    row_offset: (B, 3) float32 px, (centre, across, down): the right view's rows against the left's
+        (`rectification.draw_row_offsets`); None where they agree exactly, as rendered.
     """
 
     left: torch.Tensor
@@ -140,6 +143,7 @@ class SyntheticBatch:
     disparity: torch.Tensor
     valid: torch.Tensor
     occluded: torch.Tensor
+    row_offset: torch.Tensor | None = None
 
     def pair(self, index: int = 0) -> tuple[np.ndarray, np.ndarray]:
         """Pair `index` as images: (left, right) uint8 HxWx3 RGB, on the host."""

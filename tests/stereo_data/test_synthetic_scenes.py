@@ -76,6 +76,9 @@ def test_default_max_disparity_is_192_at_512_px_and_scales_with_width() -> None:
         {"repetitive_probability": 2.0},
         {"wide_range_probability": -1.0},
         {"reflective_probability": 1.5},
+        {"row_offset_probability": -0.5},
+        {"row_offset": -1.0},
+        {"row_offset": 9.0},  # rows that far off are a failed rectification, not a residual
         {"max_disparity": 100.0, "wide_max_disparity": 90.0, "wide_range_probability": 0.5},  # narrower
     ],
 )
@@ -659,7 +662,7 @@ RECIPE_SUMS = {
 )
 def test_hard_case_options_at_their_defaults_leave_every_batch_as_it_was(name: str, config: SceneConfig) -> None:
     assert (config.thin_probability, config.flat_probability, config.repetitive_probability) == (0, 0, 0)
-    assert config.wide_range_probability == config.reflective_probability == 0
+    assert config.wide_range_probability == config.reflective_probability == config.row_offset_probability == 0
     batch = SceneGenerator(config).generate(batch_size=2, seed=0)
     sums = [float(getattr(batch, view).double().sum()) for view in ("left", "right", "disparity", "occluded")]
     # Any extra random draw would change whole scenes (sums by percents); allow only float rounding.

@@ -94,11 +94,14 @@ def test_hard_case_knobs_are_off_by_default_and_reach_the_procedural_generator()
         wide_range_probability=0.5,
         wide_max_disparity=240.0,
         reflective_probability=0.4,
+        row_offset_probability=0.5,
+        row_offset=1.5,
     )
     scenes = config.scene_config
     assert (scenes.thin_probability, scenes.flat_probability, scenes.repetitive_probability) == (0.3, 0.2, 0.1)
     assert (scenes.wide_range_probability, scenes.wide_max_disparity) == (0.5, 240.0)
     assert scenes.reflective_probability == 0.4 and default.reflective_probability == 0
+    assert (scenes.row_offset_probability, scenes.row_offset) == (0.5, 1.5) and default.row_offset_probability == 0
     assert TrainConfig.from_dict(config.to_dict()) == config
 
 
