@@ -99,11 +99,29 @@ class Camera:
 
 
 @dataclass(frozen=True)
+class RowOffset:
+    """How far the right image's rows lay off the left's, as the service measured them before
+    matching: a left pixel's match lay dy px lower in the right image (negative: higher), dy(x, y)
+    = centre_px + across_px * (x / W - 1/2) + down_px * (y / H - 1/2); largest_px the largest |dy|
+    over the image, tracks the corners it was fitted to, aligned whether the service resampled
+    the right image onto the left's rows (0.25 px or more somewhere). A pixel or more says that
+    the rig's calibration is off."""
+
+    centre_px: float
+    across_px: float
+    down_px: float
+    largest_px: float
+    tracks: int
+    aligned: bool
+
+
+@dataclass(frozen=True)
 class Computation:
     """What the service says of a computation: the model, whether its weights are trained (False:
     its maps are not usable), the weights' identity (first 16 hex digits of their sha256), how many
-    requests ran in its batch, its time queued and the batch's network time, and a raw pair's
-    rectified left camera (None for a rectified pair)."""
+    requests ran in its batch, its time queued and the batch's network time, a raw pair's
+    rectified left camera (None for a rectified pair), and the right image's row offset as
+    measured (None with `align_rows=False`, or where the pair had too little texture to measure)."""
 
     model: str
     trained: bool
@@ -112,6 +130,7 @@ class Computation:
     queue_ms: float
     compute_ms: float
     camera: Camera | None
+    row_offset: RowOffset | None
 
 
 @dataclass(frozen=True)
@@ -232,10 +251,9 @@ def _answered(response: httpx.Response) -> dict[str, Any]:
     if response.status_code != 200:
         raise _error(response.status_code, response.content, response.headers.get("retry-after"))
     headers = response.headers
-    camera = None
-    if "x-camera" in headers:
-        named = dict(item.split("=", 1) for item in headers["x-camera"].split("; "))
-        camera = Camera(**{name: float(value) for name, value in named.items()})
+    camera = Camera(**_header_fields(headers["x-camera"])) if "x-camera" in headers else None
+    offset = headers.get("x-row-offset", "unmeasured")
+    row_offset = None if offset == "unmeasured" else RowOffset(**_header_fields(offset))
     return dict(
         model=headers["x-model"],
         trained=headers["x-model-status"] == "trained",
@@ -244,7 +262,13 @@ def _answered(response: httpx.Response) -> dict[str, Any]:
         queue_ms=float(headers["x-queue-ms"]),
         compute_ms=float(headers["x-compute-ms"]),
         camera=camera,
+        row_offset=row_offset,
     )
+
+
+def _header_fields(value: str) -> dict[str, Any]:
+    """The fields of a header of `name=value; ...` (each value spelled as in JSON)."""
+    return {name: json.loads(text) for name, text in (item.split("=", 1) for item in value.split("; "))}
 
 
 def _disparity_result(response: httpx.Response) -> DisparityResult:
@@ -497,6 +521,7 @@ def _json_result(body: dict[str, Any]) -> DisparityResult:
         queue_ms=float(timings["queue_ms"]),
         compute_ms=float(timings["compute_ms"]),
         camera=Camera(**body["camera"]) if body.get("camera") else None,
+        row_offset=RowOffset(**body["row_offset"]) if body.get("row_offset") else None,
         disparity=array(body["disparity"]),
         uncertainty=array(body["uncertainty"]),
         depth=array(body["depth"]) if body.get("depth") else None,

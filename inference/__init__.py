@@ -6,6 +6,7 @@ Disparity is positive everywhere, in pixels of the left image (the right match i
     from crestereo_pp.inference import load_model
     predictor = load_model("lite")                  # bundled weights if present
     disparity, uncertainty = predictor.predict(left_rgb, right_rgb)
+    offset = measure_row_offset(left_rgb, right_rgb)  # how far the right rows lie off the left's
 """
 
 from .batching import PairMaps
@@ -22,6 +23,7 @@ from .options import (
 )
 from .prediction import Prediction, TensorPrediction
 from .predictor import StereoPredictor
+from .row_alignment import RowOffset, measure_row_offset
 from .warm_start import FrameStream, WarmStart
 
 __all__ = [
@@ -32,12 +34,14 @@ __all__ = [
     "PairMaps",
     "Iterations",
     "Prediction",
+    "RowOffset",
     "StageCounts",
     "StereoPredictor",
     "TensorPrediction",
     "TwoPass",
     "WarmStart",
     "load_model",
+    "measure_row_offset",
     "parse_iterations",
     "parse_two_pass",
 ]

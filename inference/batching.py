@@ -22,6 +22,7 @@ from .options import TwoPass
 from .padding import Padding
 from .prediction import Prediction, TensorPrediction
 from .refinement import HostRefinement
+from .row_alignment import RowOffset
 from .two_pass import two_pass_possible
 
 ServeUncertainty = Callable[[Tensor, Tensor, Tensor, Tensor], Tensor]
@@ -112,24 +113,29 @@ class PairMaps:
     for each batch that ran, the indices of its pairs (in the order given), its padding and its
     maps stacked as one (2, B, H, W) tensor (disparity, uncertainty). With a `refinement`, each
     pair's disparity is refined on its way out (``inference.refinement``: the blend with SGBM, the
-    edges): host work, done where the maps reach the host."""
+    edges): host work, done where the maps reach the host. row_offsets: where the right images'
+    rows were measured (``InferenceOptions.align_rows``), each pair's offset in the order given
+    (None for a pair given as tensors, or with too little texture to measure); else empty."""
 
     batches: tuple[tuple[tuple[int, ...], PaddedBatch, Tensor], ...]
     refinement: HostRefinement | None = None
+    row_offsets: tuple[RowOffset | None, ...] = ()
 
     @staticmethod
     def of(
         batches: Sequence[tuple[Sequence[int], PaddedBatch, Tensor, Tensor]],
         refinement: HostRefinement | None = None,
+        row_offsets: Sequence[RowOffset | None] = (),
     ) -> PairMaps:
-        """From each batch's pair indices, padding, and (B, H, W) disparity and uncertainty, and
-        the refinement of their answers, if any."""
+        """From each batch's pair indices, padding, and (B, H, W) disparity and uncertainty, the
+        refinement of their answers, if any, and the pairs' measured row offsets."""
         return PairMaps(
             tuple(
                 (tuple(indices), batch, torch.stack((disparity, uncertainty)))
                 for indices, batch, disparity, uncertainty in batches
             ),
             refinement,
+            tuple(row_offsets),
         )
 
     def on_host(self) -> list[Prediction]:

@@ -35,7 +35,7 @@ from .options import InferenceOptions, Iterations, IterationsGiven, StageCounts,
 from .padding import Padding
 from .prediction import Prediction, TensorPrediction, as_image_batch, image_size
 from .refinement import HostRefinement
-from .row_alignment import align_rows
+from .row_alignment import RowOffset, align_rows
 from .scaling import maps_at, resize_images, scaled_size
 from .torch_backend import autocast_bf16
 from .two_pass import PaddedForward, cold_maps, large_disparity_percentile
@@ -284,7 +284,8 @@ class StereoPredictor:
         graphed: on CUDA, replay the forward from a CUDA graph of the padded shape (``self.graphs``).
         Where ``options.align_rows``, each right array is first put onto its left image's rows
         (``inference.row_alignment``; tensors go as given): the network, SGBM and the
-        refinements all see it so.
+        refinements all see it so, and the result carries each pair's measured offset
+        (``PairMaps.row_offsets``).
 
         Pairs of different sizes but one padded shape (a multiple of INPUT_MULTIPLE) run as one
         batch, each replicate-padded at the bottom and right to it exactly as a single pair is
@@ -304,11 +305,15 @@ class StereoPredictor:
             raise ValueError(f"left and right differ in size: {sizes} vs {right_sizes}")
         if init_disparities is not None and len(init_disparities) != len(lefts):
             raise ValueError(f"need one warm start per pair, got {len(init_disparities)} for {len(lefts)}")
+        row_offsets: list[RowOffset | None] = []
         if options.align_rows:  # arrays only: a device tensor stays where it is until the network
-            rights = [
-                align_rows(left, right) if isinstance(left, np.ndarray) and isinstance(right, np.ndarray) else right
+            aligned = [
+                align_rows(left, right)
+                if isinstance(left, np.ndarray) and isinstance(right, np.ndarray)
+                else (right, None)
                 for left, right in zip(lefts, rights, strict=True)
             ]
+            rights, row_offsets = [right for right, _ in aligned], [offset for _, offset in aligned]
         iters = self.iterations(options.iters)
         forward = self.padded_forward(graphed)
         batches: list[tuple[list[int], PaddedBatch, Tensor, Tensor]] = []
@@ -341,7 +346,7 @@ class StereoPredictor:
                 )
                 disparity, uncertainty = merge_flipped(disparity, uncertainty, *(turned(x) for x in maps))
             batches.append((group, batch, disparity[:, 0], uncertainty[:, 0]))
-        return PairMaps.of(batches, HostRefinement.of((lefts, rights), options))
+        return PairMaps.of(batches, HostRefinement.of((lefts, rights), options), row_offsets)
 
     def batch_maps(
         self,

@@ -57,6 +57,11 @@ class RowOffset:
     tracks: int
 
     @property
+    def aligned(self) -> bool:
+        """Whether ``align_rows`` resamples a right image so far off (MIN_OFFSET_PX somewhere)."""
+        return self.largest_px >= MIN_OFFSET_PX
+
+    @property
     def largest_px(self) -> float:
         """The largest |dy| over the image (at one of its corners)."""
         return abs(self.centre_px) + 0.5 * abs(self.across_px) + 0.5 * abs(self.down_px)
@@ -108,17 +113,20 @@ def _track(source: np.ndarray, target: np.ndarray, points: np.ndarray) -> tuple[
     return moved, found
 
 
-def align_rows(left: np.ndarray, right: np.ndarray) -> np.ndarray:
-    """``right`` (an array, as ``as_image_batch`` reads it), resampled (bilinear, edges replicated)
-    so that its rows lie on ``left``'s, where ``measure_row_offset`` finds it off by MIN_OFFSET_PX
-    or more somewhere: an array of its channels, and of its dtype where OpenCV resamples that
-    (else float32, values as they were). Else ``right`` itself."""
+def align_rows(left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, RowOffset | None]:
+    """``right`` (an array, as ``as_image_batch`` reads it) put onto ``left``'s rows, and the
+    offset measured (``measure_row_offset``; None where the pair has too little texture to say).
+    Where the offset reaches MIN_OFFSET_PX somewhere, the image is resampled (bilinear, edges
+    replicated): an array of its channels, and of its dtype where OpenCV resamples that (else
+    float32, values as they were). Else ``right`` itself."""
     offset = measure_row_offset(left, right)
-    if offset is None or offset.largest_px < MIN_OFFSET_PX:
-        return right
+    if offset is None or not offset.aligned:
+        return right, offset
     height, width = right.shape[:2]
     columns, rows = np.meshgrid(np.arange(width, dtype=np.float32), np.arange(height, dtype=np.float32))
     rows += offset.offsets(height, width)
     source = right if right.dtype in _RESAMPLED_AS_IS else right.astype(np.float32)  # int32/64, float16, bool
     aligned = cv2.remap(np.ascontiguousarray(source), columns, rows, cv2.INTER_LINEAR, None, cv2.BORDER_REPLICATE)
-    return aligned[..., None] if right.ndim == 3 and aligned.ndim == 2 else aligned  # OpenCV drops a lone channel
+    if right.ndim == 3 and aligned.ndim == 2:  # OpenCV drops a lone channel
+        aligned = aligned[..., None]
+    return aligned, offset

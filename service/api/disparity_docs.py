@@ -31,6 +31,11 @@ _RESULT_HEADERS = {
         "A raw pair's only (sent with a `calibration` part): the rectified left camera that disparity and depth "
         "refer to, as in the JSON answer's `camera`: `focal_px=F; baseline_m=B; cx_px=CX; cy_px=CY`."
     ),
+    "X-Row-Offset": _header(
+        "With `align_rows` (the default): how far the right image's rows lay off the left's, measured on the pair "
+        "before matching, as in the JSON answer's `row_offset`: `centre_px=C; across_px=A; down_px=D; "
+        "largest_px=L; tracks=N; aligned=true|false`, or `unmeasured` where the pair has too little texture."
+    ),
 }
 _RETRY_AFTER = {"Retry-After": _header("Seconds to wait before retrying.", "integer")}
 

@@ -7,6 +7,7 @@ import io
 
 import numpy as np
 
+from crestereo_pp.inference import RowOffset
 from crestereo_pp.service.api.schemas import (
     DisparityOptions,
     DisparityResponse,
@@ -15,6 +16,7 @@ from crestereo_pp.service.api.schemas import (
     ImageSize,
     OutputFormat,
     RectifiedCamera,
+    RowOffsetReport,
     Timings,
 )
 from crestereo_pp.service.batching.batcher import JobResult
@@ -76,6 +78,7 @@ def response_body(
                 depth=None if depth is None else encode_array(depth),
                 frame=options.frame if rectifier is not None else Frame.rectified,
                 camera=None if rectifier is None else rectified_camera(rectifier),
+                row_offset=None if result.output.row_offset is None else row_offset_report(result.output.row_offset),
             )
             return body.model_dump_json().encode(), "application/json"
         case OutputFormat.npz:
@@ -102,6 +105,18 @@ def rectified_camera(rectifier: Rectifier) -> RectifiedCamera:
     camera = rectifier.focal_baseline
     assert camera.cx is not None and camera.cy is not None  # a rig always has its principal point
     return RectifiedCamera(focal_px=camera.focal_px, baseline_m=camera.baseline_m, cx_px=camera.cx, cy_px=camera.cy)
+
+
+def row_offset_report(offset: RowOffset) -> RowOffsetReport:
+    """A measured row offset as answers give it, to a thousandth of a pixel."""
+    return RowOffsetReport(
+        centre_px=round(offset.centre_px, 3),
+        across_px=round(offset.across_px, 3),
+        down_px=round(offset.down_px, 3),
+        largest_px=round(offset.largest_px, 3),
+        tracks=offset.tracks,
+        aligned=offset.aligned,
+    )
 
 
 def encode_array(values: np.ndarray) -> EncodedArray:

@@ -279,6 +279,24 @@ class RectifiedCamera(BaseModel):
     cy_px: float
 
 
+class RowOffsetReport(BaseModel):
+    """How far the right image's rows lay off the left's, measured on the pair before matching (from
+    corners tracked between the images): a left pixel's match lay dy px lower in the right image
+    (negative: higher), dy(x, y) = centre_px + across_px * (x / W - 1/2) + down_px * (y / H - 1/2).
+    A well-rectified pair stays within a few tenths of a pixel; a pixel or more says that the
+    rig's calibration is off."""
+
+    centre_px: float = Field(description="dy at the image's centre.")
+    across_px: float = Field(description="How much dy grows from the left edge to the right one (a turn).")
+    down_px: float = Field(description="How much dy grows from the top to the bottom (a focal length mismatch).")
+    largest_px: float = Field(description="The largest |dy| over the image (at one of its corners).")
+    tracks: int = Field(description="Corners the offset was fitted to.")
+    aligned: bool = Field(
+        description="Whether the right image was resampled onto the left's rows before matching (where "
+        "`largest_px` is 0.25 or more)."
+    )
+
+
 class DisparityResponse(BaseModel):
     """Body of a `format=json` answer; the same facts come as `X-*` headers in every format."""
 
@@ -331,6 +349,11 @@ class DisparityResponse(BaseModel):
         None,
         description="With a calibration part: the rectified left camera that disparity and depth refer to "
         "(in every format as `X-Camera`).",
+    )
+    row_offset: RowOffsetReport | None = Field(
+        None,
+        description="With `align_rows` (the default): the right image's row offset as measured (in every format "
+        "as `X-Row-Offset`); null where the pair has too little texture to measure it, or with `align_rows=false`.",
     )
 
 

@@ -12,6 +12,7 @@ import numpy as np
 
 from crestereo_pp.inference import InferenceOptions, Iterations, PairMaps, StageCounts, TwoPass
 from crestereo_pp.inference.backend_choice import Backend, Precision
+from crestereo_pp.inference.row_alignment import RowOffset
 from crestereo_pp.inference.two_pass import largest_enlargement
 from crestereo_pp.inference.uncertainty_calibration import UncertaintyCalibration
 from crestereo_pp.model import ModelConfig, padded_size
@@ -126,11 +127,13 @@ class StereoPair:
 
 @dataclass(frozen=True)
 class StereoMaps:
-    """One request's output: disparity (float32 HxW, px of the left image) and uncertainty
-    (float32 HxW in [0, 1])."""
+    """One request's output: disparity (float32 HxW, px of the left image), uncertainty
+    (float32 HxW in [0, 1]) and, where its options align rows, the right image's row offset as
+    measured (None: too little texture to measure, or not measured)."""
 
     disparity: np.ndarray
     uncertainty: np.ndarray
+    row_offset: RowOffset | None = None
 
 
 class StereoBatches:
@@ -159,9 +162,10 @@ class StereoBatches:
         every pair (and warm start) to the batch shape the way the network pads one; the maps
         come to the host at once."""
         inits = [pair.init for pair in pairs if pair.init is not None] if key.warm_start else None
-        predictions = (
-            self.predictors[key.model]
-            .predict_pairs([pair.left for pair in pairs], [pair.right for pair in pairs], key.options, inits)
-            .on_host()
+        maps = self.predictors[key.model].predict_pairs(
+            [pair.left for pair in pairs], [pair.right for pair in pairs], key.options, inits
         )
-        return [StereoMaps(p.disparity, p.uncertainty) for p in predictions]
+        offsets = maps.row_offsets or (None,) * len(pairs)
+        return [
+            StereoMaps(p.disparity, p.uncertainty, offset) for p, offset in zip(maps.on_host(), offsets, strict=True)
+        ]

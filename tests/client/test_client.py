@@ -9,8 +9,9 @@ import cv2
 import numpy as np
 import pytest
 from plyfile import PlyData
+from raw_camera import small_dev_sample
 
-from crestereo_pp.client import AsyncStereoClient, ServiceError, StereoClient
+from crestereo_pp.client import AsyncStereoClient, Options, RowOffset, ServiceError, StereoClient
 from crestereo_pp.client.stereo_client import _encode
 from crestereo_pp.inference import NETWORK_ONLY
 from service_helpers import encode, quiet_load_model, run_uvicorn, stereo_pair
@@ -137,6 +138,23 @@ def test_an_address_without_http_or_https_is_refused_at_once_naming_the_form():
             client("localhost:8000")
         with pytest.raises(ValueError, match="ftp://host: the service's address starts with http:// or https://$"):
             client("ftp://host")
+
+
+def test_a_result_carries_the_row_offset_the_service_measured_from_headers_and_from_a_stream(default_server):
+    sample = small_dev_sample()  # Tsukuba, its right image moved 1.5 px down
+    height, width = sample.left.shape[:2]
+    down = cv2.warpAffine(sample.right, np.float32([[1, 0, 0], [0, 1, 1.5]]), (width, height))
+    fast: Options = {"two_pass": False, "iters": (1, 1, 1)}
+    with StereoClient(default_server.base_url) as service:
+        result = service.disparity(sample.left, down, **fast)
+        unaligned = service.disparity(sample.left, down, align_rows=False, **fast)
+        with service.stream(**fast) as frames:
+            streamed = frames.send(sample.left, down)
+    assert isinstance(result.row_offset, RowOffset)
+    assert result.row_offset.centre_px == pytest.approx(1.5, abs=0.1) and result.row_offset.aligned
+    assert result.row_offset.tracks >= 100 and isinstance(result.row_offset.tracks, int)
+    assert streamed.row_offset == result.row_offset
+    assert unaligned.row_offset is None
 
 
 @pytest.mark.anyio

@@ -5,13 +5,15 @@ nothing to track, is computed as given."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import cv2
 import numpy as np
 import pytest
 import torch
 from raw_camera import small_dev_sample
 
-from crestereo_pp.inference import NETWORK_ONLY
+from crestereo_pp.inference import NETWORK_ONLY, InferenceOptions
 from crestereo_pp.inference.row_alignment import MIN_OFFSET_PX, align_rows, measure_row_offset
 
 
@@ -62,22 +64,36 @@ def test_the_network_answers_a_pair_off_its_rows_as_it_answers_the_pair_on_them(
 
 def test_a_pair_on_its_rows_or_without_texture_is_computed_as_given():
     sample = small_dev_sample()
-    assert align_rows(sample.left, sample.right) is sample.right
+    as_given, offset = align_rows(sample.left, sample.right)
+    assert as_given is sample.right and offset is not None and not offset.aligned
     flat = np.full((64, 96, 3), 90, np.uint8)
     assert measure_row_offset(flat, flat) is None
-    assert align_rows(flat, flat) is flat
+    assert align_rows(flat, flat) == (flat, None)
+
+
+def test_each_pair_computed_carries_its_measured_row_offset_where_rows_are_aligned(lite):
+    sample = small_dev_sample()
+    flat = np.full((64, 96, 3), 90, np.uint8)
+    lefts, rights = [sample.left, flat, sample.left], [moved(sample.right, 1.5), flat, sample.right]
+    options = InferenceOptions(two_pass=False, **{**NETWORK_ONLY, "align_rows": True})
+    off, untextured, on_rows = lite.predict_pairs(lefts, rights, options).row_offsets
+    assert off is not None and off.aligned and off.centre_px == pytest.approx(1.5, abs=0.1)
+    assert untextured is None
+    assert on_rows is not None and not on_rows.aligned and on_rows.largest_px < MIN_OFFSET_PX
+    assert lite.predict_pairs(lefts, rights, replace(options, align_rows=False)).row_offsets == ()
 
 
 def test_an_array_keeps_its_type_and_channels_and_a_tensor_is_computed_as_given(lite):
     sample = small_dev_sample()
     off = moved(sample.right, 1.0)
-    as_uint16 = align_rows(sample.left, off.astype(np.uint16) * 257)
+    as_uint16, _ = align_rows(sample.left, off.astype(np.uint16) * 257)
     assert as_uint16.dtype == np.uint16 and as_uint16.shape == off.shape
-    np.testing.assert_allclose(as_uint16 / 257, align_rows(sample.left, off), atol=1.0)
-    as_int64 = align_rows(sample.left, off.astype(np.int64))  # OpenCV resamples no int64: float32, same values
+    as_uint8, _ = align_rows(sample.left, off)
+    np.testing.assert_allclose(as_uint16 / 257, as_uint8, atol=1.0)
+    as_int64, _ = align_rows(sample.left, off.astype(np.int64))  # OpenCV resamples no int64: float32, same values
     assert as_int64.dtype == np.float32
-    np.testing.assert_allclose(as_int64, align_rows(sample.left, off), atol=1.0)
-    grey = align_rows(sample.left, off[..., :1])
+    np.testing.assert_allclose(as_int64, as_uint8, atol=1.0)
+    grey, _ = align_rows(sample.left, off[..., :1])
     assert grey.shape == (*off.shape[:2], 1)
     as_tensors = [torch.from_numpy(image).permute(2, 0, 1)[None].float() for image in (sample.left, off)]
     on_device = lite.predict(*as_tensors, two_pass=False, **NETWORK_ONLY).disparity[0].numpy()

@@ -9,6 +9,7 @@ import logging
 import cv2
 import numpy as np
 import pytest
+from raw_camera import small_dev_sample
 
 from crestereo_pp.inference import load_model
 from crestereo_pp.service.api.logs import JsonFormatter
@@ -249,6 +250,31 @@ async def test_a_request_may_cost_up_to_the_limit_in_plain_requests_of_the_large
     )
     assert h.predictors["lite"].calls == [1, 1]  # the two within the limit, each a batch of one
     assert info["max_request_cost"] == 2.0
+
+
+async def test_the_answer_says_how_far_the_right_rows_lay_off_the_left_ones_and_that_they_were_aligned():
+    sample = small_dev_sample()  # Tsukuba; its right image moved 1.5 px down, as a drifted rig leaves it
+    height, width = sample.left.shape[:2]
+    down = cv2.warpAffine(sample.right, np.float32([[1, 0, 0], [0, 1, 1.5]]), (width, height))
+    flat = np.full((64, 96, 3), 90, np.uint8)
+    fast = {"two_pass": "false", "iters": "1,1,1"}
+    async with serve_asgi() as h:
+        answer = await h.client.post("/disparity", params=fast, files=pair_files(sample.left, down))
+        as_npz = await h.client.post(
+            "/disparity", params={**fast, "format": "npz"}, files=pair_files(sample.left, down)
+        )
+        unaligned = await h.client.post(
+            "/disparity", params={**fast, "align_rows": "false"}, files=pair_files(sample.left, down)
+        )
+        untextured = await h.client.post("/disparity", params={**fast, "format": "npz"}, files=pair_files(flat, flat))
+    offset = answer.json()["row_offset"]
+    assert offset["centre_px"] == pytest.approx(1.5, abs=0.1) and offset["aligned"] is True
+    assert offset["largest_px"] >= abs(offset["centre_px"]) and offset["tracks"] >= 100
+    assert set(offset) == {"centre_px", "across_px", "down_px", "largest_px", "tracks", "aligned"}
+    named = dict(item.split("=", 1) for item in as_npz.headers["x-row-offset"].split("; "))
+    assert {name: json.loads(value) for name, value in named.items()} == offset  # the same in every format
+    assert unaligned.json()["row_offset"] is None and "x-row-offset" not in unaligned.headers
+    assert untextured.status_code == 200 and untextured.headers["x-row-offset"] == "unmeasured"
 
 
 async def test_models_platform_names_what_computes_default_requests_now_not_only_pytorch():

@@ -10,13 +10,14 @@ what the batcher raises is answered by the error handlers (`service.api.errors.b
 from __future__ import annotations
 
 import asyncio
+import json
 import time
 from collections.abc import Callable
 from functools import partial
 from typing import Annotated
 
 from fastapi import APIRouter, Header, Query, Request, Response
-from pydantic import BeforeValidator
+from pydantic import BaseModel, BeforeValidator
 from starlette.requests import ClientDisconnect
 
 from crestereo_pp.service.api.dependencies import API_KEY_SCHEME, RuntimeDep
@@ -25,6 +26,7 @@ from crestereo_pp.service.api.errors import ApiError, bad_input, client_gone
 from crestereo_pp.service.api.logs import request_id_var
 from crestereo_pp.service.api.pipeline import Answer, answer_pair
 from crestereo_pp.service.api.query import repeated_option
+from crestereo_pp.service.api.response_bodies import row_offset_report
 from crestereo_pp.service.api.schemas import DisparityOptions, DisparityResponse
 from crestereo_pp.service.batching.batcher import ClientDisconnected, DeadlineExceeded, Draining
 from crestereo_pp.service.batching.runtime import ServiceRuntime
@@ -113,7 +115,8 @@ async def estimate_disparity(
         request_id=request_id_var.get(),
     )
     request.state.batch_size = answer.result.batch_size
-    return Response(answer.body, media_type=answer.media_type, headers=_result_headers(answer, upload.header))
+    headers = _result_headers(answer, upload.header, options.inference.align_rows)
+    return Response(answer.body, media_type=answer.media_type, headers=headers)
 
 
 async def _read_body(request: Request, timeout_s: float) -> bytes:
@@ -161,8 +164,15 @@ def _refuse_repeated_headers(request: Request) -> None:
         raise bad_input(422, "invalid_request", "header.X-Request-Timeout-Ms: given more than once")
 
 
-def _result_headers(answer: Answer, size: ImageHeader) -> dict[str, str]:
-    """The result facts every answer carries as headers (`X-Camera` a raw pair's only)."""
+def header_fields(facts: BaseModel) -> str:
+    """A model's fields as one header value: `name=value; ...` (JSON's spelling of each value)."""
+    return "; ".join(f"{name}={json.dumps(value)}" for name, value in facts.model_dump().items())
+
+
+def _result_headers(answer: Answer, size: ImageHeader, rows_measured: bool) -> dict[str, str]:
+    """The result facts every answer carries as headers (`X-Camera` a raw pair's only,
+    `X-Row-Offset` where the rows were measured: `unmeasured` where the pair had too little
+    texture)."""
     result = answer.result
     headers = {
         "X-Model": answer.predictor.name,
@@ -174,5 +184,8 @@ def _result_headers(answer: Answer, size: ImageHeader) -> dict[str, str]:
         "X-Compute-Ms": f"{result.compute_seconds * 1000:.2f}",
     }
     if answer.camera is not None:
-        headers["X-Camera"] = "; ".join(f"{name}={value!r}" for name, value in answer.camera.model_dump().items())
+        headers["X-Camera"] = header_fields(answer.camera)
+    if rows_measured:
+        offset = answer.result.output.row_offset
+        headers["X-Row-Offset"] = "unmeasured" if offset is None else header_fields(row_offset_report(offset))
     return headers
