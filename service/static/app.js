@@ -206,6 +206,18 @@ function optionNumber(params, name) {
   return params.has(name) ? Number(params.get(name)) : undefined;
 }
 
+/** What the summary says of the right image's rows: the offset the service measured on the pair
+ * (`row_offset`), or nothing where `align_rows` was turned off. */
+function rowsSummary(params, offset) {
+  if (params.get("align_rows") === "false") return "";
+  if (!offset) return " · rows: too little texture to measure their offset";
+  const largest = `${offset.largest_px.toFixed(2)} px`;
+  return offset.aligned
+    ? ` · rows off the left's by up to ${largest}, aligned before matching` +
+      (offset.largest_px >= 1 ? " (check the rig's calibration)" : "")
+    : ` · rows on the left's (within ${largest})`;
+}
+
 async function showResult(body, params, left) {
   const [height, width] = body.disparity.shape;
   const result = {
@@ -232,7 +244,8 @@ async function showResult(body, params, left) {
     `batch of ${body.batch_size} · queued ${body.timings.queue_ms} ms · computed in ${body.timings.compute_ms} ms` +
     ` · disparity ${g3(low)}-${g3(high)} px (colour range)` +
     (body.camera ? ` · raw pair, rectified by its calibration (f ${g3(body.camera.focal_px)} px, baseline ` +
-      `${g3(body.camera.baseline_m)} m); maps in the ${body.frame} left image` : "");
+      `${g3(body.camera.baseline_m)} m); maps in the ${body.frame} left image` : "") +
+    rowsSummary(params, body.row_offset);
   $("readout").textContent = "hover over an image for the values at that pixel";
   renderDownloads(result.depth !== null);
   $("results").hidden = false;

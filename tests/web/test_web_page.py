@@ -162,6 +162,8 @@ def test_example_pair_gives_three_pictures_with_color_bars_in_px(web: WebPage) -
     same = np.all(np.abs(pictures["disparity"].astype(int) - expected) <= 8, axis=2).mean()
     assert same > 0.99
     assert "lite" in page.inner_text("#summary") and "192x128" in page.inner_text("#summary")
+    # what the service measured of the rows: too few corners of this small example to say
+    assert page.inner_text("#summary").endswith("rows: too little texture to measure their offset")
     expect(page.locator("#results")).to_be_in_viewport()  # brought into view below the form
 
 
@@ -170,7 +172,7 @@ def test_a_ticked_box_sends_its_option_only_where_it_differs_from_the_services_d
     page.select_option("#example", EXAMPLE)
     expect(page.locator("#status")).to_contain_text("loaded")
     queries = []
-    for change in (None, "#flip", "#blend_sgbm", "#refine_edges"):  # flip is off by default, the others on
+    for change in (None, "#flip", "#blend_sgbm", "#refine_edges", "#align_rows"):  # flip off by default, the others on
         if change is not None:
             page.click(change)
         with page.expect_response(lambda answer: "/disparity?" in answer.url) as answer:
@@ -181,6 +183,7 @@ def test_a_ticked_box_sends_its_option_only_where_it_differs_from_the_services_d
     assert "flip=true" in queries[1] and "blend_sgbm" not in queries[1]
     assert "flip=true" in queries[2] and "blend_sgbm=false" in queries[2] and "refine_edges" not in queries[2]
     assert "blend_sgbm=false" in queries[3] and "refine_edges=false" in queries[3]
+    assert "align_rows" not in queries[3] and "align_rows=false" in queries[4]
 
 
 def test_color_range_follows_color_min_and_color_max(web: WebPage) -> None:
