@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from crestereo_pp.inference import parse_iterations
+from crestereo_pp.inference import RowOffset, measure_row_offset, parse_iterations
 from crestereo_pp.stereo_data.formats import (
     encode_png,
     read_image,
@@ -303,16 +303,21 @@ class Frames(Protocol):
     def restart(self) -> None: ...
 
 
-def predict_and_write(job: Job, stream: Frames, images: PairImages) -> None:
+def predict_and_write(job: Job, stream: Frames, images: PairImages) -> RowOffset | None:
     """Compute one pair (rectified first where the job has a calibration; warm-started from the
     stream's previous pair only with --sequence) and write its outputs, each to a temporary name
-    first and then renamed: an interrupted run leaves no partial file."""
+    first and then renamed: an interrupted run leaves no partial file. Returns how far the right
+    image's rows lay off the left's (with --align-rows, the default; None where not measured or
+    too bare to measure), as alignment measures it before matching."""
     args, pair, left, right = job.args, images.pair, images.left, images.right
     if not args.sequence:
         stream.restart()  # every pair on its own
     rectifier = job.outputs.rectifier
     if rectifier is not None:
         left, right = rectifier.rectify(left, right)
+    offset = measure_row_offset(left, right) if args.align_rows else None
+    if job.single and args.align_rows:
+        print(describe_rows(offset))
     prediction = stream.predict(left, right)
     outputs = PredictionOutputs(prediction.disparity, prediction.uncertainty, left, job.outputs)
     disparity, uncertainty, depth = outputs.maps
@@ -334,6 +339,24 @@ def predict_and_write(job: Job, stream: Frames, images: PairImages) -> None:
         os.replace(partial, path)
         if job.single:
             print(f"wrote {output.what} {path}")
+    return offset
+
+
+OFF_ROWS_PX = 1.0
+"""Rows off by this much (px) somewhere say that the rig's calibration is off."""
+
+
+def describe_rows(offset: RowOffset | None) -> str:
+    """The line that says how far a pair's right rows lay off the left's (`measure_row_offset`)."""
+    if offset is None:
+        return "rows: too little texture to measure the right image's offset from the left's"
+    if not offset.aligned:
+        return f"rows: the right image's lie on the left's (within {offset.largest_px:.2f} px)"
+    advice = "; check the rig's calibration" if offset.largest_px >= OFF_ROWS_PX else ""
+    return (
+        f"rows: the right image's lay up to {offset.largest_px:.2f} px off the left's ({offset.centre_px:+.2f} px at "
+        f"the centre, {offset.across_px:+.2f} across, {offset.down_px:+.2f} down), aligned before matching{advice}"
+    )
 
 
 def describe_camera(camera: FocalBaseline) -> str:
@@ -361,15 +384,22 @@ def run(job: Job) -> int:
     if args.address is not None or args.workers is not None:
         raise ValueError("--address and --workers only apply with --ray")
     count, frames = read_frames(args.left, args.right)
-    written = 0
+    written, off_rows = 0, []
     with ExitStack() as resources:
         stream = frames_of(job, resources)
         for images in tqdm(frames, total=count, desc=f"predict {args.model}", unit="pair", disable=job.single):
-            predict_and_write(job, stream, images)
+            offset = predict_and_write(job, stream, images)
+            if offset is not None and offset.largest_px >= OFF_ROWS_PX:
+                off_rows.append(offset.largest_px)
             written += 1
     if not job.single:  # every output was written once per pair (any failure stops the command)
         for output in job.targets:
             print(f"wrote {written} {output.what} files to {output.path}")
+        if off_rows:
+            print(
+                f"rows: the right image's lay {OFF_ROWS_PX:g} px or more off the left's in {len(off_rows)} of "
+                f"{written} pairs (up to {max(off_rows):.2f} px), aligned before matching; check the rig's calibration"
+            )
     return 0
 
 

@@ -231,6 +231,35 @@ def test_predict_on_a_real_pair_keeps_its_size(small_stereo_dev, tmp_path):
     assert read_pfm(out).shape == left.shape[:2]
 
 
+def test_it_says_how_far_the_right_rows_lay_off_and_when_the_rigs_calibration_needs_a_look(tmp_path, capsys):
+    sample = small_dev_sample()  # Tsukuba, as given and with its right image moved 1.5 px down
+    height, width = sample.left.shape[:2]
+    down = cv2.warpAffine(sample.right, np.float32([[1, 0, 0], [0, 1, 1.5]]), (width, height))
+    for folder, image in (("left", sample.left), ("on_rows", sample.right), ("down", down)):
+        (tmp_path / folder).mkdir()
+        for name in ("a", "b"):
+            cv2.imwrite(str(tmp_path / folder / f"{name}.png"), cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
+    (tmp_path / "mixed").mkdir()
+    (tmp_path / "mixed" / "a.png").symlink_to(tmp_path / "on_rows" / "a.png")
+    (tmp_path / "mixed" / "b.png").symlink_to(tmp_path / "down" / "b.png")
+    fast = ["--two-pass", "off", "--iters", "1", "1", "1", "--device", "cpu"]
+    left = str(tmp_path / "left" / "a.png")
+
+    def said(*argv: str) -> str:
+        assert main(["predict", *argv, *fast]) == 0
+        return capsys.readouterr().out
+
+    assert "rows: the right image's lie on the left's (within 0." in said(
+        left, str(tmp_path / "on_rows" / "a.png"), "-o", str(tmp_path / "on.pfm")
+    )
+    moved = said(left, str(tmp_path / "down" / "a.png"), "-o", str(tmp_path / "down.pfm"))
+    assert "rows: the right image's lay up to 1.5" in moved and "check the rig's calibration" in moved
+    assert "+1.5" in moved  # at the centre
+    both = said(str(tmp_path / "left"), str(tmp_path / "mixed"), "-o", str(tmp_path / "out"), "--mkdir")
+    assert "1 px or more off the left's in 1 of 2 pairs (up to 1.5" in both
+    assert "rows:" not in said(left, str(tmp_path / "down" / "a.png"), "-o", str(tmp_path / "n.pfm"), "--no-align-rows")
+
+
 def test_a_metric_point_cloud_is_written_as_ply(pairs_dir, tmp_path):
     import io
 
@@ -276,7 +305,8 @@ def test_every_output_is_checked_before_computing_and_every_written_file_is_name
     argv = [*inputs, "-o", str(missing), "--uncertainty", str(tmp_path / "new" / "u.png"), "--mkdir"]
     argv += ["--depth", str(tmp_path / "new" / "z.pfm"), "--focal-px", "500", "--baseline-m", "0.1"]
     assert main([*argv, "--max-depth-m", "8"]) == 0
-    printed = capsys.readouterr().out.splitlines()
+    rows, *printed = capsys.readouterr().out.splitlines()
+    assert rows.startswith("rows: the right image's lie on the left's")  # said before computing
     assert printed == [
         f"wrote disparity {missing}",
         f"wrote uncertainty {tmp_path / 'new' / 'u.png'}",

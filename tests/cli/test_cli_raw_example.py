@@ -42,8 +42,9 @@ def test_the_raw_example_through_predict_gives_its_true_depth_and_prints_the_rec
     inputs = [str(EXAMPLE / "left.png"), str(EXAMPLE / "right.png"), "--calibration", str(EXAMPLE / "stereo.yaml")]
     outputs = ["-o", str(tmp_path / "d.pfm"), "--depth", str(tmp_path / "z.pfm"), "--depth-mm", str(tmp_path / "z.png")]
     assert main(["predict", *inputs, *outputs, "--frame", "original", "--device", "cpu"]) == 0
-    camera, *written = capsys.readouterr().out.splitlines()
+    camera, rows, *written = capsys.readouterr().out.splitlines()
     assert camera == describe_camera(Rectifier(read_rig(EXAMPLE / "stereo.yaml")).focal_baseline)
+    assert rows.startswith("rows: the right image's lie on the left's (within 0.")  # its calibration rectifies it
     assert camera.startswith("rectified camera: focal length ") and "px, baseline 0.1200 m, principal point (" in camera
     files = (("disparity", "d.pfm"), ("depth", "z.pfm"), ("depth in mm", "z.png"))
     assert written == [f"wrote {what} {tmp_path / name}" for what, name in files]
