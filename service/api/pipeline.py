@@ -18,6 +18,7 @@ from crestereo_pp.service.api.schemas import DisparityOptions, RectifiedCamera
 from crestereo_pp.service.batching.batcher import JobResult
 from crestereo_pp.service.batching.runtime import ServiceRuntime, StereoBatcher, weights_identity
 from crestereo_pp.service.batching.stereo import (
+    FALLBACK_COST,
     Predictor,
     StereoKey,
     StereoMaps,
@@ -116,11 +117,18 @@ def cost_problem(runtime: ServiceRuntime, key: StereoKey, header: ImageHeader) -
     bounds how long one small request (a few KB of flat PNGs) can hold it."""
     settings = runtime.settings
     limit = settings.pixel_limit(key.model)
-    cost = options_cost(runtime.predictors[key.model], key.options) * header.pixels / limit
+    predictor = runtime.predictors[key.model]
+    cost = options_cost(predictor, key.options, key.warm_start) * header.pixels / limit
     if cost <= settings.max_request_cost:
         return None
+    slower = (
+        ""
+        if predictor.ready(key.options.iters, warm_start=key.warm_start)
+        else f" (no fast graph is ready for these iterations, so torch computes them, about {FALLBACK_COST:g} "
+        "times slower)"
+    )
     return (
         f"this pair ({header.width}x{header.height}) with these options would cost {cost:.1f} times a plain request "
-        f"of the largest image `{key.model}` takes ({limit} pixels); this server allows {settings.max_request_cost:g}: "
-        "ask for fewer iterations, no flip or a smaller scale, or send a smaller pair"
+        f"of the largest image `{key.model}` takes ({limit} pixels){slower}; this server allows "
+        f"{settings.max_request_cost:g}: ask for fewer iterations, no flip or a smaller scale, or send a smaller pair"
     )

@@ -107,12 +107,20 @@ def relative_cost(
     return 2.0 * cost if flip else cost
 
 
-def options_cost(predictor: Predictor, options: InferenceOptions) -> float:
+FALLBACK_COST = 2.5
+"""How much longer a forward takes on torch (fp32) than on OpenVINO (bf16), where OpenVINO has no
+graph for its iterations yet (measured 2.0-2.9x on 2-core AVX512 CPUs, 384x512 to 2048x2048)."""
+
+
+def options_cost(predictor: Predictor, options: InferenceOptions, warm_start: bool = False) -> float:
     """`relative_cost` of what `options` ask of `predictor`: their iterations (resolved against
-    the model's own), scale, two passes and flip. 1.0 for the defaults; the enlargement "auto"
-    may choose is the server's, not counted here."""
+    the model's own), scale, two passes and flip; times FALLBACK_COST where the predictor's
+    backend has no graph for those iterations (and start) yet, so that torch computes them
+    (`Predictor.ready`). 1.0 for the defaults on a ready backend; the enlargement "auto" may
+    choose is the server's, not counted here."""
     counts = predictor.iterations(options.iters)
-    return relative_cost(counts, predictor.config.iters, options.scale, options.two_pass, options.flip)
+    cost = relative_cost(counts, predictor.config.iters, options.scale, options.two_pass, options.flip)
+    return cost if predictor.ready(options.iters, warm_start=warm_start) else cost * FALLBACK_COST
 
 
 @dataclass(frozen=True)
@@ -152,7 +160,7 @@ class StereoBatches:
         where "auto" may enlarge the pair, times the square of the largest factor it may take (an
         upper bound: a pair whose disparities are too large for that factor is computed smaller)."""
         options = key.options
-        cost = options_cost(self.predictors[key.model], options)
+        cost = options_cost(self.predictors[key.model], options, key.warm_start)
         if options.two_pass == "auto" and options.scale == 1.0 and not key.warm_start:
             cost *= largest_enlargement(key.height, key.width) ** 2
         return key.pixels * cost
