@@ -346,6 +346,15 @@ OFF_ROWS_PX = 1.0
 """Rows off by this much (px) somewhere say that the rig's calibration is off."""
 
 
+def describe_off_rows(largest_px: list[float], pairs: int) -> str:
+    """The line that counts the pairs of a run whose right rows lay OFF_ROWS_PX or more off the
+    left's (`largest_px`: each such pair's largest offset) among the `pairs` computed."""
+    return (
+        f"rows: the right image's lay {OFF_ROWS_PX:g} px or more off the left's in {len(largest_px)} of {pairs} "
+        f"pairs (up to {max(largest_px):.2f} px), aligned before matching; check the rig's calibration"
+    )
+
+
 def describe_rows(offset: RowOffset | None) -> str:
     """The line that says how far a pair's right rows lay off the left's (`measure_row_offset`)."""
     if offset is None:
@@ -396,10 +405,7 @@ def run(job: Job) -> int:
         for output in job.targets:
             print(f"wrote {written} {output.what} files to {output.path}")
         if off_rows:
-            print(
-                f"rows: the right image's lay {OFF_ROWS_PX:g} px or more off the left's in {len(off_rows)} of "
-                f"{written} pairs (up to {max(off_rows):.2f} px), aligned before matching; check the rig's calibration"
-            )
+            print(describe_off_rows(off_rows, written))
     return 0
 
 

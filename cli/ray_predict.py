@@ -20,9 +20,11 @@ from crestereo_pp.service.ray.cluster import connect, cpu_share, require_ray
 
 from .options import inference_options, load_predictor
 from .prediction import (
+    OFF_ROWS_PX,
     Job,
     PairImages,
     PairPaths,
+    describe_off_rows,
     find_pairs,
     is_complete,
     is_video_pair,
@@ -36,10 +38,12 @@ SHOWN_FAILURES = 20
 
 @dataclass(frozen=True)
 class PairResult:
-    """How one pair went: `error` is None when its outputs were written."""
+    """How one pair went: `error` is None when its outputs were written; `rows_off_px` the largest
+    offset of its right rows from the left's, where measured (`predict_and_write`)."""
 
     pair: PairPaths
     error: str | None
+    rows_off_px: float | None = None
 
 
 class PairWorker:
@@ -55,10 +59,10 @@ class PairWorker:
 
     def compute(self, pair: PairPaths) -> PairResult:
         try:
-            predict_and_write(self.job, self.stream, PairImages(pair, *read_pair(pair)))
+            offset = predict_and_write(self.job, self.stream, PairImages(pair, *read_pair(pair)))
         except Exception as error:  # reported per pair; the job goes on
             return PairResult(pair, f"{type(error).__name__}: {error}")
-        return PairResult(pair, None)
+        return PairResult(pair, None, None if offset is None else offset.largest_px)
 
 
 def run_on_ray(job: Job) -> int:
@@ -146,4 +150,7 @@ def _report(run: tuple[list[PairResult], float], skipped: int) -> int:
         print(f"failed {result.pair.left} {result.pair.right}: {result.error}")
     if len(failed) > SHOWN_FAILURES:
         print(f"... and {len(failed) - SHOWN_FAILURES} more")
+    off_rows = [px for px in (result.rows_off_px for result in results) if px is not None and px >= OFF_ROWS_PX]
+    if off_rows:
+        print(describe_off_rows(off_rows, computed))
     return 1 if failed else 0

@@ -11,6 +11,8 @@ import sys
 import time
 from pathlib import Path
 
+import cv2
+import numpy as np
 import pytest
 from ray_helpers import write_pairs
 
@@ -53,6 +55,9 @@ def finished(job: subprocess.Popen[str]) -> tuple[int, str]:
 
 def test_the_ray_job_writes_the_plain_commands_maps_and_reports_a_bad_pair_without_stopping(tmp_path: Path):
     lefts, rights = write_pairs(tmp_path / "pairs", 4)
+    right = cv2.imread(str(rights / "pair_01.png"))  # one pair's right rows 1.5 px off its left's
+    moved = cv2.warpAffine(right, np.float32([[1, 0, 0], [0, 1, 1.5]]), right.shape[1::-1])
+    cv2.imwrite(str(rights / "pair_01.png"), moved)
     plain = tmp_path / "plain"
     assert main(["predict", str(lefts), str(rights), "-o", str(plain), "--mkdir", "--backend", "torch"]) == 0
     (lefts / "pair_99.png").write_bytes(b"not an image")
@@ -62,6 +67,7 @@ def test_the_ray_job_writes_the_plain_commands_maps_and_reports_a_bad_pair_witho
 
     assert status == 1, output  # a pair failed
     assert "computed 4 pair(s)" in output and "failed 1" in output
+    assert "lay 1 px or more off the left's in 1 of 4 pairs (up to 1." in output, output  # 1.5 and the crop's own
     assert re.search(r"failed \S*pair_99\.png \S*pair_99\.png: FormatError: .*not a readable image", output), output
     for index in range(4):
         computed = read_pfm(tmp_path / "ray" / "disparity" / f"pair_{index:02d}.pfm")
