@@ -16,7 +16,7 @@ import cv2
 import httpx
 import numpy as np
 import pytest
-from raw_camera import D1, D2, K1, K2, PLANE_Z, R, T, opencv_file, raw_view
+from raw_camera import D1, D2, K1, K2, PLANE_Z, R, T, opencv_file, raw_view, small_dev_sample
 from raw_camera import HEIGHT as RAW_HEIGHT
 from raw_camera import WIDTH as RAW_WIDTH
 
@@ -218,6 +218,25 @@ def test_hover_shows_the_value_in_px_and_depth_in_m(web: WebPage) -> None:
         assert float(found.group(4)) == pytest.approx(maps["uncertainty"][y, x], abs=6e-4)
         assert float(found.group(5)) == pytest.approx(maps["depth"][y, x], rel=1e-3)
         assert maps["depth"][y, x] == pytest.approx(focal_px * baseline_m / maps["disparity"][y, x], rel=1e-4)
+
+
+def test_the_summary_says_how_far_the_right_rows_lay_off_and_when_to_check_the_calibration(web: WebPage) -> None:
+    page = web.page
+    sample = small_dev_sample()  # Tsukuba, as given and with its right image moved 1.5 px down
+    height, width = sample.left.shape[:2]
+    down = cv2.warpAffine(sample.right, np.float32([[1, 0, 0], [0, 1, 1.5]]), (width, height))
+    page.fill("#iters", "1,1,1")
+    said = {"rows off the left's by up to 1.": down, "rows on the left's (within 0.": sample.right}
+    for words, right in said.items():
+        for side, image in (("left", sample.left), ("right", right)):
+            png = cv2.imencode(".png", cv2.cvtColor(image, cv2.COLOR_RGB2BGR))[1].tobytes()
+            page.set_input_files(
+                f"#{side}-file", files=[{"name": f"{side}.png", "mimeType": "image/png", "buffer": png}]
+            )
+        page.click("#run")
+        expect(page.locator("#summary")).to_contain_text(words)
+        advice = "(check the rig's calibration)" in page.inner_text("#summary")
+        assert advice == (right is down), page.inner_text("#summary")  # 1.5 px: a pixel or more
 
 
 def test_a_raw_pair_with_its_calibration_file_gives_depth_on_the_cameras_pixels(web: WebPage, tmp_path: Path) -> None:
