@@ -249,9 +249,12 @@ class OpenVINOForward:
 
     def ready(self, iters: StageCounts) -> bool:
         """Whether calls with these iterations (cold or warm) run on OpenVINO now (their graph in
-        memory or in the disk cache); starts nothing."""
-        with self._lock:
-            return self._cached((*iters,)) is not None
+        memory or in the disk cache, where an export puts its .xml last); starts nothing, reads
+        nothing, and takes no lock: the service asks it for every request on its event loop,
+        while a compile may hold the lock for seconds."""
+        counts: StageCounts = (*iters,)
+        path = self._path(counts)
+        return counts in self.graphs or (path is not None and path.is_file())
 
     def prepare(self, graphs: Sequence[StageCounts], *, wait: bool = True) -> bool:
         """Load the graphs for these iterations from the disk cache, else export them: where

@@ -346,6 +346,18 @@ def test_ctrl_c_after_models_were_let_go_in_the_order_they_were_made_is_a_keyboa
     assert (done.returncode, done.stdout) == (0, "interrupted\n"), done.stderr[-2000:]
 
 
+def test_whether_a_graph_is_ready_is_answered_at_once_while_a_compile_holds_the_backend(first_call, cache_dir):
+    predictor, *_ = first_call
+    backend = predictor.openvino
+    answers: list[tuple[bool, bool]] = []
+    with backend._lock:  # what compiling a new shape holds for seconds
+        asking = threading.Thread(target=lambda: answers.append((backend.ready(ITERS), backend.ready((1, 1, 5)))))
+        asking.start()
+        asking.join(timeout=5)
+        assert not asking.is_alive(), "ready() waited for the compile"
+    assert answers == [(True, False)]  # 1,1,1 exported by the command above; 1,1,5 never
+
+
 def test_compiled_shapes_are_kept_up_to_a_bound_least_recently_used_first(first_call, tsukuba):
     predictor, *_ = first_call
     backend = predictor.openvino
