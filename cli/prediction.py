@@ -7,7 +7,7 @@ import glob
 import os
 from collections.abc import Callable, Iterator
 from contextlib import ExitStack, closing
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Protocol
 
@@ -15,7 +15,8 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from crestereo_pp.inference import RowOffset, measure_row_offset, parse_iterations
+from crestereo_pp.inference import InferenceOptions, RowOffset, parse_iterations
+from crestereo_pp.inference.row_alignment import align_rows
 from crestereo_pp.stereo_data.formats import (
     encode_png,
     read_image,
@@ -306,18 +307,21 @@ class Frames(Protocol):
 def predict_and_write(job: Job, stream: Frames, images: PairImages) -> RowOffset | None:
     """Compute one pair (rectified first where the job has a calibration; warm-started from the
     stream's previous pair only with --sequence) and write its outputs, each to a temporary name
-    first and then renamed: an interrupted run leaves no partial file. Returns how far the right
-    image's rows lay off the left's (with --align-rows, the default; None where not measured or
-    too bare to measure), as alignment measures it before matching."""
+    first and then renamed: an interrupted run leaves no partial file. With --align-rows (the
+    default) the right image is put onto the left's rows here, once (`inference.align_rows`), and
+    the frames compute the pair so (`frame_options`); returns how far its rows lay off (None where
+    not measured, or too bare to measure)."""
     args, pair, left, right = job.args, images.pair, images.left, images.right
     if not args.sequence:
         stream.restart()  # every pair on its own
     rectifier = job.outputs.rectifier
     if rectifier is not None:
         left, right = rectifier.rectify(left, right)
-    offset = measure_row_offset(left, right) if args.align_rows else None
-    if job.single and args.align_rows:
-        print(describe_rows(offset))
+    offset = None
+    if args.align_rows:
+        right, offset = align_rows(left, right)
+        if job.single:
+            print(describe_rows(offset))
     prediction = stream.predict(left, right)
     outputs = PredictionOutputs(prediction.disparity, prediction.uncertainty, left, job.outputs)
     disparity, uncertainty, depth = outputs.maps
@@ -416,8 +420,12 @@ def frames_of(job: Job, resources: ExitStack) -> Frames:
     if args.url is not None:
         from .service_frames import ServiceFrames
 
-        service = ServiceFrames(
-            args.url, args.api_key, args.model, inference_options(args), args.sequence, args.warm_iters
-        )
+        service = ServiceFrames(args.url, args.api_key, args.model, frame_options(args), args.sequence, args.warm_iters)
         return resources.enter_context(closing(service))
-    return load_predictor(args).stream(inference_options(args), parse_iterations(args.warm_iters))
+    return load_predictor(args).stream(frame_options(args), parse_iterations(args.warm_iters))
+
+
+def frame_options(args: argparse.Namespace) -> InferenceOptions:
+    """The command's options as its frames compute each pair: the rows already aligned, where asked,
+    by `predict_and_write` (so that they are measured once, here or with --url, not again there)."""
+    return replace(inference_options(args), align_rows=False)

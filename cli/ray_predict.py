@@ -18,7 +18,7 @@ from tqdm import tqdm
 from crestereo_pp.service.batching.cpu import configure_torch_threads
 from crestereo_pp.service.ray.cluster import connect, cpu_share, require_ray
 
-from .options import inference_options, load_predictor
+from .options import load_predictor
 from .prediction import (
     OFF_ROWS_PX,
     Job,
@@ -26,6 +26,7 @@ from .prediction import (
     PairPaths,
     describe_off_rows,
     find_pairs,
+    frame_options,
     is_complete,
     is_video_pair,
     plan,
@@ -52,7 +53,7 @@ class PairWorker:
     def __init__(self, args: argparse.Namespace, threads: int) -> None:
         configure_torch_threads(threads)
         self.job = plan(args)
-        self.stream = load_predictor(args).stream(inference_options(args), None)
+        self.stream = load_predictor(args).stream(frame_options(args), None)
 
     def ready(self) -> None:
         """Returns once the worker has its model (an error where it could not load it)."""
