@@ -22,6 +22,7 @@ import numpy as np
 from websockets.asyncio.client import ClientConnection
 from websockets.asyncio.client import connect as connect_async
 from websockets.exceptions import ConnectionClosed, InvalidStatus
+from websockets.sync.client import ClientConnection as ClientConnectionSync
 from websockets.sync.client import connect
 
 from crestereo_pp.stereo_data.pointcloud import METRIC_FRAME, decode_ply
@@ -419,9 +420,23 @@ def _refused(refused: InvalidStatus) -> ServiceError:
     return _error(answer.status_code, bytes(answer.body or b""), answer.headers.get("Retry-After"))
 
 
-def _closed(closed: ConnectionClosed) -> ServiceError:
-    """A stream the service closed (an idle stream, bad options, a protocol error), with its reason."""
-    return ServiceError(0, "stream_closed", closed.rcvd.reason if closed.rcvd else "connection closed")
+IDLE_CLOSE = 1000
+"""The close code of a stream the service ended because no frame came for its idle timeout."""
+
+
+def _ended(closed: ConnectionClosed, last: str | bytes | None) -> ServiceError | None:
+    """Why the service ended a stream: ServiceError from its last message (`last`, the error it
+    sent before closing) or else from the close's reason; None for a stream closed only for being
+    idle, which `send` opens again."""
+    if last is not None:
+        try:
+            _frame_result(last)
+        except ServiceError as error:
+            return error
+    code, reason = (closed.rcvd.code, closed.rcvd.reason) if closed.rcvd else (None, "connection closed")
+    if code == IDLE_CLOSE:
+        return None
+    return ServiceError(0, "stream_closed", reason or f"the service closed the stream (code {code})")
 
 
 def _frame_result(message: str | bytes) -> DisparityResult:
@@ -435,26 +450,46 @@ def _frame_result(message: str | bytes) -> DisparityResult:
 class DisparityStream:
     """One WebSocket connection to `/disparity/stream`: `send(left, right)` sends the next pair
     and returns its maps (a `DisparityResult`), or raises `ServiceError` for a frame the service
-    could not compute (the stream stays open); closing the stream closes the connection."""
+    could not compute (the stream stays open) or for a stream it ended (bad options, a draining
+    server); a stream the service closed for being idle is opened again by the next `send`, whose
+    pair is then computed cold. Closing the stream closes the connection."""
 
     def __init__(self, url: str, authorization: str | None, timeout_s: float | None) -> None:
-        headers = {"Authorization": authorization} if authorization else None
+        self._url, self._timeout_s = url, timeout_s
+        self._headers = {"Authorization": authorization} if authorization else None
         self._connection = ExitStack()
+        self._socket = self._open()
+
+    def _open(self) -> ClientConnectionSync:
         try:
-            self._socket = self._connection.enter_context(
-                connect(url, additional_headers=headers, max_size=None, open_timeout=timeout_s)
+            return self._connection.enter_context(
+                connect(self._url, additional_headers=self._headers, max_size=None, open_timeout=self._timeout_s)
             )
         except InvalidStatus as refused:
             raise _refused(refused) from None
-        self._timeout_s = timeout_s
 
     def send(self, left: Image, right: Image) -> DisparityResult:
-        self._socket.send(_encode(left))
-        self._socket.send(_encode(right))
+        pair = (_encode(left), _encode(right))
+        for attempt in range(2):
+            if attempt:  # the service closed the stream for being idle: a new one
+                self._connection.close()
+                self._socket = self._open()
+            try:
+                for image in pair:
+                    self._socket.send(image)
+                return _frame_result(self._socket.recv(timeout=self._timeout_s))
+            except ConnectionClosed as closed:
+                error = _ended(closed, self._last_message())
+            if error is not None:
+                raise error
+        raise ServiceError(0, "stream_closed", "the service closed a new stream as idle before its first pair")
+
+    def _last_message(self) -> str | bytes | None:
+        """The message the service sent before closing, if any."""
         try:
-            return _frame_result(self._socket.recv(timeout=self._timeout_s))
-        except ConnectionClosed as closed:
-            raise _closed(closed) from None
+            return self._socket.recv(timeout=0)
+        except (ConnectionClosed, TimeoutError):
+            return None
 
     def close(self) -> None:
         self._connection.close()
@@ -487,12 +522,29 @@ class AsyncDisparityStream:
     async def send(self, left: Image, right: Image) -> DisparityResult:
         if self._socket is None:
             raise RuntimeError("the stream is not open: use `async with service.stream(...) as stream`")
-        await self._socket.send(_encode(left))
-        await self._socket.send(_encode(right))
+        pair = (_encode(left), _encode(right))
+        for attempt in range(2):
+            if attempt:  # the service closed the stream for being idle: a new one
+                await self.close()
+                await self.open()
+            assert self._socket is not None
+            try:
+                for image in pair:
+                    await self._socket.send(image)
+                return _frame_result(await asyncio.wait_for(self._socket.recv(), self._timeout_s))
+            except ConnectionClosed as closed:
+                error = _ended(closed, await self._last_message())
+            if error is not None:
+                raise error
+        raise ServiceError(0, "stream_closed", "the service closed a new stream as idle before its first pair")
+
+    async def _last_message(self) -> str | bytes | None:
+        """The message the service sent before closing, if any."""
+        assert self._socket is not None
         try:
-            return _frame_result(await asyncio.wait_for(self._socket.recv(), self._timeout_s))
-        except ConnectionClosed as closed:
-            raise _closed(closed) from None
+            return await asyncio.wait_for(self._socket.recv(), 0.001)
+        except (ConnectionClosed, TimeoutError):
+            return None
 
     async def close(self) -> None:
         if self._socket is not None:

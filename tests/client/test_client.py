@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import asyncio
 import io
 import threading
+import time
 
 import cv2
 import numpy as np
@@ -11,9 +13,10 @@ import pytest
 from plyfile import PlyData
 from raw_camera import small_dev_sample
 
-from crestereo_pp.client import AsyncStereoClient, Options, RowOffset, ServiceError, StereoClient
+from crestereo_pp.client import AsyncStereoClient, DisparityResult, Options, RowOffset, ServiceError, StereoClient
 from crestereo_pp.client.stereo_client import _encode
 from crestereo_pp.inference import NETWORK_ONLY
+from panned_frames import panned_frames
 from service_helpers import encode, quiet_load_model, run_uvicorn, stereo_pair
 
 
@@ -201,3 +204,44 @@ def test_a_full_queue_is_retried_after_retry_after_until_served(tmp_path):
     assert refused, "the burst never filled the queue: nothing was retried"
     served = [o for o in outcomes if not isinstance(o, ServiceError)]
     assert len(served) >= 4  # every patient request, however often refused, was served in the end
+
+
+def test_a_stream_the_service_ends_raises_service_error_saying_why(default_server):
+    (left, right), _ = panned_frames(2, width=96, seed=7, step_px=3.0)
+    with StereoClient(default_server.base_url) as service, pytest.raises(ServiceError) as refused:
+        with service.stream(scale=2) as stream:
+            time.sleep(0.5)  # the service has closed it: the pair's images meet a closed connection
+            stream.send(left, right)
+
+    async def send_on_a_closed_stream() -> None:
+        async with AsyncStereoClient(default_server.base_url) as service, service.stream(scale=2) as stream:
+            await asyncio.sleep(0.5)
+            await stream.send(left, right)
+
+    with pytest.raises(ServiceError) as async_refused:
+        asyncio.run(send_on_a_closed_stream())
+    for error in (refused.value, async_refused.value):
+        assert (error.status, error.code) == (0, "invalid_request") and "scale" in error.message
+
+
+def test_a_stream_the_service_closed_for_being_idle_is_opened_again_by_the_next_pair(tmp_path):
+    frames = panned_frames(2, width=96, seed=7, step_px=3.0)
+    fast: Options = {"iters": (1, 1, 2), "two_pass": False}
+    with run_uvicorn(tmp_path, stream_idle_timeout_s="1") as server, StereoClient(server.base_url) as service:
+        with service.stream(**fast) as stream:
+            stream.send(*frames[0])
+            time.sleep(2.5)  # past the service's idle timeout: it closes the stream
+            after_a_pause = stream.send(*frames[1])
+            then = stream.send(*frames[1])
+
+        async def pause_then_send() -> tuple[DisparityResult, DisparityResult]:
+            async with AsyncStereoClient(server.base_url) as service, service.stream(**fast) as stream:
+                await stream.send(*frames[0])
+                await asyncio.sleep(2.5)
+                return await stream.send(*frames[1]), await stream.send(*frames[1])
+
+        async_after_a_pause, _ = asyncio.run(pause_then_send())
+        cold = service.disparity(*frames[1], **fast)  # a new stream's first pair is computed cold
+    for result in (after_a_pause, async_after_a_pause):
+        np.testing.assert_allclose(result.disparity, cold.disparity, atol=1e-3)
+    assert not np.allclose(then.disparity, cold.disparity, atol=1e-3)  # warm-started from the pair before
