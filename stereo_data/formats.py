@@ -17,6 +17,9 @@ from __future__ import annotations
 import os
 import re
 import struct
+import sys
+import tempfile
+import threading
 import zlib
 from pathlib import Path
 
@@ -239,7 +242,7 @@ def decode_image(data: bytes, *, gray_to_rgb: bool = True, source: PathLike = "<
     if image.dtype == np.uint16:
         image = ((image.astype(np.uint32) + 128) // 257).astype(np.uint8)
     elif image.dtype != np.uint8:
-        raise FormatError(f"{os.fspath(source)!r}: unsupported pixel type {image.dtype}")
+        raise FormatError(f"{_named(source)}: unsupported pixel type {image.dtype}")
     if image.ndim == 3 and image.shape[2] == 1:
         image = image[:, :, 0]
     if image.ndim == 2:
@@ -248,17 +251,55 @@ def decode_image(data: bytes, *, gray_to_rgb: bool = True, source: PathLike = "<
         return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
     if image.ndim == 3 and image.shape[2] == 4:
         return cv2.cvtColor(image, cv2.COLOR_BGRA2RGB)
-    raise FormatError(f"{os.fspath(source)!r}: unsupported image shape {image.shape}")
+    raise FormatError(f"{_named(source)}: unsupported image shape {image.shape}")
 
 
 def _decode(data: bytes, source: PathLike, flags: int) -> np.ndarray:
     try:
-        image = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), flags) if data else None
+        image, corruption = _imdecode(data, flags) if data else (None, [])
     except cv2.error as error:  # e.g. beyond OPENCV_IO_MAX_IMAGE_PIXELS (OpenCV 5 raises)
         if "Insufficient memory" in str(error):
-            raise MemoryError(f"decoding {os.fspath(source)!r}: {error}") from None
+            raise MemoryError(f"decoding {_named(source)}: {error}") from None
         reason = "larger than the decoder's pixel limit" if "MAX_IMAGE_PIXELS" in str(error) else "corrupt"
-        raise FormatError(f"{os.fspath(source)!r} is not a readable image ({reason})") from None
+        raise FormatError(f"{_named(source)} cannot be decoded ({reason})") from None
+    if corruption:
+        raise FormatError(f"{_named(source)} is a corrupt JPEG ({corruption[0]})")
     if image is None:
-        raise FormatError(f"{os.fspath(source)!r} is not a readable image")
+        raise FormatError(f"{_named(source)} cannot be decoded (truncated, corrupt, or a variant OpenCV cannot read)")
     return image
+
+
+_JPEG_CORRUPTION = ("Corrupt JPEG data", "Premature end of JPEG file")
+"""libjpeg's warnings that the picture decoded has garbage in it (bad entropy-coded data)."""
+_STDERR = threading.Lock()  # one redirection of the process's stderr at a time
+
+
+def _imdecode(data: bytes, flags: int) -> tuple[np.ndarray | None, list[str]]:
+    """``cv2.imdecode``, and for a JPEG the corruption its decoder found. libjpeg decodes a JPEG
+    with corrupt data to the end, printing a warning on stderr (fd 2) that OpenCV does not pass on:
+    the picture comes back with shifted or grey blocks. So fd 2 is read while a JPEG decodes, and
+    what else was written to it then is written on."""
+    buffer = np.frombuffer(data, dtype=np.uint8)
+    if data[:2] != b"\xff\xd8":
+        return cv2.imdecode(buffer, flags), []
+    with _STDERR, tempfile.TemporaryFile() as printed:
+        sys.stderr.flush()
+        saved = os.dup(2)
+        os.dup2(printed.fileno(), 2)
+        try:
+            image = cv2.imdecode(buffer, flags)
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+        printed.seek(0)
+        lines = printed.read().decode(errors="replace").splitlines(keepends=True)
+    corruption = [line.strip() for line in lines if line.startswith(_JPEG_CORRUPTION)]
+    others = "".join(line for line in lines if not line.startswith(_JPEG_CORRUPTION))
+    if others:
+        os.write(2, others.encode())
+    return image, corruption
+
+
+def _named(source: PathLike) -> str:
+    """How messages name the image: its file, or "the image" for bytes without a name."""
+    return "the image" if source == "<bytes>" else repr(os.fspath(source))

@@ -98,7 +98,7 @@ RESPONSES: dict[int | str, dict[str, Any]] = {
             "unknown_field": "unknown multipart field `model`; options go in the query string",
             "size_mismatch": "left is 640x480 but right is 640x479",
             "image_too_small": "left is 16x480; width and height must be at least 32",
-            "undecodable_image": "right: cannot decode the PNG data",
+            "undecodable_image": "right: the image is a corrupt JPEG (Corrupt JPEG data: bad Huffman code)",
             "scale_too_small": "scale 0.05 would run the 256x64 pair at 13x3; each side must stay at least 16 px",
             "request_too_costly": "this pair (2048x2048) with these options would cost 29.5 times a plain request "
             "of the largest image `lite` takes (4194304 pixels); this server allows 4: ask for fewer iterations, "

@@ -61,7 +61,7 @@ def decode_rgb(data: bytes, header: ImageHeader) -> np.ndarray:
     try:
         image = decode_image(data)
     except FormatError as exc:
-        raise ImageError(f"cannot decode the {header.format} data ({exc})", unsupported=False) from None
+        raise ImageError(str(exc), unsupported=False) from None
     if image.shape[:2] != (header.height, header.width):
         raise ImageError(
             f"decoded size {image.shape[1]}x{image.shape[0]} differs from the header's {header.width}x{header.height}",

@@ -78,6 +78,17 @@ def encode(image: np.ndarray, ext: str = ".png") -> bytes:
     return data.tobytes()
 
 
+def corrupt_jpeg(image: np.ndarray) -> bytes:
+    """`image` as a JPEG with 10 bytes of its entropy-coded data zeroed, as a flaky link might:
+    OpenCV still decodes it (libjpeg only prints a warning), into a picture with garbage in it."""
+    data = bytearray(encode(image, ".jpg"))
+    scan = data.index(b"\xff\xda")  # start of scan: its header, then the coded data up to the end marker
+    start = scan + 2 + int.from_bytes(data[scan + 2 : scan + 4], "big")
+    middle = (start + len(data) - 2) // 2
+    data[middle : middle + 10] = bytes(10)
+    return bytes(data)
+
+
 def pair_files(left: np.ndarray, right: np.ndarray, ext: str = ".png") -> dict[str, Any]:
     return {"left": ("left" + ext, encode(left, ext)), "right": ("right" + ext, encode(right, ext))}
 

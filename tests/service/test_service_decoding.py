@@ -22,7 +22,16 @@ from crestereo_pp.service.batching.batcher import ClientDisconnected
 from crestereo_pp.service.uploads.images import read_header
 from crestereo_pp.service.uploads.multipart import ImageLimits, UploadError
 from crestereo_pp.service.uploads.sandbox import DecoderLimits, DecoderPool
-from service_helpers import Server, encode, lite_settings, pair_files, run_uvicorn, serve_asgi, stereo_pair
+from service_helpers import (
+    Server,
+    corrupt_jpeg,
+    encode,
+    lite_settings,
+    pair_files,
+    run_uvicorn,
+    serve_asgi,
+    stereo_pair,
+)
 
 pytestmark = pytest.mark.anyio
 
@@ -183,6 +192,22 @@ async def test_a_job_whose_decoder_is_killed_from_outside_runs_again_and_a_secon
         assert pool.restarts == kills
     finally:
         await pool.close()
+
+
+async def test_a_jpeg_with_corrupt_data_is_refused_in_its_decoder_process_naming_the_corruption():
+    left, right = stereo_pair()
+    broken = corrupt_jpeg(left)
+    pool = DecoderPool(GENEROUS)
+    await pool.start()
+    try:
+        with pytest.raises(UploadError) as refused:
+            await pool.decode_pair(broken, encode(right, ".jpg"), read_header(broken), never)
+        images = await pool.decode_pair(encode(left, ".jpg"), encode(right, ".jpg"), read_header(broken), never)
+    finally:
+        await pool.close()
+    assert (refused.value.status, refused.value.code) == (422, "undecodable_image")
+    assert refused.value.message.startswith("left: the image is a corrupt JPEG (Corrupt JPEG data:")
+    assert images[0].shape == left.shape  # the same decoder goes on decoding intact JPEGs
 
 
 def waiting_decoders(parent: int) -> list[int]:

@@ -1,5 +1,6 @@
 """Spec of stereo_data.formats: PFM, 16-bit PNG maps (KITTI), map writers, RGB images, errors."""
 
+import os
 from pathlib import Path
 
 import cv2
@@ -20,6 +21,7 @@ from crestereo_pp.stereo_data.formats import (
     write_pfm,
     write_uncertainty,
 )
+from service_helpers import corrupt_jpeg, encode, stereo_pair
 
 
 def ramp(shape: tuple[int, ...]) -> np.ndarray:
@@ -187,3 +189,24 @@ def test_read_image_rejects_non_images_naming_them(tmp_path: Path) -> None:
         read_image(tmp_path / "text.png")
     with pytest.raises(FormatError, match="upload"):
         decode_image(b"\x89PNG broken", source="upload")
+
+
+def test_a_jpeg_with_corrupt_data_is_refused_rather_than_decoded_into_garbage(tmp_path: Path, capfd) -> None:
+    left, _ = stereo_pair()
+    broken = corrupt_jpeg(left)
+    garbage = cv2.imdecode(np.frombuffer(broken, np.uint8), cv2.IMREAD_COLOR)
+    assert garbage is not None  # what OpenCV alone gives: a picture, with a warning on stderr
+    path = tmp_path / "left.jpg"
+    path.write_bytes(broken)
+    capfd.readouterr()
+    with pytest.raises(FormatError, match=r"left\.jpg' is a corrupt JPEG \(Corrupt JPEG data: .*\)"):
+        read_image(path)
+    with pytest.raises(FormatError, match="the image is a corrupt JPEG"):
+        decode_image(broken)
+    intact = decode_image(encode(left, ".jpg"))
+    os.write(2, b"written after the decodes\n")
+    printed = capfd.readouterr().err
+    assert "Corrupt JPEG" not in printed and "written after the decodes" in printed  # stderr is back
+    intact_error = np.abs(intact.astype(int) - left).mean()  # JPEG's loss
+    garbage_error = np.abs(cv2.cvtColor(garbage, cv2.COLOR_BGR2RGB).astype(int) - left).mean()
+    assert intact_error < 15 and garbage_error > 30
