@@ -25,6 +25,7 @@ from websockets.exceptions import ConnectionClosed, InvalidStatus
 from websockets.sync.client import ClientConnection as ClientConnectionSync
 from websockets.sync.client import connect
 
+from crestereo_pp.stereo_data.formats import check_pixel_values
 from crestereo_pp.stereo_data.pointcloud import METRIC_FRAME, decode_ply
 
 Image = np.ndarray | bytes | str | os.PathLike[str]
@@ -186,10 +187,7 @@ def _encode(image: Image) -> bytes:
     elif array.ndim != 2:
         raise ValueError(f"expected an HxW, HxWx1, HxWx3 or HxWx4 image, got shape {array.shape}")
     if array.dtype not in (np.uint8, np.uint16):
-        if array.dtype == np.bool_ or not np.issubdtype(array.dtype, np.number):
-            raise ValueError(f"expected an image of numbers, got dtype {array.dtype}")
-        if not (np.isfinite(array).all() and array.min() >= 0 and array.max() <= 255):
-            raise ValueError(f"a {array.dtype} image is taken as 0-255, but its values run outside that range")
+        check_pixel_values(array)
         array = np.round(array.astype(np.float64) * 257).astype(np.uint16)
     ok, encoded = cv2.imencode(".png", array)
     if not ok:

@@ -10,6 +10,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from crestereo_pp.stereo_data.formats import check_pixel_values
+
 
 class Prediction(NamedTuple):
     """Disparity (positive, pixels of the left image) and uncertainty (in [0, 1]) maps of a pair
@@ -31,12 +33,15 @@ def as_image_batch(image: np.ndarray | Tensor, device: torch.device) -> Tensor:
     """An image as (B, 3, H, W) float32 in [0, 255] on ``device``.
 
     Arrays: HxWx3 RGB, HxWx4 (alpha dropped), HxW or HxWx1 grayscale (replicated to RGB);
-    uint8 as is, uint16 scaled to [0, 255], floats taken as [0, 255]. Tensors: (B, 3|1, H, W).
+    uint8 as is, uint16 scaled to [0, 255], other numbers taken as [0, 255] (ValueError where they
+    cannot be: ``check_pixel_values``). Tensors: (B, 3|1, H, W), taken as [0, 255] unchecked.
     """
     if isinstance(image, np.ndarray):
         array = image[..., None] if image.ndim == 2 else image
         if array.ndim != 3 or array.shape[2] not in (1, 3, 4):
             raise ValueError(f"expected an HxW, HxWx1, HxWx3 or HxWx4 image, got shape {image.shape}")
+        if array.dtype not in (np.uint8, np.uint16):
+            check_pixel_values(array)
         scale = 255.0 / 65535.0 if array.dtype == np.uint16 else 1.0
         # writable: torch warns about every read-only array (decoded from bytes, memory-mapped)
         pixels = np.require(array[..., :3], requirements=("C", "W"))

@@ -45,6 +45,7 @@ __all__ = [
     "write_depth_mm",
     "read_image",
     "decode_image",
+    "check_pixel_values",
 ]
 
 PathLike = str | os.PathLike[str]
@@ -224,6 +225,23 @@ def _write_map(path: PathLike, values: np.ndarray, png_scale: float) -> None:
         np.save(path, np.asarray(values, dtype=np.float32))
     else:
         raise ValueError(f"unknown map format {suffix!r} for {os.fspath(path)}: use .pfm, .png or .npy")
+
+
+def check_pixel_values(image: np.ndarray) -> None:
+    """ValueError where an image array of numbers other than uint8 and uint16 cannot be read as
+    the 0-255 that every such array is taken as: values that are not finite, outside 0-255, or
+    all within [0, 1] (an image scaled to 1, as many libraries keep them: multiply it by 255)."""
+    if image.dtype == np.bool_ or not np.issubdtype(image.dtype, np.number):
+        raise ValueError(f"expected an image of numbers, got dtype {image.dtype}")
+    if image.size == 0:
+        return
+    low, high = float(np.min(image)), float(np.max(image))
+    if not (np.isfinite(low) and np.isfinite(high) and low >= 0 and high <= 255):
+        raise ValueError(f"a {image.dtype} image is taken as 0-255, but its values run outside that range")
+    if 0 < high <= 1:
+        raise ValueError(
+            f"a {image.dtype} image is taken as 0-255, but its values all lie within [0, 1]: multiply it by 255"
+        )
 
 
 def read_image(path: PathLike, *, gray_to_rgb: bool = True) -> np.ndarray:

@@ -68,8 +68,10 @@ def test_arrays_are_sent_as_the_library_takes_them_and_out_of_range_values_refus
         plain = service.disparity(left, right)
         with_alpha = service.disparity(np.dstack([left, alpha]), right)  # the alpha dropped
         as_numbers = service.disparity(between_levels, right.astype(np.int64))  # taken as 0-255
-        with pytest.raises(ValueError, match="taken as 0-255"):
+        with pytest.raises(ValueError, match="taken as 0-255, but its values run outside that range"):
             service.disparity(left / 255.0 * 300.0, right)
+        with pytest.raises(ValueError, match=r"values all lie within \[0, 1\]: multiply it by 255"):
+            service.disparity(left / 255.0, right / 255.0)  # an image scaled to 1, as many libraries keep them
         with pytest.raises(ValueError, match="HxWx4"):
             service.disparity(left[:, :, :2], right)
     np.testing.assert_array_equal(with_alpha.disparity, plain.disparity)

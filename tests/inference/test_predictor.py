@@ -282,6 +282,16 @@ def test_mismatched_or_malformed_inputs_are_refused_with_a_clear_error(lite):
         lite.predict(left[..., :2], left[..., :2])
     with pytest.raises(TypeError, match="numpy array or a torch tensor"):
         lite.predict(left.tolist(), left.tolist())
+    for bad, problem in ((left / 255.0, r"within \[0, 1\]: multiply it by 255"), (left * 300.0, "outside that range")):
+        with pytest.raises(ValueError, match=problem):
+            lite.predict(bad, bad)
+
+
+def test_float_images_in_0_255_give_the_answer_of_their_uint8_pair(lite):
+    left, right = random_pair(40, 60)
+    as_floats = lite.predict(left.astype(np.float32), right.astype(np.float64), iters=(1, 1, 1))
+    as_bytes = lite.predict(left, right, iters=(1, 1, 1))
+    np.testing.assert_array_equal(as_floats.disparity, as_bytes.disparity)
 
 
 def test_missing_weights_warn_and_give_the_same_random_network_in_every_process(monkeypatch, tmp_path):
