@@ -1,7 +1,7 @@
 """The right image's rows put onto the left image's (``InferenceOptions.align_rows``).
 
 A rectified pair's matches lie on the same row; real rectifications leave a residual of a few
-tenths of a pixel and more (dev pairs of KITTI and Middlebury 2014: up to 0.4 px), and a camera
+tenths of a pixel and more (dev pairs of KITTI: up to 0.8 px at a corner), and a camera
 whose calibration has drifted, whole pixels. The network and SGBM both lose much of their
 precision to it (lite's dev bad-2 7.96 -> 18.2 % at 1 px, 38.2 % at 2 px). So the residual is
 measured on the pair itself: corners of the left image tracked into the right one (pyramidal
