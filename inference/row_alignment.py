@@ -35,6 +35,8 @@ from one edge of the image to the other): a real rig's residual tilts stay withi
 
 _CORNERS = 1000
 _WINDOW_PX = 21
+MIN_ROWS = 2 * _WINDOW_PX
+"""Fewest rows of a pair whose offset is measured: two tracking windows."""
 _LEVELS = 5  # a window of 21 px at 1/32 follows disparities of several hundred pixels
 _STOP = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
 _RESAMPLED_AS_IS = {
@@ -80,7 +82,10 @@ class RowOffset:
 
 def measure_row_offset(left: np.ndarray, right: np.ndarray) -> RowOffset | None:
     """The right image's row offset against the left's (arrays as ``as_image_batch`` reads them),
-    or None where too few corners can be tracked to say (a pair without texture)."""
+    or None where too few corners can be tracked to say (a pair without texture), or the pair is
+    under MIN_ROWS rows tall (its tracks' windows reach past its top and bottom)."""
+    if left.shape[0] < MIN_ROWS:
+        return None
     grey_left, grey_right = (cv2.cvtColor(host_rgb8(image), cv2.COLOR_RGB2GRAY) for image in (left, right))
     corners = cv2.goodFeaturesToTrack(grey_left, _CORNERS, 0.01, 7, blockSize=7)
     if corners is None or len(corners) < MIN_TRACKS:

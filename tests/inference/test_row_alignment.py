@@ -84,6 +84,15 @@ def test_a_pair_on_its_rows_or_without_texture_is_computed_as_given():
     assert align_rows(flat, flat) == (flat, None)
 
 
+def test_a_pair_too_few_rows_tall_to_track_is_not_measured_nor_resampled():
+    # A strip of noise on its rows, 5 px apart: tracked, its 16 to 40 rows gave planes up to 0.6 px off.
+    for height in (16, 32, 40):
+        strip = np.random.default_rng(1).integers(0, 256, (height, 4005, 3), dtype=np.uint8)
+        left, right = strip[:, 5:], strip[:, :-5]
+        assert measure_row_offset(left, right) is None
+        assert align_rows(left, right)[0] is right
+
+
 def test_each_pair_computed_carries_its_measured_row_offset_where_rows_are_aligned(lite):
     sample = small_dev_sample()
     flat = np.full((64, 96, 3), 90, np.uint8)
