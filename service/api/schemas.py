@@ -3,12 +3,30 @@
 from __future__ import annotations
 
 import re
+from collections.abc import Mapping
 from enum import StrEnum
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    FiniteFloat,
+    ModelWrapValidatorHandler,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
+from pydantic.fields import FieldInfo
+from pydantic_core import ErrorDetails, InitErrorDetails, PydanticCustomError
 
-from crestereo_pp.inference.options import ITERATIONS_PATTERN, InferenceOptions, TwoPass
+from crestereo_pp.inference.options import (
+    ITERATIONS_PATTERN,
+    InferenceOptions,
+    TwoPass,
+    parse_iterations,
+    parse_two_pass,
+)
 from crestereo_pp.inference.scaling import scaled_size
 from crestereo_pp.model.config import ModelName
 from crestereo_pp.stereo_data.pointcloud import MIN_DISPARITY, FocalBaseline
@@ -35,6 +53,8 @@ class Frame(StrEnum):
 
 
 _DECIMAL = re.compile(r"[+-]?([0-9]+\.?[0-9]*|\.[0-9]+)([eE][+-]?[0-9]+)?")
+_BOUND_WORDS = {"gt": "above", "ge": "at least", "lt": "below", "le": "at most"}
+"""How a number option's constraints read in its error: `scale` must be above 0 and at most 1."""
 
 
 TrainingStatus = Literal["trained", "untrained"]
@@ -136,7 +156,10 @@ class DisparityOptions(BaseModel):
     cx_px: FiniteFloat | None = Field(None, description="`format=ply`: principal point x in px [the image centre].")
     cy_px: FiniteFloat | None = Field(None, description="`format=ply`: principal point y in px [the image centre].")
     max_uncertainty: FiniteFloat | None = Field(
-        None, ge=0, description="`format=ply`: drop points whose uncertainty is above this."
+        None,
+        ge=0,
+        le=1,
+        description="`format=ply`: drop points whose uncertainty (a probability, 0 to 1) is above this.",
     )
     frame: Frame = Field(
         Frame.rectified,
@@ -185,6 +208,24 @@ class DisparityOptions(BaseModel):
             raise ValueError(f"expected a decimal number such as 0.5 or 1e-3, got {value[:32]!r}")
         return value
 
+    @field_validator("iters", mode="before")
+    @classmethod
+    def _iterations(cls, value: object) -> object:
+        """`iters` as ITERATIONS_PATTERN spells the counts `parse_iterations` reads (its message
+        where they are not 1 or 3 counts of 1-99): `04`, ` 4` or `1_0` are refused, not read as 4 or 10."""
+        if isinstance(value, str) and not re.fullmatch(ITERATIONS_PATTERN, value):
+            parse_iterations(value)  # raises for wrong counts, with the message the CLI gives
+            raise ValueError(
+                f"iterations are plain counts without leading zeros, such as 4 or 1,2,4, got {value[:32]!r}"
+            )
+        return value
+
+    @field_validator("two_pass", mode="before")
+    @classmethod
+    def _two_pass(cls, value: object) -> object:
+        """`two_pass` spelled as on the command line (`parse_two_pass`, its message where it is not)."""
+        return parse_two_pass(value) if isinstance(value, str | bool) else value
+
     @property
     def focal_baseline(self) -> FocalBaseline | None:
         """The camera of `focal_px`, `baseline_m`, `cx_px`, `cy_px`; None without one."""
@@ -231,6 +272,8 @@ class DisparityOptions(BaseModel):
                 return f"format=depth_png16 needs {needs}"
             if self.max_depth_m is not None:
                 return f"max_depth_m needs {needs}"
+            if "min_disparity" in self.model_fields_set and self.format is not OutputFormat.ply:
+                return f"min_disparity needs {needs}, or format=ply (it bounds depth and point clouds)"
             if self.cx_px is not None or self.cy_px is not None:
                 return "cx_px and cy_px need focal_px and baseline_m"
         return None
@@ -246,6 +289,51 @@ class DisparityOptions(BaseModel):
             if problem is not None:
                 raise ValueError(problem)
         return self
+
+    @model_validator(mode="wrap")
+    @classmethod
+    def _plain_errors(cls, data: object, handler: ModelWrapValidatorHandler[DisparityOptions]) -> DisparityOptions:
+        """Pydantic's errors as sentences that say what the option takes (`_option_problem`): the
+        same on `POST /disparity` and `/disparity/stream`, which both validate the query here.
+        Defined last, so that it wraps the validators above (`_consistent`'s errors too)."""
+        try:
+            return handler(data)
+        except ValidationError as error:
+            problems = [
+                InitErrorDetails(
+                    type=PydanticCustomError(detail["type"], _option_problem(detail, cls.model_fields)),
+                    loc=detail["loc"],
+                    input=detail["input"],
+                )
+                for detail in error.errors()
+            ]
+            raise ValidationError.from_exception_data(error.title, problems) from None
+
+
+def _option_problem(error: ErrorDetails, options: Mapping[str, FieldInfo]) -> str:
+    """One of pydantic's errors about a query option as a sentence that says what the option takes
+    (the message of a ValueError a validator raised as it is; pydantic's own for other errors)."""
+    given = f"got {str(error['input'])[:32]!r}"
+    match error["type"]:
+        case "extra_forbidden":
+            return f"unknown option; the options are {', '.join(options)}"
+        case "value_error":
+            return str(error["ctx"]["error"])
+        case "greater_than" | "greater_than_equal" | "less_than" | "less_than_equal":
+            return f"must be {_bounds(options[str(error['loc'][0])])}, {given}"
+        case "bool_parsing":
+            return f"must be true or false, {given}"
+    return error["msg"]
+
+
+def _bounds(option: FieldInfo) -> str:
+    """The range a number option takes, from its constraints: `above 0 and at most 1`."""
+    return " and ".join(
+        f"{words} {getattr(constraint, bound):g}"
+        for constraint in option.metadata
+        for bound, words in _BOUND_WORDS.items()
+        if getattr(constraint, bound, None) is not None
+    )
 
 
 class EncodedArray(BaseModel):

@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import struct
 import zlib
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from typing import Any
 
 import numpy as np
 import pytest
 
+from crestereo_pp.inference.options import parse_iterations, parse_two_pass
+from crestereo_pp.service.api.schemas import DisparityOptions
 from service_helpers import (
     encode,
     lite_settings,
@@ -261,3 +263,66 @@ async def test_a_deadline_the_work_ahead_cannot_meet_is_refused_at_admission():
     assert "cannot be met" in refused.json()["error"]["message"]
     assert int(refused.headers["retry-after"]) >= 1
     assert h.predictors["lite"].calls == calls  # never computed
+
+
+def message_of(parse: Callable[[str], object], text: str) -> str:
+    """The message of the ValueError `parse` raises for `text` (the CLI's own wording)."""
+    with pytest.raises(ValueError) as refused:
+        parse(text)
+    return str(refused.value)
+
+
+OPTIONS = ", ".join(DisparityOptions.model_fields)
+
+# (query, the whole message of the 422): each names the option and says what it takes
+OPTION_MESSAGES: list[tuple[dict[str, str], str]] = [
+    ({"iters": "1000000"}, f"query.iters: {message_of(parse_iterations, '1000000')}"),
+    ({"iters": "0"}, "query.iters: each iteration count must be 1..99, got '0'"),
+    ({"iters": "1,2"}, f"query.iters: {message_of(parse_iterations, '1,2')}"),
+    ({"iters": "04"}, "query.iters: iterations are plain counts without leading zeros, such as 4 or 1,2,4, got '04'"),
+    ({"two_pass": "maybe"}, f"query.two_pass: {message_of(parse_two_pass, 'maybe')}"),
+    ({"bogus": "1"}, f"query.bogus: unknown option; the options are {OPTIONS}"),
+    ({"Format": "npz"}, f"query.Format: unknown option; the options are {OPTIONS}"),
+    ({"scale": "2"}, "query.scale: must be above 0 and at most 1, got '2'"),
+    ({"scale": "0"}, "query.scale: must be above 0 and at most 1, got '0'"),
+    ({"scale": "1_0"}, "query.scale: expected a decimal number such as 0.5 or 1e-3, got '1_0'"),
+    ({"min_disparity": "-1"}, "query.min_disparity: must be at least 0, got '-1'"),
+    ({"max_uncertainty": "2"}, "query.max_uncertainty: must be at least 0 and at most 1, got '2'"),
+    ({"color_min": "1e9"}, "query.color_min: must be at least -32766 and at most 32766, got '1e9'"),
+    ({"flip": "x"}, "query.flip: must be true or false, got 'x'"),
+    ({"focal_px": "700"}, "query: give both focal_px and baseline_m, or neither"),
+    (
+        {"scale": "2", "wat": "1"},
+        f"query.scale: must be above 0 and at most 1, got '2'; query.wat: unknown option; the options are {OPTIONS}",
+    ),
+    ({"max_depth_m": "5"}, "max_depth_m needs a `calibration` part, or focal_px and baseline_m"),
+    (
+        {"min_disparity": "5"},
+        "min_disparity needs a `calibration` part, or focal_px and baseline_m, or format=ply (it bounds depth and "
+        "point clouds)",
+    ),
+]
+
+
+async def test_a_bad_option_is_answered_with_what_the_option_takes_and_never_computed():
+    async with serve_asgi() as h:
+        answers = [await h.client.post("/disparity", params=params, files=PAIR) for params, _ in OPTION_MESSAGES]
+    for answer, (params, message) in zip(answers, OPTION_MESSAGES, strict=True):
+        assert answer.status_code == 422, params
+        assert answer.json() == {"error": {"code": "invalid_request", "message": message}}, params
+    assert h.predictors["lite"].calls == []
+
+
+async def test_depth_limits_apply_where_there_is_depth_or_a_point_cloud():
+    async with serve_asgi() as h:
+        answers = [
+            await h.client.post("/disparity", params=params, files=PAIR)
+            for params in (
+                {"min_disparity": "5", "focal_px": "400", "baseline_m": "0.1"},
+                {"min_disparity": "5", "format": "ply"},  # image-space points: x, y, disparity
+                {"max_depth_m": "5", "focal_px": "400", "baseline_m": "0.1"},
+                {"max_uncertainty": "1", "format": "ply"},
+            )
+        ]
+    assert [answer.status_code for answer in answers] == [200] * 4
+

@@ -8,6 +8,7 @@ from __future__ import annotations
 import asyncio
 import json
 
+import httpx
 import numpy as np
 import pytest
 from websockets.exceptions import ConnectionClosed, InvalidStatus
@@ -16,7 +17,15 @@ from websockets.sync.client import connect
 from crestereo_pp.client import AsyncStereoClient, ServiceError, StereoClient
 from crestereo_pp.inference import InferenceOptions
 from panned_frames import panned_frames
-from service_helpers import assert_same_maps, encode, quiet_load_model, run_uvicorn, ws_url
+from service_helpers import (
+    assert_same_maps,
+    encode,
+    pair_files,
+    quiet_load_model,
+    run_uvicorn,
+    stereo_pair,
+    ws_url,
+)
 
 
 def test_a_stream_answers_each_pair_in_order_warm_started_as_the_library_computes_a_sequence(default_server):
@@ -101,6 +110,19 @@ def test_protocol_errors_and_bad_options_close_the_stream_saying_why(default_ser
                 socket.recv(timeout=30)
         assert said["error"]["code"] == "invalid_request" and expected in said["error"]["message"], query
         assert socket.close_code == 1008
+
+
+def test_a_stream_refuses_a_bad_option_in_the_words_post_disparity_uses(default_server):
+    messages, files = {}, pair_files(*stereo_pair())
+    for query in ("iters=1000000", "two_pass=maybe", "bogus=1", "scale=2", "flip=x", "min_disparity=5"):
+        with connect(ws_url(default_server.base_url, query)) as socket:
+            said = json.loads(socket.recv(timeout=30))
+        answer = httpx.post(f"{default_server.base_url}/disparity?{query}", files=files, timeout=60)
+        messages[query] = (said["error"]["message"], answer.json()["error"]["message"])
+    for query, (streamed, posted) in messages.items():
+        # a stream says why a depth limit cannot apply as a request does, and adds that its pairs are rectified
+        assert streamed in (posted, f"{posted}; a stream's pairs are rectified"), query
+    assert messages["bogus=1"][0].startswith("query.bogus: unknown option; the options are model, format,")
 
 
 def test_a_stream_needs_the_bearer_key_when_the_server_has_one(tmp_path):
