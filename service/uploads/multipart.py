@@ -83,12 +83,21 @@ def read_pair(body: bytes, content_type: str, limits: ImageLimits) -> Upload:
 
 
 def _one_file(form: dict[str, list[tuple[bytes, bool]]], name: str) -> bytes:
+    """The content of the field `name`, sent once and as a file (a part with a filename)."""
     given = form.get(name, [])
     if not given:
         raise UploadError(422, "missing_field", f"multipart field `{name}` is missing")
-    if len(given) > 1 or not given[0][1]:
-        raise UploadError(422, "invalid_field", f"`{name}` must be exactly one file")
-    return given[0][0]
+    if len(given) > 1:
+        raise UploadError(422, "invalid_field", f"`{name}` was sent {len(given)} times; send one {name} image")
+    content, is_file = given[0]
+    if not is_file:
+        raise UploadError(
+            422,
+            "invalid_field",
+            f"`{name}` was sent as a form value; send the image as a file (curl -F {name}=@{name}.png, not "
+            f"-F '{name}=<{name}.png')",
+        )
+    return content
 
 
 def _rig(parts: list[tuple[bytes, bool]], header: ImageHeader) -> str | None:
@@ -176,7 +185,10 @@ def _form(body: bytes, boundary: bytes) -> dict[str, list[tuple[bytes, bool]]]:
         name = options.get(b"name", b"").decode("utf-8", "replace")
         if name not in (*IMAGE_FIELDS, CALIBRATION_FIELD):
             raise UploadError(
-                422, "unknown_field", f"unknown multipart field `{name[:64]}`; options go in the query string"
+                422,
+                "unknown_field",
+                f"unknown multipart field `{name[:64]}`; options go in the query string, and the form's fields are "
+                "the files `left` and `right`, and `calibration` for a raw pair",
             )
         form.setdefault(name, []).append((b"".join(chunks), b"filename" in options))
     return form

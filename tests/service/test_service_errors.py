@@ -326,3 +326,39 @@ async def test_depth_limits_apply_where_there_is_depth_or_a_point_cloud():
         ]
     assert [answer.status_code for answer in answers] == [200] * 4
 
+
+# (multipart files, the whole message of the 422)
+FIELD_MESSAGES: list[tuple[list[tuple[str, Any]], str, str]] = [
+    (
+        [("l", PAIR["left"]), ("r", PAIR["right"])],
+        "unknown_field",
+        "unknown multipart field `l`; options go in the query string, and the form's fields are the files `left` "
+        "and `right`, and `calibration` for a raw pair",
+    ),
+    (
+        [("LEFT", PAIR["left"]), ("right", PAIR["right"])],
+        "unknown_field",
+        "unknown multipart field `LEFT`; options go in the query string, and the form's fields are the files "
+        "`left` and `right`, and `calibration` for a raw pair",
+    ),
+    (
+        [("left", (None, PAIR["left"][1])), ("right", PAIR["right"])],  # curl -F 'left=<L.png': no filename
+        "invalid_field",
+        "`left` was sent as a form value; send the image as a file (curl -F left=@left.png, not -F 'left=<left.png')",
+    ),
+    (
+        [("left", PAIR["left"]), ("right", PAIR["right"]), ("right", PAIR["right"])],
+        "invalid_field",
+        "`right` was sent 2 times; send one right image",
+    ),
+    ([("right", PAIR["right"])], "missing_field", "multipart field `left` is missing"),
+]
+
+
+async def test_image_fields_sent_wrongly_are_answered_with_how_to_send_them():
+    async with serve_asgi() as h:
+        answers = [await h.client.post("/disparity", files=files) for files, _, _ in FIELD_MESSAGES]
+    for answer, (files, code, message) in zip(answers, FIELD_MESSAGES, strict=True):
+        assert answer.status_code == 422, files
+        assert answer.json() == {"error": {"code": code, "message": message}}, [name for name, _ in files]
+    assert h.predictors["lite"].calls == []
