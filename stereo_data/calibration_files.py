@@ -79,14 +79,16 @@ Line = tuple[int, str]
 def parse_entries(text: str, source: str, prefix: str = "") -> dict[str, Value]:
     """The top-level entries of a calibration file, JSON where it starts with ``{``, else YAML.
     RigError naming ``prefix`` + the entry where one is not of the grammar above, or `source`
-    where the file as a whole is not."""
+    where the file as a whole is not, or has no entry (an empty file)."""
     if len(text) > MAX_CALIBRATION_BYTES:
         raise RigError(source, f"larger than {MAX_CALIBRATION_BYTES >> 10} KiB (a calibration is a few kilobytes)")
     if text.count("\n") > MAX_LINES:
         raise RigError(source, f"more than {MAX_LINES} lines (a calibration has under a hundred)")
-    if text.lstrip().startswith("{"):
-        return _json_entries(text, source, prefix)
-    return _yaml_entries(text, source, prefix)
+    read = _json_entries if text.lstrip().startswith("{") else _yaml_entries
+    entries = read(text, source, prefix)
+    if not entries:
+        raise RigError(source, "the file is empty (no calibration entries)")
+    return entries
 
 
 def _not_read(source: str, problem: str) -> RigError:

@@ -377,4 +377,11 @@ def _ros_rig(left: dict[str, Value], right: dict[str, Value]) -> StereoRig:
             "image_size",
             f"the left camera_info is for {size[0]}x{size[1]}, the right for {right_size[0]}x{right_size[1]}",
         )
+    if p2[0, 3] >= 0 > p1[0, 3]:  # a right camera's P[0][3] is -fx x baseline, a left camera's 0
+        raise RigError(
+            "calibration",
+            f"the files look swapped: the first camera_info is a right camera's (projection_matrix P[0][3] = "
+            f"{p1[0, 3]:.4g}, -fx x baseline) and the second a left camera's (P[0][3] = {p2[0, 3]:.4g}); send the "
+            "left camera's first, then the right camera's",
+        )
     return _with_depth(StereoRig(size, k1, d1, k2, d2, r1, r2, p1, p2), "right.projection_matrix")

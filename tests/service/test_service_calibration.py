@@ -183,6 +183,24 @@ async def test_calibration_parts_that_are_not_one_calibration_and_options_that_c
     assert calls == []
 
 
+async def test_an_empty_calibration_or_ros_files_right_camera_first_are_answered_with_the_fix(raw_pair, tmp_path):
+    left_info, right_info = (path.read_bytes() for path in ros_camera_info_files(tmp_path))
+    async with serve_asgi() as h:
+        swapped = await h.client.post(
+            "/disparity",
+            files=[*raw_pair.items(), ("calibration", ("r.yaml", right_info)), ("calibration", ("l.yaml", left_info))],
+        )
+        empty = await h.client.post("/disparity", files=[*raw_pair.items(), ("calibration", ("stereo.yaml", b""))])
+        calls = list(h.predictors["lite"].calls)
+    assert (swapped.status_code, empty.status_code) == (422, 422)
+    assert swapped.json()["error"]["code"] == empty.json()["error"]["code"] == "invalid_calibration"
+    message = swapped.json()["error"]["message"]
+    assert message.startswith("calibration `calibration`: the files look swapped: the first camera_info is a right")
+    assert message.endswith("send the left camera's first, then the right camera's")
+    assert empty.json()["error"]["message"] == "calibration `calibration`: the file is empty (no calibration entries)"
+    assert calls == []
+
+
 async def test_a_malformed_calibration_is_answered_422_by_the_decoder_which_is_not_replaced(raw_pair, tmp_path):
     """Each shape of raw_camera.MALFORMED, and the !!binary scalar that held OpenCV's parser for
     10-22 s of CPU, is refused as the calibration it is not: no crash, no timeout, no new process."""

@@ -169,6 +169,27 @@ def test_a_degenerate_ros_camera_info_is_refused_naming_the_side_and_entry(side,
     assert refused.value.field == f"{side}.{field}"
 
 
+def test_ros_camera_info_files_given_right_camera_first_are_refused_as_swapped(tmp_path):
+    left, right = (path.read_text() for path in ros_camera_info_files(tmp_path))
+    with pytest.raises(RigError) as swapped:
+        parse_rig(right, left)
+    right_p = parse_rig(left, right).p2
+    assert swapped.value.field == "calibration"
+    assert swapped.value.reason == (
+        f"the files look swapped: the first camera_info is a right camera's (projection_matrix P[0][3] = "
+        f"{right_p[0, 3]:.4g}, -fx x baseline) and the second a left camera's (P[0][3] = 0); send the left "
+        "camera's first, then the right camera's"
+    )
+
+
+@pytest.mark.parametrize("text", ["", "\n\n", "# only a comment\n", "%YAML:1.0\n---\n", "{}"])
+def test_an_empty_calibration_file_is_refused_as_empty(text):
+    for texts, field in (((text,), "calibration"), ((text, text), "left camera_info")):
+        with pytest.raises(RigError) as refused:
+            parse_rig(*texts)
+        assert (refused.value.field, refused.value.reason) == (field, "the file is empty (no calibration entries)")
+
+
 def test_one_ros_camera_info_alone_is_refused_asking_for_both_cameras():
     with pytest.raises(RigError, match="one ROS camera_info, which describes one camera: give the left camera's and"):
         parse_rig(ROS_LEFT)
