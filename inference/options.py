@@ -71,7 +71,7 @@ def parse_two_pass(value: str | bool) -> TwoPass:
         return "auto"
     spelled = {"on": True, "true": True, "off": False, "false": False}.get(str(value).lower())
     if spelled is None:
-        raise ValueError(f"two_pass is auto, on or off, got {value!r}")
+        raise ValueError(f"two_pass is auto, on (true) or off (false), got {value!r}")
     return spelled
 
 

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import logging
 import uuid
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
@@ -94,6 +95,19 @@ def error_response(status: int, code: str, message: str, headers: Mapping[str, s
     return JSONResponse(body.model_dump(), status_code=status, headers=headers)
 
 
+def validation_problems(errors: Sequence[Any], where: tuple[str, ...] = ()) -> str:
+    """The message of an `invalid_request`: each of pydantic's `errors` (at most MAX_LISTED_PROBLEMS)
+    as `query.option: what it takes`, their place prefixed by `where` (the stream validates its
+    query as a model of its own: ("query",))."""
+    problems = "; ".join(
+        f"{'.'.join(str(part) for part in (*where, *error['loc']))}: {error['msg']}"
+        for error in errors[:MAX_LISTED_PROBLEMS]
+    )
+    if len(errors) > MAX_LISTED_PROBLEMS:
+        problems += f"; and {len(errors) - MAX_LISTED_PROBLEMS} more"
+    return problems
+
+
 def install_error_handlers(app: FastAPI, metrics: Metrics) -> None:
     """Route every exception the app can raise to a JSON error body (registered with FastAPI's
     `exception_handler` decorator, which keeps each handler's own exception type)."""
@@ -115,13 +129,7 @@ def install_error_handlers(app: FastAPI, metrics: Metrics) -> None:
     @app.exception_handler(RequestValidationError)
     async def validation_error(_: Request, exc: RequestValidationError) -> JSONResponse:
         metrics.reject("bad_input")
-        errors = exc.errors()
-        problems = "; ".join(
-            f"{'.'.join(str(part) for part in error['loc'])}: {error['msg']}" for error in errors[:MAX_LISTED_PROBLEMS]
-        )
-        if len(errors) > MAX_LISTED_PROBLEMS:
-            problems += f"; and {len(errors) - MAX_LISTED_PROBLEMS} more"
-        return error_response(422, "invalid_request", problems)
+        return error_response(422, "invalid_request", validation_problems(exc.errors()))
 
     @app.exception_handler(StarletteHTTPException)
     async def http_error(_: Request, exc: StarletteHTTPException) -> JSONResponse:

@@ -62,5 +62,5 @@ def test_two_pass_reads_auto_on_or_off_and_defaults_to_auto(given, parsed):
 
 @pytest.mark.parametrize("given", ["", "yes please", "2", "Auto-ish"])
 def test_two_pass_other_than_auto_on_or_off_is_refused(given):
-    with pytest.raises(ValueError, match="auto, on or off"):
+    with pytest.raises(ValueError, match=r"auto, on \(true\) or off \(false\)"):
         InferenceOptions(two_pass=given)

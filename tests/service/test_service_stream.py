@@ -114,7 +114,16 @@ def test_protocol_errors_and_bad_options_close_the_stream_saying_why(default_ser
 
 def test_a_stream_refuses_a_bad_option_in_the_words_post_disparity_uses(default_server):
     messages, files = {}, pair_files(*stereo_pair())
-    for query in ("iters=1000000", "two_pass=maybe", "bogus=1", "scale=2", "flip=x", "min_disparity=5"):
+    for query in (
+        "iters=1000000",
+        "two_pass=maybe",
+        "bogus=1",
+        "scale=2",
+        "flip=x",
+        "min_disparity=5",
+        "focal_px=700",
+        "iters=0&scale=0",
+    ):
         with connect(ws_url(default_server.base_url, query)) as socket:
             said = json.loads(socket.recv(timeout=30))
         answer = httpx.post(f"{default_server.base_url}/disparity?{query}", files=files, timeout=60)

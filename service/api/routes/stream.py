@@ -32,7 +32,7 @@ from starlette.responses import Response
 from starlette.websockets import WebSocketState
 
 from crestereo_pp.inference import WarmStart
-from crestereo_pp.service.api.errors import ApiError, batching_answer, error_response
+from crestereo_pp.service.api.errors import ApiError, batching_answer, error_response, validation_problems
 from crestereo_pp.service.api.pipeline import answer_pair
 from crestereo_pp.service.api.query import repeated_option
 from crestereo_pp.service.api.schemas import DisparityOptions, OutputFormat
@@ -106,9 +106,7 @@ def _options(websocket: WebSocket) -> tuple[DisparityOptions, WarmStart]:
         options = DisparityOptions.model_validate(query)
         frames = WarmStart(options.inference, warm_iters)  # the stream's options, read once
     except ValidationError as error:
-        first = error.errors()[0]
-        where = ".".join(map(str, first["loc"]))
-        raise _Closing(POLICY_VIOLATION, "invalid_request", f"query.{where}: {first['msg']}") from None
+        raise _Closing(POLICY_VIOLATION, "invalid_request", validation_problems(error.errors(), ("query",))) from None
     except ValueError as error:
         raise _Closing(POLICY_VIOLATION, "invalid_request", f"query.warm_iters: {error}") from None
     problem = options.calibration_problem(calibrated=False)
