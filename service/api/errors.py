@@ -97,10 +97,10 @@ def error_response(status: int, code: str, message: str, headers: Mapping[str, s
 
 def validation_problems(errors: Sequence[Any], where: tuple[str, ...] = ()) -> str:
     """The message of an `invalid_request`: each of pydantic's `errors` (at most MAX_LISTED_PROBLEMS)
-    as `query.option: what it takes`, their place prefixed by `where` (the stream validates its
-    query as a model of its own: ("query",))."""
+    as `query.option: what it takes` (a validator's own message without pydantic's "Value error, "),
+    their place prefixed by `where` (the stream validates its query as a model of its own: ("query",))."""
     problems = "; ".join(
-        f"{'.'.join(str(part) for part in (*where, *error['loc']))}: {error['msg']}"
+        f"{'.'.join(str(part) for part in (*where, *error['loc']))}: {error['msg'].removeprefix('Value error, ')}"
         for error in errors[:MAX_LISTED_PROBLEMS]
     )
     if len(errors) > MAX_LISTED_PROBLEMS:

@@ -313,6 +313,14 @@ async def test_a_bad_option_is_answered_with_what_the_option_takes_and_never_com
     assert h.predictors["lite"].calls == []
 
 
+async def test_a_deadline_header_that_is_no_whole_number_is_answered_in_plain_words():
+    async with serve_asgi() as h:
+        answer = await h.client.post("/disparity", files=PAIR, headers={"X-Request-Timeout-Ms": "soon"})
+    assert answer.json()["error"]["message"] == (
+        "header.X-Request-Timeout-Ms: expected a whole number of milliseconds such as 5000, got 'soon'"
+    )
+
+
 async def test_depth_limits_apply_where_there_is_depth_or_a_point_cloud():
     async with serve_asgi() as h:
         answers = [
