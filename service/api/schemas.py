@@ -311,14 +311,13 @@ class DisparityOptions(BaseModel):
 
 
 def _option_problem(error: ErrorDetails, options: Mapping[str, FieldInfo]) -> str:
-    """One of pydantic's errors about a query option as a sentence that says what the option takes
-    (the message of a ValueError a validator raised as it is; pydantic's own for other errors)."""
+    """One of pydantic's errors about a query option as a sentence that says what the option takes;
+    the others as pydantic words them (a validator's ValueError: its message after "Value error, ",
+    which `errors.validation_problems` drops)."""
     given = f"got {str(error['input'])[:32]!r}"
     match error["type"]:
         case "extra_forbidden":
             return f"unknown option; the options are {', '.join(options)}"
-        case "value_error":
-            return str(error["ctx"]["error"])
         case "greater_than" | "greater_than_equal" | "less_than" | "less_than_equal":
             return f"must be {_bounds(options[str(error['loc'][0])])}, {given}"
         case "bool_parsing":
