@@ -16,7 +16,11 @@ camera): it is used as given. Disparity is in rectified pixels, positive: left x
 x - d on the same rectified row. A rig is refused (RigError naming the entry) unless its images
 are 1 to MAX_IMAGE_SIDE px a side, R (ROS: each rectification matrix) is a rotation by at most
 MAX_TURN_DEGREES, and its focal length x baseline is within MIN_FOCAL_BASELINE-MAX_FOCAL_BASELINE, the
-bounds of a query's focal_px x baseline_m.
+bounds of a query's focal_px x baseline_m. Calibrations that OpenCV would rectify but that no real
+camera has are refused too, as the mistakes they usually are: a focal length outside
+MIN_FOCAL_SIDES-MAX_FOCAL_SIDES times the image's longer side, a rectification that magnifies or
+shrinks an image more than MAX_RECTIFIED_ZOOM times (distortion coefficients far off), and a
+baseline over MAX_BASELINE_M (a calibration in millimetres read as metres).
 """
 
 from __future__ import annotations
@@ -38,6 +42,10 @@ __all__ = [
     "MAX_IMAGE_SIDE",
     "MIN_FOCAL_BASELINE",
     "MAX_TURN_DEGREES",
+    "MAX_FOCAL_SIDES",
+    "MIN_FOCAL_SIDES",
+    "MAX_RECTIFIED_ZOOM",
+    "MAX_BASELINE_M",
     "RigError",
     "StereoRig",
     "Rectifier",
@@ -57,6 +65,19 @@ float32 above 0 at the widest disparity (4e-34; below, every depth would read 0 
 MAX_TURN_DEGREES = 30.0
 """Largest turn of the right camera against the left (OpenCV's R), or of a camera into its rectified
 frame (ROS's rectification matrix): beyond it the rectified views barely overlap (none at 90)."""
+MAX_FOCAL_SIDES = 100.0
+"""Longest focal length (px) a camera may have, in multiples of its image's longer side: a field of
+view of 0.57 degrees; longer ones are focal lengths in another unit, or typos."""
+MIN_FOCAL_SIDES = 0.05
+"""Shortest focal length (px), in multiples of the image's longer side: a field of view of 169
+degrees, near the 180 where a pinhole camera model ends."""
+MAX_RECTIFIED_ZOOM = 4.0
+"""Most a rectification may magnify (or shrink) an image, as the rectified focal length against
+the camera's own: real rigs stay within about 1.5; distortion coefficients far off make OpenCV crop
+the rectified view to a sliver (D1 = [50, -80, 0, 0, 0] on a 300 px camera: 9x)."""
+MAX_BASELINE_M = 10.0
+"""Longest baseline (m) a rig may have: a calibration made with its chessboard measured in
+millimetres has T in millimetres, and read as metres every depth would be 1000 times too large."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -122,7 +143,7 @@ class StereoRig:
             array("p1", [(3, 4)]),
             array("p2", [(3, 4)]),
         )
-        return _with_depth(rig, "calibration")
+        return _checked(rig, "calibration")
 
 
 def read_rig(paths: str | Path | Sequence[str | Path]) -> StereoRig:
@@ -272,9 +293,20 @@ def _pixels(width: float, height: float) -> tuple[int, int]:
     return int(width), int(height)
 
 
-def _camera(k: np.ndarray, k_name: str) -> None:
+def _camera(k: np.ndarray, k_name: str, size: tuple[int, int]) -> None:
+    """RigError unless `k` is a camera matrix whose focal lengths (px) are within MIN_FOCAL_SIDES to
+    MAX_FOCAL_SIDES times the longer side of the `size` (width, height) images."""
     if not (k[0, 0] > 0 and k[1, 1] > 0 and np.allclose(k[2], (0.0, 0.0, 1.0))):
         raise RigError(k_name, "not a camera matrix: expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0")
+    side = max(size)
+    for focal in (k[0, 0], k[1, 1]):
+        if not MIN_FOCAL_SIDES * side <= focal <= MAX_FOCAL_SIDES * side:
+            raise RigError(
+                k_name,
+                f"a focal length of {focal:.6g} px for {size[0]}x{size[1]} images: expected "
+                f"{MIN_FOCAL_SIDES:g} to {MAX_FOCAL_SIDES:g} times the longer side ({MIN_FOCAL_SIDES * side:g}-"
+                f"{MAX_FOCAL_SIDES * side:g} px, a field of view of 169 to 0.57 degrees); focal lengths are in pixels",
+            )
 
 
 def _rotation(field: str, matrix: np.ndarray, turned: str) -> None:
@@ -295,12 +327,29 @@ def _rotation(field: str, matrix: np.ndarray, turned: str) -> None:
         )
 
 
-def _with_depth(rig: StereoRig, field: str) -> StereoRig:
-    """`rig`, once its rectified cameras give depth as a query's focal_px and baseline_m do: both
-    positive, their product within MIN_FOCAL_BASELINE-MAX_FOCAL_BASELINE (``focal_baseline_problem``)."""
+def _checked(rig: StereoRig, field: str) -> StereoRig:
+    """`rig`, once its rectified cameras give depth as a query's focal_px and baseline_m do (both
+    positive, their product within MIN_FOCAL_BASELINE-MAX_FOCAL_BASELINE: ``focal_baseline_problem``),
+    its baseline is at most MAX_BASELINE_M and its rectification magnifies neither camera's image
+    more than MAX_RECTIFIED_ZOOM times nor shrinks it so. `field` names the baseline's entry."""
     problem = focal_baseline_problem(rig.focal_px, rig.baseline, "focal length x baseline")
     if problem is not None:
         raise RigError(field, problem)
+    if rig.baseline > MAX_BASELINE_M:
+        raise RigError(
+            field,
+            f"a baseline of {rig.baseline:.6g} m; at most {MAX_BASELINE_M:g} m: T is in metres (a calibration made "
+            "with the chessboard's squares in millimetres has T in millimetres: divide it by 1000)",
+        )
+    for side, k, p in (("left", rig.k1, rig.p1), ("right", rig.k2, rig.p2)):
+        zoom = float(p[0, 0] / k[0, 0])
+        if not 1 / MAX_RECTIFIED_ZOOM <= zoom <= MAX_RECTIFIED_ZOOM:
+            raise RigError(
+                "calibration",
+                f"rectifying would scale the {side} image {zoom:.3g} times (focal length {k[0, 0]:.6g} px -> "
+                f"{p[0, 0]:.6g} px); real rigs stay within about 1.5: check the distortion coefficients and "
+                "camera matrices",
+            )
     return rig
 
 
@@ -322,8 +371,8 @@ def _opencv_rig(entries: dict[str, Value]) -> StereoRig:
     size = _image_size(entries)
     k1, k2 = (_entry(entries, "", key, [(3, 3)]) for key in ("K1", "K2"))
     d1, d2 = (_entry(entries, "", key, [(n,) for n in DISTORTION_LENGTHS]) for key in ("D1", "D2"))
-    _camera(k1, "K1")
-    _camera(k2, "K2")
+    _camera(k1, "K1", size)
+    _camera(k2, "K2", size)
     rotation = _entry(entries, "", "R", [(3, 3), (3,)])
     if rotation.shape == (3,):
         rotation = cv2.Rodrigues(rotation)[0]  # a rotation vector
@@ -349,7 +398,7 @@ def _opencv_rig(entries: dict[str, Value]) -> StereoRig:
         raise RigError("calibration", "OpenCV cannot rectify these cameras") from None
     if not (np.isfinite(p1).all() and np.isfinite(p2).all()):
         raise RigError("calibration", "OpenCV cannot rectify these cameras")
-    return _with_depth(StereoRig(size, k1, d1, k2, d2, r1, r2, p1, p2), "T")
+    return _checked(StereoRig(size, k1, d1, k2, d2, r1, r2, p1, p2), "T")
 
 
 RosCamera = tuple[tuple[int, int], np.ndarray, np.ndarray, np.ndarray, np.ndarray]
@@ -360,12 +409,12 @@ def _ros_camera(entries: dict[str, Value], side: str) -> RosCamera:
     prefix = f"{side}."
     size = _image_size(entries)
     k = _entry(entries, prefix, "camera_matrix", [(3, 3)])
-    _camera(k, f"{prefix}camera_matrix")
+    _camera(k, f"{prefix}camera_matrix", size)
     d = _entry(entries, prefix, "distortion_coefficients", [(n,) for n in DISTORTION_LENGTHS])
     r = _entry(entries, prefix, "rectification_matrix", [(3, 3)])
     _rotation(f"{prefix}rectification_matrix", r, "the rectification turns the camera")
     p = _entry(entries, prefix, "projection_matrix", [(3, 4)])
-    _camera(p[:, :3], f"{prefix}projection_matrix")
+    _camera(p[:, :3], f"{prefix}projection_matrix", size)
     return size, k, d, r, p
 
 
@@ -384,4 +433,4 @@ def _ros_rig(left: dict[str, Value], right: dict[str, Value]) -> StereoRig:
             f"{p1[0, 3]:.4g}, -fx x baseline) and the second a left camera's (P[0][3] = {p2[0, 3]:.4g}); send the "
             "left camera's first, then the right camera's",
         )
-    return _with_depth(StereoRig(size, k1, d1, k2, d2, r1, r2, p1, p2), "right.projection_matrix")
+    return _checked(StereoRig(size, k1, d1, k2, d2, r1, r2, p1, p2), "right.projection_matrix")

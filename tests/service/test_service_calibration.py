@@ -124,6 +124,8 @@ BAD_CALIBRATIONS = [
     ({"T": np.array([0.0, -0.12, 0.0])}, "T"),  # one camera above the other: cannot be rectified for rows
     ({"T": np.array([-1e300, 0.0, 0.0])}, "T"),  # focal_px x baseline_m beyond what a query may give
     ({"R": cv2.Rodrigues(np.array([0.0, np.pi / 2, 0.0]))[0]}, "R"),  # turned 90 degrees: no pixel would match
+    ({"T": np.array([-120.0, 0.0, 0.0])}, "T"),  # in millimetres: depths 1000 times too far, were it answered
+    ({"D1": np.array([50.0, -80.0, 0.0, 0.0, 0.0])}, "calibration"),  # rectified into a 9x enlarged sliver
 ]
 
 

@@ -137,6 +137,11 @@ def test_a_pair_of_ros_camera_info_files_is_used_with_its_own_rectification(tmp_
         ({"R": 1e300 * np.eye(3)}, "R"),
         ({"R": cv2.Rodrigues(np.array([0.0, np.pi / 2, 0.0]))[0]}, "R"),  # turned 90 degrees: nothing overlaps
         ({"R": cv2.Rodrigues(np.array([0.0, np.radians(MAX_TURN_DEGREES + 5), 0.0]))[0]}, "R"),
+        # What OpenCV would rectify, but no camera has: the usual mistakes, each a silent wrong depth
+        ({"K1": np.array([[1e12, 0, 158], [0, 1e12, 121], [0, 0, 1]])}, "K1"),  # a field of view of 1e-8 degrees
+        ({"K2": np.array([[5.0, 0, 163], [0, 5.0, 118], [0, 0, 1]])}, "K2"),  # wider than a pinhole model reaches
+        ({"D1": np.array([50.0, -80.0, 0.0, 0.0, 0.0])}, "calibration"),  # rectified into a 9x enlarged sliver
+        ({"T": 1000 * T}, "T"),  # millimetres: every depth 1000 times too far
     ],
 )
 def test_an_unusable_calibration_is_refused_naming_the_field(tmp_path, entries, field):
@@ -158,6 +163,8 @@ def test_an_unusable_calibration_is_refused_naming_the_field(tmp_path, entries, 
         ("right", "-46.8,", "-3.9e302,", "projection_matrix"),  # a baseline of 1e300 m
         ("right", "-46.8,", "-3.9e-298,", "projection_matrix"),  # a baseline of 1e-300 m
         ("right", "data: [390, 0, 160, -46.8, 0, 390,", "data: [0, 0, 160, -46.8, 0, 390,", "projection_matrix"),
+        ("right", "-46.8,", "-46800,", "projection_matrix"),  # a baseline in millimetres: 120 "m"
+        ("left", "data: [400, 0, 160, 0, 400, 120,", "data: [4e7, 0, 160, 0, 4e7, 120,", "camera_matrix"),
     ],
 )
 def test_a_degenerate_ros_camera_info_is_refused_naming_the_side_and_entry(side, old, new, field):
@@ -167,6 +174,12 @@ def test_a_degenerate_ros_camera_info_is_refused_naming_the_side_and_entry(side,
     with pytest.raises(RigError) as refused:
         parse_rig(texts["left"], texts["right"])
     assert refused.value.field == f"{side}.{field}"
+
+
+def test_a_calibration_in_millimetres_is_refused_saying_t_is_in_metres(tmp_path):
+    message = r"^T: a baseline of 120\.0[0-9]* m; at most 10 m: T is in metres .* divide it by 1000"
+    with pytest.raises(RigError, match=message):
+        read_rig(opencv_file(tmp_path / "stereo.yaml", T=1000 * T))
 
 
 def test_ros_camera_info_files_given_right_camera_first_are_refused_as_swapped(tmp_path):
