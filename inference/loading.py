@@ -72,7 +72,7 @@ def load_model(
             network = CREStereoPP(ModelConfig.preset(name))
         predictor = StereoPredictor(network, name, None, device, **options)
     else:
-        payload = read_weights(path)
+        payload = read_weights(path, name)
         if not is_trained(payload.get("training")):
             warnings.warn(
                 f"the {name!r} weights at {path} are untrained (no validation on real pairs reaching "

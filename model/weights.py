@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import hashlib
 import os
-import pickle
 from pathlib import Path
 from typing import Any, NotRequired, TypedDict, cast
 
@@ -82,23 +81,30 @@ def is_trained(training: dict[str, Any] | None) -> bool:
     return bool(validations) and float(validations[-1]["bad2"]) <= USABLE_BAD2
 
 
-def read_weights(path: str | Path) -> WeightsFile:
+def read_weights(path: str | Path, model: str | None = None) -> WeightsFile:
     """The weights file (or checkpoint) at `path` as a dict, tensors on the CPU.
 
-    Raises FileNotFoundError when there is no file, ValueError when it is not a weights file."""
+    Raises FileNotFoundError when there is no file, ValueError when it is not a weights file, or
+    when `model` is given and the file holds another model's weights (files that name no model
+    pass: they are read as `model`'s)."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"weights file not found: {path}")
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
-    except (pickle.UnpicklingError, RuntimeError, EOFError) as error:
-        reason = {
-            pickle.UnpicklingError: "not a file torch saved, or one holding more than tensors and plain values",
-            EOFError: "empty",
-        }.get(type(error)) or str(error).split(". ")[0]  # a zip archive cut short or damaged: torch's first sentence
+    except Exception as error:  # torch's unpickler meets other bytes with whatever they trip (KeyError, ...)
+        if isinstance(error, RuntimeError):
+            reason = str(error).split(". ")[0]  # a zip archive cut short or damaged: torch's first sentence
+        elif isinstance(error, EOFError):
+            reason = "empty"
+        else:
+            reason = "not a file torch saved, or one holding more than tensors and plain values"
         raise ValueError(f"{path} is not a weights file or checkpoint: torch cannot read it ({reason})") from None
     if not isinstance(payload, dict) or "model" not in payload:
         raise ValueError(f"{path} is not a weights file or checkpoint: expected a dict with a 'model' state_dict")
+    held = payload.get("model_name", model)
+    if model is not None and held != model:
+        raise ValueError(f"{path} holds {held!r} weights, not {model!r}: load them as {held!r}")
     return cast(WeightsFile, payload)  # the file's own keys, checked where they are read
 
 

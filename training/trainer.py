@@ -100,9 +100,7 @@ class Trainer:
         self.config, self.context, self.device = config, context, device
         self.planned = config  # the run as configured; keep_in_time sizes self.config's end within it
         source_path = resume or init_weights
-        source = read_weights(source_path) if source_path is not None else None
-        if source is not None and source.get("model_name", config.model) != config.model:
-            raise ValueError(f"{source_path} holds {source['model_name']!r} weights, not {config.model!r}")
+        source = read_weights(source_path, config.model) if source_path is not None else None
         self.model_config = model_config_of(source, config.model) if source else ModelConfig.preset(config.model)
         torch.manual_seed(config.seed)
         self.network = CREStereoPP(self.model_config).to(device)

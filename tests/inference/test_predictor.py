@@ -333,12 +333,18 @@ def test_missing_or_invalid_weights_files_raise(tmp_path):
     shipped = (REPO / "model/weights/lite.pt").read_bytes()
     for name, content in (
         ("image.png", b"\x89PNG\r\n\x1a\n" + bytes(64)),
+        ("notes.txt", b"hello world\n"),  # torch's unpickler trips a KeyError on these bytes
         ("empty.pt", b""),
         ("cut.pt", shipped[:4096]),
     ):
         (tmp_path / name).write_bytes(content)
         with pytest.raises(ValueError, match=f"{name} is not a weights file or checkpoint: torch cannot read it"):
             load_model("lite", weights=tmp_path / name)
+
+
+def test_weights_of_the_other_model_are_refused_naming_the_model_they_are():
+    with pytest.raises(ValueError, match=r"lite\.pt holds 'lite' weights, not 'full': load them as 'lite'"):
+        load_model("full", weights=REPO / "model/weights/lite.pt", backend="torch")
 
 
 def test_inference_holds_no_autograd_state(lite):
