@@ -28,7 +28,7 @@ from crestereo_pp.stereo_data.formats import (
 from crestereo_pp.stereo_data.output_maps import OutputOptions, PredictionOutputs
 from crestereo_pp.stereo_data.pointcloud import DepthRange, FocalBaseline
 from crestereo_pp.stereo_data.rig import Rectifier, focal_baseline_problem, read_rig
-from crestereo_pp.stereo_data.visualize import disparity_picture
+from crestereo_pp.stereo_data.visualize import color_scale_problem, disparity_picture
 
 from .options import inference_options, load_predictor
 
@@ -246,6 +246,9 @@ def plan(args: argparse.Namespace) -> Job:
             raise ValueError(f"{flag} needs --calibration, or --focal-px and --baseline-m")
     if args.warm_iters is not None and not args.sequence:
         raise ValueError("--warm-iters needs --sequence (only a sequence's frames start warm)")
+    problem = color_scale_problem(args.color_min, args.color_max, ("--color-min", "--color-max"))
+    if problem is not None:
+        raise ValueError(problem)
     if args.url is not None:
         from crestereo_pp.client import service_address
 

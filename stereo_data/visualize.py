@@ -40,11 +40,23 @@ def robust_range(values: np.ndarray, low_percentile: float = 1.0, high_percentil
     return (low, high) if high - low >= 1e-3 else (low, low + 1e-3)
 
 
+def color_scale_problem(
+    low: float | None, high: float | None, names: tuple[str, str] = ("color_min", "color_max")
+) -> str | None:
+    """Why a colour scale from `low` to `high` (either None: the map's own) cannot be drawn, the
+    two called `names` in the message: the top is not above the bottom; None where it can."""
+    if low is not None and high is not None and high <= low:
+        return f"{names[1]} ({high:g}) must be above {names[0]} ({low:g})"
+    return None
+
+
 def scale_range(values: np.ndarray, low: float | None = None, high: float | None = None) -> tuple[float, float]:
     """A colour scale for `values`: the given ends, the robust range (`robust_range`) for the
-    missing ones; the top is kept above the bottom. Raises when both are given the wrong way."""
-    if low is not None and high is not None and high <= low:
-        raise ValueError(f"the top of the colour scale ({high}) must be above its bottom ({low})")
+    missing ones; the top is kept above the bottom. ValueError (`color_scale_problem`) when both
+    are given the wrong way."""
+    problem = color_scale_problem(low, high)
+    if problem is not None:
+        raise ValueError(problem)
     robust_low, robust_high = robust_range(values)
     low = robust_low if low is None else low
     high = max(robust_high, low + 1e-3) if high is None else high

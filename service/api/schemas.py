@@ -31,6 +31,7 @@ from crestereo_pp.inference.scaling import scaled_size
 from crestereo_pp.model.config import ModelName
 from crestereo_pp.stereo_data.pointcloud import MIN_DISPARITY, FocalBaseline
 from crestereo_pp.stereo_data.rig import MAX_IMAGE_SIDE, focal_baseline_problem
+from crestereo_pp.stereo_data.visualize import color_scale_problem
 
 
 class OutputFormat(StrEnum):
@@ -282,8 +283,9 @@ class DisparityOptions(BaseModel):
     def _consistent(self) -> DisparityOptions:
         if (self.focal_px is None) != (self.baseline_m is None):
             raise ValueError("give both focal_px and baseline_m, or neither")
-        if self.color_min is not None and self.color_max is not None and self.color_max <= self.color_min:
-            raise ValueError("color_max must be above color_min")
+        problem = color_scale_problem(self.color_min, self.color_max)
+        if problem is not None:
+            raise ValueError(problem)
         if self.focal_px is not None and self.baseline_m is not None:
             problem = focal_baseline_problem(self.focal_px, self.baseline_m, "focal_px x baseline_m")
             if problem is not None:

@@ -209,6 +209,20 @@ def test_a_focal_length_and_baseline_that_give_no_usable_depth_are_refused(
     assert says in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("folders", [False, True])
+def test_a_colour_scale_upside_down_is_refused_before_anything_is_computed(pairs_dir, tmp_path, capsys, folders):
+    pair = pairs_dir / "shift4"
+    if folders:  # a run of many pairs: the first pair's files were written before the refusal
+        argv = ["predict", f"{pairs_dir}/*/left.png", f"{pairs_dir}/*/right.png", "-o", str(tmp_path / "d")]
+        argv += ["--color", str(tmp_path / "c"), "--mkdir"]
+    else:
+        argv = ["predict", str(pair / "left.png"), str(pair / "right.png"), "-o", str(tmp_path / "d.pfm")]
+        argv += ["--color", str(tmp_path / "c.png")]
+    assert main([*argv, "--color-min", "50", "--color-max", "10"]) == 2
+    assert "--color-max (10) must be above --color-min (50)" in capsys.readouterr().err
+    assert not any((tmp_path / name).exists() for name in ("d", "d.pfm", "c", "c.png"))
+
+
 def test_predict_on_a_real_pair_keeps_its_size(small_stereo_dev, tmp_path):
     pair = next(small_stereo_dev.iterdir())
     out = tmp_path / "d.pfm"
