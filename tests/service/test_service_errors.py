@@ -313,12 +313,28 @@ async def test_a_bad_option_is_answered_with_what_the_option_takes_and_never_com
     assert h.predictors["lite"].calls == []
 
 
-async def test_a_deadline_header_that_is_no_whole_number_is_answered_in_plain_words():
+async def test_a_deadline_header_that_is_no_whole_number_or_over_an_hour_is_answered_in_plain_words():
     async with serve_asgi() as h:
         answer = await h.client.post("/disparity", files=PAIR, headers={"X-Request-Timeout-Ms": "soon"})
+        too_long = await h.client.post("/disparity", files=PAIR, headers={"X-Request-Timeout-Ms": "3600001"})
     assert answer.json()["error"]["message"] == (
         "header.X-Request-Timeout-Ms: expected a whole number of milliseconds such as 5000, got 'soon'"
     )
+    assert (too_long.status_code, too_long.json()["error"]["message"]) == (
+        422,
+        "header.X-Request-Timeout-Ms: at most 3600000 ms (an hour), got 3600001",
+    )
+
+
+async def test_a_deadline_of_zero_is_under_the_servers_minimum_as_one_is():
+    async with serve_asgi() as h:
+        answers = [
+            await h.client.post("/disparity", files=PAIR, headers={"X-Request-Timeout-Ms": ms}) for ms in ("0", "1")
+        ]
+    for answer in answers:
+        assert (answer.status_code, answer.json()["error"]["code"]) == (503, "deadline_exceeded")
+        assert "no request is answered in less than 100 ms here" in answer.json()["error"]["message"]
+    assert h.predictors["lite"].calls == []
 
 
 async def test_depth_limits_apply_where_there_is_depth_or_a_point_cloud():

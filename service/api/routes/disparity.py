@@ -41,9 +41,12 @@ _ABANDON_POLL_S = 0.2  # how often a request whose images are being read checks 
 
 def _plain_digits(value: object) -> object:
     """`X-Request-Timeout-Ms` is plain digits, as numbers in the query are plain decimals:
-    `3_600_000` or `+5` are refused, not read as numbers."""
+    `3_600_000` or `+5` are refused, not read as numbers; and at most MAX_TIMEOUT_MS, said in words.
+    0 passes: under the server's minimum, it is answered 503 `deadline_exceeded` as 1 is."""
     if isinstance(value, str) and not (value.isascii() and value.isdigit()):
         raise ValueError(f"expected a whole number of milliseconds such as 5000, got {value[:32]!r}")
+    if isinstance(value, str) and int(value) > MAX_TIMEOUT_MS:
+        raise ValueError(f"at most {MAX_TIMEOUT_MS} ms (an hour), got {value[:32]}")
     return value
 
 
@@ -64,7 +67,7 @@ async def estimate_disparity(
         int | None,
         Header(
             alias="X-Request-Timeout-Ms",
-            ge=1,
+            ge=0,
             le=MAX_TIMEOUT_MS,
             description="Deadline in milliseconds from arrival: a request that cannot be computed "
             "in time is dropped before computing and answered 503 `deadline_exceeded`; so is one under the "
