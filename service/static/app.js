@@ -15,12 +15,25 @@ const FORMATS = [
   { format: "ply", suffix: "cloud.ply", label: "ply: point cloud" },
 ];
 
+// A model this service serves that is not (yet) the one to use, with why and the one to use instead.
+// GET /models says only whether weights are trained at all (`status`), not which model is ahead, so this
+// is the one place where the page knows it. Remove `full` once its weights are properly trained and
+// measured ahead of lite (README, the dev table: full's row against lite's defaults).
+const NOT_RECOMMENDED = {
+  full: {
+    instead: "lite",
+    why: "it has had only a short training of its own so far, and it is no more accurate than lite " +
+      "(bad-2 8.0 % against 7.6 % on the 16 dev pairs) and far slower on a CPU (30.5 s a pair against lite's 1.6 s, 2 cores)",
+  },
+};
+
 const state = {
   files: { left: null, right: null },  // File objects
   baseName: "pair",                    // stem of the download file names
   models: {},                          // name -> GET /models entry
   last: null,                          // { left, right, calibration, params, baseName, jsonText } of the result shown
-  result: null,                        // { width, height, disparity, uncertainty, depth }
+  result: null,                        // { width, height, disparity, uncertainty, depth, leftAligned }
+  calibrationFromExample: false,       // the calibration field holds the chosen example's file
 };
 
 const $ = (id) => document.getElementById(id);
@@ -225,6 +238,9 @@ async function showResult(body, params, left) {
     disparity: decodeArray(body.disparity, "disparity"),
     uncertainty: decodeArray(body.uncertainty, "uncertainty"),
     depth: body.depth ? decodeArray(body.depth, "depth") : null,
+    // The left panel draws the file as uploaded: the maps' pixels are its pixels unless they are in
+    // the rectified image of a raw pair (frame=rectified), which the page cannot draw.
+    leftAligned: !(body.camera && body.frame === "rectified"),
   };
   const colorMin = optionNumber(params, "color_min");
   const colorMax = optionNumber(params, "color_max");
@@ -239,8 +255,15 @@ async function showResult(body, params, left) {
     ? "the paper's raw U (last iteration)" : (model ? model.uncertainty : "uncertainty");
   paintBar($("uncertainty-bar"), 0, 1, COLORMAPS.inferno, "", `uncertainty: ${meaning}; scale 0-1`);
   await paintLeft(left, width, height);
+  $("left-caption").textContent = result.leftAligned ? "Left image" : "Left image (not rectified)";
+  $("left-note").hidden = result.leftAligned;
   state.result = result;
-  $("summary").textContent = `${body.model}, weights ${body.weights} · ${width}x${height} px · ` +
+  const untrained = body.model_status === "untrained";
+  const warning = untrained ? untrainedWarning(body.model) : notRecommendedWarning(body.model);
+  $("result-warning").hidden = warning === "";
+  $("result-warning").textContent = warning;
+  $("summary").textContent = `${body.model}${untrained ? " (untrained: maps not usable)" : ""}, ` +
+    `weights ${body.weights} · ${width}x${height} px · ` +
     `batch of ${body.batch_size} · queued ${body.timings.queue_ms} ms · computed in ${body.timings.compute_ms} ms` +
     ` · disparity ${g3(low)}-${g3(high)} px (colour range)` +
     (body.camera ? ` · raw pair, rectified by its calibration (f ${g3(body.camera.focal_px)} px, baseline ` +
@@ -256,6 +279,10 @@ async function showResult(body, params, left) {
 function hover(event) {
   const result = state.result;
   if (!result) return;
+  if (event.currentTarget.id === "left-canvas" && !result.leftAligned) {
+    $("readout").textContent = "the left image is shown as uploaded, not rectified: hover over a map for its values";
+    return;
+  }
   const rect = event.currentTarget.getBoundingClientRect();
   const x = Math.min(result.width - 1, Math.max(0, Math.floor((event.clientX - rect.left) / rect.width * result.width)));
   const y = Math.min(result.height - 1, Math.max(0, Math.floor((event.clientY - rect.top) / rect.height * result.height)));
@@ -403,6 +430,16 @@ function assignDropped(side, files) {
     setFile(side, files[0]);
   }
   $("example").value = "";
+  if (state.calibrationFromExample) setCalibration(null);  // the example's calibration is not for these files
+}
+
+/** Put an example's calibration file into the calibration field, or empty the field (null). */
+function setCalibration(file) {
+  const transfer = new DataTransfer();
+  if (file) transfer.items.add(file);
+  $("calibration-file").files = transfer.files;
+  $("calibration-right-file").value = "";
+  state.calibrationFromExample = Boolean(file);
 }
 
 function wireDropZone(side) {
@@ -429,8 +466,15 @@ async function loadExample() {
       const file = new File([await response.blob()], `${side}.png`, { type: "image/png" });
       setFile(side, file, `${name}/${side}.png`);
     }
+    let calibration = null;  // a raw example's calibration, in the calibration field like a chosen file
+    if (entry.calibration) {
+      const response = await request(`static/${entry.calibration}`);
+      const fileName = entry.calibration.split("/").pop();
+      calibration = new File([await response.blob()], fileName, { type: "application/json" });
+    }
+    setCalibration(calibration);
     state.baseName = name;
-    setStatus(`example ${name} loaded`);
+    setStatus(`example ${name} loaded` + (calibration ? `, with its calibration ${calibration.name}` : ""));
   } catch (err) {
     showError(err);
   }
@@ -453,18 +497,38 @@ async function loadExamples() {
   }
 }
 
+/** The warning for untrained weights of model `name`, naming the trained models loaded (the
+ * recommended ones first), or saying that there is none. */
+function untrainedWarning(name) {
+  const trained = Object.values(state.models).filter((model) => model.status === "trained");
+  const recommended = trained.filter((model) => !NOT_RECOMMENDED[model.name]);
+  const choices = (recommended.length > 0 ? recommended : trained).map((model) => model.name);
+  const advice = choices.length > 0
+    ? `Choose a trained model (${choices.join(" or ")}) for real results.`
+    : "No trained model is loaded on this server: it needs trained weights for real results.";
+  return `${name} is untrained: its weights have not learned to match yet, and its maps are not usable. ${advice}`;
+}
+
+/** What the page says of model `name` where it is not the one to use (NOT_RECOMMENDED), else "". */
+function notRecommendedWarning(name) {
+  const note = NOT_RECOMMENDED[name];
+  if (!note) return "";
+  const loaded = state.models[note.instead] ? "" : " (not loaded on this server)";
+  return `${name} is not the recommended model: ${note.why}. Use ${note.instead}${loaded}.`;
+}
+
+/** The chosen model's facts, and its warning: untrained, or not the recommended model. The training
+ * record's dev numbers are not shown: each was measured at the model's own last validation, not
+ * comparable across models (the README's table compares them). */
 function describeModel() {
   const model = state.models[$("model").value];
   if (!model) return;
   $("iters").placeholder = model.iterations.join(",");
-  const training = model.training && model.training.dev_metrics && model.training.dev_metrics.epe !== undefined
-    ? ` · dev EPE ${g3(model.training.dev_metrics.epe)} px (one pass, at its last training validation)` : "";
   const warning = $("model-warning");
-  warning.hidden = model.status !== "untrained";
-  warning.textContent = warning.hidden ? "" : `${model.name} is untrained: its weights have not learned to ` +
-    "match yet, and its maps are not usable. Choose a trained model (lite) for real results.";
+  warning.textContent = model.status === "untrained" ? untrainedWarning(model.name) : notRecommendedWarning(model.name);
+  warning.hidden = warning.textContent === "";
   $("model-info").textContent = `${model.parameters.toLocaleString("en")} parameters · iterations ` +
-    `${model.iterations.join("/")} · up to ${model.max_image_pixels.toLocaleString("en")} pixels${training} · ` +
+    `${model.iterations.join("/")} · up to ${model.max_image_pixels.toLocaleString("en")} pixels · ` +
     `uncertainty: ${model.uncertainty}`;
 }
 
@@ -489,7 +553,9 @@ async function loadModels() {
     state.models[model.name] = model;
     const option = document.createElement("option");
     option.value = model.name;
-    const status = model.status === "untrained" ? ", untrained" : "";
+    let status = "";
+    if (model.status === "untrained") status = ", untrained";
+    else if (NOT_RECOMMENDED[model.name]) status = ", not recommended";
     option.textContent = `${model.name} (weights ${model.versions[0]}${status})`;
     select.append(option);
   }

@@ -6,7 +6,8 @@
 maps exactly as the service's `format=png` preview does (`stereo_data.visualize`).
 
 `examples/`: small procedural stereo pairs (`stereo_data.synthetic`, clean views, fixed seeds) as
-PNG, with `examples.json` listing them. No real stereo pair is shipped. Not served itself (the page
+PNG, with `examples.json` listing them, and the raw example that `make_raw_example.py` makes (listed
+with its calibration, `stereo.json`). No real stereo pair is shipped. Not served itself (the page
 route serves only .html, .css, .js, .png and .json files).
 """
 
@@ -29,6 +30,16 @@ EXAMPLES = (  # name, title, height, width, seed; disparities up to a fifth of t
     ("shapes-288x192", "procedural shapes, 288x192", 192, 288, 12),
     ("shapes-384x256", "procedural shapes, 384x256", 256, 384, 13),
 )
+
+RAW_EXAMPLE = {  # made by make_raw_example.py: a raw pair as a calibrated camera takes it, with its calibration
+    "name": "raw-320x240",
+    "title": "raw pair with its calibration (procedural), 320x240",
+    "width": 320,
+    "height": 240,
+    "left": "examples/raw-320x240/left.png",
+    "right": "examples/raw-320x240/right.png",
+    "calibration": "examples/raw-320x240/stereo.json",
+}
 
 
 def colormap_table(colormap: int) -> list[int]:
@@ -73,6 +84,7 @@ def write_examples() -> None:
                 "right": f"examples/{name}/right.png",
             }
         )
+    listing.append(RAW_EXAMPLE)
     (STATIC / "examples" / "examples.json").write_text(json.dumps({"examples": listing}, indent=2) + "\n")
 
 

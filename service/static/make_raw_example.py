@@ -7,9 +7,12 @@ baseline BASELINE_M), then seen by a known rig, as a real stereo camera's raw pa
 has its own camera matrix and distortion, and the right camera is turned by about 1.3 degrees.
 Written to `examples/raw-320x240/`: `left.png` and `right.png` (the raw pair), `stereo.yaml` (K1,
 D1, K2, D2, R, T, image_width, image_height, written by cv2.FileStorage: what `--calibration` and
-the service's `calibration` part read) and `depth_mm.png` (the scene's true depth along the left
-camera's axis at the raw left pixels, 16-bit millimetres, 0 = none). Not listed in
-`examples.json`: the page's examples are rectified pairs.
+the service's `calibration` part read), `stereo.json` (the same in OpenCV's JSON, for the web page:
+its server serves JSON, not YAML) and `depth_mm.png` (the scene's true depth along the left camera's
+axis at the raw left pixels, 16-bit millimetres, 0 = none). `examples.json` (make_assets.py) lists it
+with `stereo.json` as its calibration.
+
+    .venv/bin/python service/static/make_raw_example.py --calibration-only   # the two calibration files only
 """
 
 from __future__ import annotations
@@ -72,17 +75,25 @@ def render() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return raw_left, raw_right, raw_depth
 
 
+def write_calibration() -> None:
+    """`stereo.yaml` and `stereo.json`: the rig, in OpenCV's YAML and JSON."""
+    for name in ("stereo.yaml", "stereo.json"):
+        storage = cv2.FileStorage(str(FOLDER / name), cv2.FILE_STORAGE_WRITE)
+        for key, value in calibration_entries().items():
+            storage.write(key, value)
+        storage.release()
+
+
 def main() -> None:
     FOLDER.mkdir(parents=True, exist_ok=True)
+    write_calibration()
+    if "--calibration-only" in sys.argv[1:]:
+        return
     left, right, depth = render()
     smallest = [cv2.IMWRITE_PNG_COMPRESSION, 9]
     for name, image in (("left", left), ("right", right)):
         assert cv2.imwrite(str(FOLDER / f"{name}.png"), cv2.cvtColor(image, cv2.COLOR_RGB2BGR), smallest)
     (FOLDER / "depth_mm.png").write_bytes(encode_depth_mm_png(depth))
-    storage = cv2.FileStorage(str(FOLDER / "stereo.yaml"), cv2.FILE_STORAGE_WRITE)
-    for name, value in calibration_entries().items():
-        storage.write(name, value)
-    storage.release()
 
 
 if __name__ == "__main__":

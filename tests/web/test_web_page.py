@@ -9,6 +9,8 @@ import base64
 import importlib.util
 import json
 import re
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -22,6 +24,7 @@ from raw_camera import WIDTH as RAW_WIDTH
 
 from crestereo_pp.service.api.routes.page import STATIC_DIR
 from crestereo_pp.service.api.schemas import OutputFormat
+from crestereo_pp.stereo_data.rig import read_rig
 from crestereo_pp.stereo_data.visualize import DISPARITY_COLORMAP, PREVIEW_GAP, colorize, robust_range
 from service_helpers import Server, run_uvicorn
 from tests.untrained_weights import write_untrained
@@ -33,6 +36,7 @@ expect = pytest.importorskip(
 EXAMPLE = "shapes-192x128"  # the smallest bundled pair: lite computes it in a fraction of a second
 EXAMPLE_DIR = STATIC_DIR / "examples" / EXAMPLE
 WIDTH, HEIGHT = 192, 128
+RAW_EXAMPLE = "raw-320x240"  # the bundled raw pair, listed with its calibration
 
 
 def example_bytes(name: str = EXAMPLE) -> tuple[bytes, bytes]:
@@ -67,6 +71,30 @@ def run_example(web: WebPage, **options: str) -> None:
         page.fill(f"#{name}", value)
     page.click("#run")
     page.wait_for_selector("#results", state="visible")
+
+
+@contextmanager
+def page_of(browser: Any, server: Server) -> Iterator[Any]:
+    """The page of `server` (a server of its own configuration) in a new context, its models listed."""
+    context = browser.new_context(viewport={"width": 1280, "height": 900})
+    try:
+        page = context.new_page()
+        page.set_default_timeout(60_000)
+        page.goto(server.base_url + "/")
+        page.wait_for_selector("#model option", state="attached")
+        yield page
+    finally:
+        context.close()
+
+
+def hover_pixel(page: Any, canvas_id: str, x: int, y: int, width: int, height: int) -> str:
+    """The readout with the mouse over pixel (x, y) of a `width`x`height` map's canvas."""
+    canvas = page.locator(f"#{canvas_id}")
+    canvas.scroll_into_view_if_needed()
+    box = canvas.bounding_box()
+    assert box is not None
+    canvas.hover(position={"x": (x + 0.5) / width * box["width"], "y": (y + 0.5) / height * box["height"]})
+    return str(page.inner_text("#readout"))
 
 
 def canvas_rgb(web: WebPage, canvas_id: str) -> np.ndarray:
@@ -110,11 +138,17 @@ def test_generated_assets_are_current() -> None:
     spec.loader.exec_module(make_assets)
     assert (STATIC_DIR / "colormaps.js").read_text() == make_assets.colormaps_js()
     listing = json.loads((STATIC_DIR / "examples" / "examples.json").read_text())["examples"]
-    assert [entry["name"] for entry in listing] == [name for name, *_ in make_assets.EXAMPLES]
+    assert [entry["name"] for entry in listing] == [name for name, *_ in make_assets.EXAMPLES] + [RAW_EXAMPLE]
+    assert listing[-1] == make_assets.RAW_EXAMPLE
     for entry in listing:
         for side in ("left", "right"):
             image = cv2.imread(str(STATIC_DIR / entry[side]))
             assert image is not None and image.shape == (entry["height"], entry["width"], 3)
+    # the raw example's calibration, served as JSON, is its YAML's rig for images of its size
+    raw = listing[-1]
+    rig = read_rig(STATIC_DIR / raw["calibration"])
+    assert rig.image_size == (raw["width"], raw["height"])
+    assert rig.to_json() == read_rig(STATIC_DIR / "examples" / RAW_EXAMPLE / "stereo.yaml").to_json()
 
 
 # --- in the browser ------------------------------------------------------------------------------
@@ -275,6 +309,77 @@ def test_a_raw_pair_with_its_calibration_file_gives_depth_on_the_cameras_pixels(
     assert "no value: outside the rectified image" in readouts["corner"]
 
 
+def test_a_raw_pairs_maps_line_up_with_the_left_image_shown_unless_rectified_is_chosen(
+    web: WebPage, tmp_path: Path
+) -> None:
+    """With a calibration the page asks for the maps in the left image's own pixels (frame=original),
+    the image it draws; where the user chooses frame=rectified the left panel says it does not line
+    up, and hovering it reads no map value."""
+    page = web.page
+    left, right = (
+        np.clip(view, 0, 255).astype(np.uint8)
+        for view in (raw_view(K1, D1, np.eye(3), np.zeros(3)), raw_view(K2, D2, R, T))
+    )
+    for side, image in (("left", left), ("right", right)):
+        png = cv2.imencode(".png", image)[1].tobytes()
+        page.set_input_files(f"#{side}-file", files=[{"name": f"{side}.png", "mimeType": "image/png", "buffer": png}])
+    page.set_input_files("#calibration-file", str(opencv_file(tmp_path / "stereo.yaml")))
+    page.fill("#iters", "1,1,1")
+    with page.expect_response(lambda answer: "/disparity?" in answer.url) as answer:
+        page.click("#run")
+    assert "frame=original" in answer.value.url
+    expect(page.locator("#summary")).to_contain_text("maps in the original left image")
+    assert page.inner_text("#left-caption") == "Left image"
+    expect(page.locator("#left-note")).to_be_hidden()
+    # the left panel's pixel reads what the maps hold there
+    readout = hover_pixel(page, "left-canvas", 160, 120, RAW_WIDTH, RAW_HEIGHT)
+    assert re.match(r"x 1[56]\d, y 1[12]\d · disparity ", readout), readout
+    assert readout == hover_pixel(page, "disparity-canvas", 160, 120, RAW_WIDTH, RAW_HEIGHT)
+
+    page.select_option("#frame", "rectified")
+    with page.expect_response(lambda answer: "/disparity?" in answer.url) as answer:
+        page.click("#run")
+    assert "frame=rectified" in answer.value.url
+    expect(page.locator("#summary")).to_contain_text("maps in the rectified left image")
+    assert page.inner_text("#left-caption") == "Left image (not rectified)"
+    expect(page.locator("#left-note")).to_contain_text("they do not line up with it")
+    readout = hover_pixel(page, "left-canvas", 160, 120, RAW_WIDTH, RAW_HEIGHT)
+    assert "disparity" not in readout and "hover over a map" in readout
+    assert "disparity" in hover_pixel(page, "disparity-canvas", 160, 120, RAW_WIDTH, RAW_HEIGHT)
+
+
+def test_the_raw_example_brings_its_calibration_and_gives_its_true_depth(web: WebPage) -> None:
+    page = web.page
+    page.select_option("#example", RAW_EXAMPLE)
+    expect(page.locator("#status")).to_contain_text("with its calibration stereo.json")
+    assert page.evaluate("document.getElementById('calibration-file').files[0].name") == "stereo.json"
+    page.fill("#iters", "2,2,4")
+    page.click("#run")
+    page.wait_for_selector("#results", state="visible")
+    summary = page.inner_text("#summary")
+    assert "raw pair, rectified by its calibration" in summary and "maps in the original left image" in summary
+    truth = cv2.imread(str(STATIC_DIR / "examples" / RAW_EXAMPLE / "depth_mm.png"), cv2.IMREAD_UNCHANGED) / 1000.0
+    for x, y in ((100, 120), (220, 80), (160, 200)):
+        readout = hover_pixel(page, "disparity-canvas", x, y, 320, 240)
+        depth = re.search(r"depth ([\d.e+-]+) m", readout)
+        assert depth, readout
+        assert float(depth.group(1)) == pytest.approx(truth[y, x], rel=0.1), (x, y)
+
+    # a rectified example, or the user's own files, leave the example's calibration behind
+    page.select_option("#example", EXAMPLE)
+    expect(page.locator("#status")).to_contain_text(f"example {EXAMPLE} loaded")
+    assert page.evaluate("document.getElementById('calibration-file').files.length") == 0
+    page.select_option("#example", RAW_EXAMPLE)
+    expect(page.locator("#status")).to_contain_text("with its calibration")
+    left, right = example_bytes()
+    for side, data in (("left", left), ("right", right)):
+        page.set_input_files(f"#{side}-file", files=[{"name": f"{side}.png", "mimeType": "image/png", "buffer": data}])
+    assert page.evaluate("document.getElementById('calibration-file').files.length") == 0
+    page.click("#run")
+    expect(page.locator("#summary")).to_contain_text("192x128")
+    assert "raw pair" not in page.inner_text("#summary")
+
+
 def test_every_format_downloads(web: WebPage, tmp_path: Path) -> None:
     run_example(web)
     page = web.page
@@ -368,11 +473,66 @@ def test_choosing_an_untrained_model_shows_a_warning(browser: Any, tmp_path: Pat
             page.select_option("#model", "full")
             expect(warning).to_be_visible()
             expect(warning).to_contain_text("full is untrained")
+            expect(warning).to_contain_text("Choose a trained model (lite) for real results.")
             expect(page.locator("#model option[value=full]")).to_contain_text("untrained")
             page.select_option("#model", "lite")
             expect(warning).to_be_hidden()
         finally:
             context.close()
+
+
+@pytest.mark.slow
+def test_with_only_untrained_weights_the_page_says_no_trained_model_is_loaded_and_the_result_says_untrained(
+    browser: Any, tmp_path: Path
+) -> None:
+    untrained = write_untrained(tmp_path / "lite.pt", name="lite")
+    with run_uvicorn(tmp_path, models="lite", weights=f"lite={untrained}") as server, page_of(browser, server) as page:
+        warning = page.locator("#model-warning")
+        expect(warning).to_contain_text("lite is untrained")
+        expect(warning).to_contain_text("No trained model is loaded on this server")
+        expect(warning).not_to_contain_text("Choose a trained model")
+        page.select_option("#example", EXAMPLE)
+        expect(page.locator("#status")).to_contain_text("loaded")
+        page.fill("#iters", "1,1,1")
+        page.click("#run")
+        page.wait_for_selector("#results", state="visible")
+        expect(page.locator("#summary")).to_contain_text("lite (untrained: maps not usable), weights ")
+        result_warning = page.locator("#result-warning")
+        expect(result_warning).to_be_visible()
+        expect(result_warning).to_contain_text("lite is untrained")
+        expect(result_warning).to_contain_text("No trained model is loaded on this server")
+
+
+@pytest.mark.slow
+def test_full_is_marked_as_not_the_recommended_model_wherever_the_page_shows_it(browser: Any, tmp_path: Path) -> None:
+    """The bundled full (trained, status `trained`) is slower and no more accurate than lite: the
+    model list, its description and its results say so, and no model shows its own training
+    validation's dev numbers (each model's at another time: not comparable)."""
+    with run_uvicorn(tmp_path, models="lite,full", backend="torch") as server, page_of(browser, server) as page:
+        page.wait_for_selector("#model option[value=full]", state="attached")
+        assert "not recommended" in page.inner_text("#model option[value=full]")
+        assert "not recommended" not in page.inner_text("#model option[value=lite]")
+        warning = page.locator("#model-warning")
+        expect(warning).to_be_hidden()  # lite, the default
+        assert "EPE" not in page.inner_text("#model-info")
+        page.select_option("#model", "full")
+        expect(warning).to_be_visible()
+        expect(warning).to_contain_text("full is not the recommended model")
+        expect(warning).to_contain_text("no more accurate than lite")
+        expect(warning).to_contain_text("Use lite.")
+        assert "EPE" not in page.inner_text("#model-info")
+        page.select_option("#example", EXAMPLE)
+        expect(page.locator("#status")).to_contain_text("loaded")
+        page.fill("#iters", "1,1,1")
+        page.click("#run")
+        page.wait_for_selector("#results", state="visible")
+        assert page.inner_text("#summary").startswith("full, weights ")
+        expect(page.locator("#result-warning")).to_contain_text("full is not the recommended model")
+        page.select_option("#model", "lite")
+        expect(warning).to_be_hidden()
+        page.click("#run")
+        expect(page.locator("#summary")).to_contain_text("lite, weights ")
+        expect(page.locator("#result-warning")).to_be_hidden()
 
 
 def test_at_420_px_wide_no_word_of_the_page_breaks_across_lines(web: WebPage) -> None:
