@@ -274,16 +274,21 @@ def decode_image(data: bytes, *, gray_to_rgb: bool = True, source: PathLike = "<
 
 def _decode(data: bytes, source: PathLike, flags: int) -> np.ndarray:
     try:
-        image, corruption = _imdecode(data, flags) if data else (None, [])
+        image, printed = _imdecode(data, flags) if data else (None, [])
     except cv2.error as error:  # e.g. beyond OPENCV_IO_MAX_IMAGE_PIXELS (OpenCV 5 raises)
         if "Insufficient memory" in str(error):
             raise MemoryError(f"decoding {_named(source)}: {error}") from None
         reason = "larger than the decoder's pixel limit" if "MAX_IMAGE_PIXELS" in str(error) else "corrupt"
         raise FormatError(f"{_named(source)} cannot be decoded ({reason})") from None
+    corruption = [line for line in printed if line.startswith(_JPEG_CORRUPTION)]
     if corruption:
         raise FormatError(f"{_named(source)} is a corrupt JPEG ({corruption[0]})")
     if image is None:
-        raise FormatError(f"{_named(source)} cannot be decoded (truncated, corrupt, or a variant OpenCV cannot read)")
+        errors = [line for line in printed if "error" in line.lower()]
+        reason = errors[-1][:200] if errors else "truncated, corrupt, or a variant OpenCV cannot read"
+        raise FormatError(f"{_named(source)} cannot be decoded ({reason})")
+    if printed:  # the image decoded: the decoder's warnings are news for whoever reads stderr
+        os.write(2, "".join(f"{line}\n" for line in printed).encode())
     return image
 
 
@@ -293,13 +298,12 @@ _STDERR = threading.Lock()  # one redirection of the process's stderr at a time
 
 
 def _imdecode(data: bytes, flags: int) -> tuple[np.ndarray | None, list[str]]:
-    """``cv2.imdecode``, and for a JPEG the corruption its decoder found. libjpeg decodes a JPEG
-    with corrupt data to the end, printing a warning on stderr (fd 2) that OpenCV does not pass on:
-    the picture comes back with shifted or grey blocks. So fd 2 is read while a JPEG decodes, and
-    what else was written to it then is written on."""
+    """``cv2.imdecode``, and the lines its decoder printed meanwhile. The decoders write their
+    warnings and errors on stderr (fd 2), which OpenCV does not pass on: libjpeg decodes a JPEG with
+    corrupt data to the end, printing a warning, and the picture comes back with shifted or grey
+    blocks; libpng says why a PNG cannot be read ("libpng error: IDAT: invalid distance too far
+    back"). So fd 2 is read while an image decodes."""
     buffer = np.frombuffer(data, dtype=np.uint8)
-    if data[:2] != b"\xff\xd8":
-        return cv2.imdecode(buffer, flags), []
     with _STDERR, tempfile.TemporaryFile() as printed:
         sys.stderr.flush()
         saved = os.dup(2)
@@ -310,12 +314,8 @@ def _imdecode(data: bytes, flags: int) -> tuple[np.ndarray | None, list[str]]:
             os.dup2(saved, 2)
             os.close(saved)
         printed.seek(0)
-        lines = printed.read().decode(errors="replace").splitlines(keepends=True)
-    corruption = [line.strip() for line in lines if line.startswith(_JPEG_CORRUPTION)]
-    others = "".join(line for line in lines if not line.startswith(_JPEG_CORRUPTION))
-    if others:
-        os.write(2, others.encode())
-    return image, corruption
+        lines = printed.read().decode(errors="replace").splitlines()
+    return image, [line.strip() for line in lines if line.strip()]
 
 
 def _named(source: PathLike) -> str:

@@ -62,6 +62,7 @@ _WALL_FACTOR = 4.0  # a job may take this many times its CPU limit in wall time 
 _WALL_MARGIN_S = 2.0
 _EXIT_WAIT_S = 5.0  # how long a process that broke off its answer gets to end before it is killed
 _OUT_OF_MEMORY = 3  # exit status of a decoder process that ran out of its memory
+_STDERR_LINES_PER_S = 20  # lines of a decoder's stderr logged a second at most; the others are counted
 
 
 @dataclass(frozen=True)
@@ -105,6 +106,7 @@ class DecoderPool:
         self._processes: set[asyncio.subprocess.Process] = set()
         self._spawning: set[asyncio.Task[None]] = set()
         self._jobs: set[asyncio.Task[Reply | _Lost | None]] = set()  # running, awaited or abandoned
+        self._relays: set[asyncio.Task[None]] = set()  # one per process: its stderr into the logs
         self._closed = False
         self.restarts = 0  # processes replaced: after a breach, or lost from outside
 
@@ -120,6 +122,7 @@ class DecoderPool:
         for process in list(self._processes):
             await self._kill(process)
         await asyncio.gather(*self._jobs, return_exceptions=True)  # their processes are gone: they end
+        await asyncio.gather(*self._relays, return_exceptions=True)  # and their stderr has ended
 
     async def read_pair(self, body: bytes, content_type: str, limits: ImageLimits, stop: Stop) -> Upload:
         """`service.uploads.read_pair` in a decoder process."""
@@ -289,7 +292,7 @@ class DecoderPool:
             self._spawn()
 
     async def _launch(self) -> asyncio.subprocess.Process:
-        return await asyncio.create_subprocess_exec(
+        process = await asyncio.create_subprocess_exec(
             sys.executable,
             "-m",
             "crestereo_pp.service.uploads.sandbox",
@@ -297,8 +300,39 @@ class DecoderPool:
             str(self.limits.cpu_seconds),
             stdin=asyncio.subprocess.PIPE,
             stdout=asyncio.subprocess.PIPE,
+            stderr=asyncio.subprocess.PIPE,
             limit=1 << 20,
         )
+        relay = asyncio.create_task(_log_stderr(process))
+        self._relays.add(relay)
+        relay.add_done_callback(self._relays.discard)
+        return process
+
+
+async def _log_stderr(process: asyncio.subprocess.Process) -> None:
+    """Log each line `process` writes on stderr (the image decoders' warnings, such as "libpng
+    warning: IDAT: Too much image data", or a traceback) as a warning, so that the service's logs
+    stay JSON; at most _STDERR_LINES_PER_S a second, those over it counted in the next one logged.
+    Ends when the process's stderr closes."""
+    assert process.stderr is not None
+    window, logged, dropped = -1, 0, 0
+    while True:
+        try:
+            line = await process.stderr.readline()
+        except ValueError:  # a line over the reader's limit, dropped by it
+            line = b"(a line over 1 MiB)\n"
+        if not line:
+            return
+        second = int(asyncio.get_running_loop().time())
+        if second != window:
+            window, logged = second, 0
+        if logged >= _STDERR_LINES_PER_S:
+            dropped += 1
+            continue
+        logged += 1
+        text = line.decode(errors="replace").rstrip()
+        logger.warning("decoder process wrote: %s", text, extra={"pid": process.pid, "lines_dropped": dropped})
+        dropped = 0
 
 
 def _maybe_from_outside(returncode: int | None) -> bool:

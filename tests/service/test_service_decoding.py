@@ -6,9 +6,12 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import logging
 import os
 import signal
+import struct
 import time
+import zlib
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -208,6 +211,43 @@ async def test_a_jpeg_with_corrupt_data_is_refused_in_its_decoder_process_naming
     assert (refused.value.status, refused.value.code) == (422, "undecodable_image")
     assert refused.value.message.startswith("left: the image is a corrupt JPEG (Corrupt JPEG data:")
     assert images[0].shape == left.shape  # the same decoder goes on decoding intact JPEGs
+
+
+def png_claiming(image: np.ndarray, width: int, height: int) -> bytes:
+    """`image` as a PNG whose header says it is `width` x `height` (its CRC made right). Fewer rows
+    than it holds: libpng decodes those and warns "IDAT: Too much image data"; another width: the
+    rows no longer parse, and libpng fails ("bad adaptive filter value")."""
+    png = bytearray(encode(image))
+    header = bytearray(png[16:29])  # IHDR's data: width, height, ...
+    header[0:8] = struct.pack(">II", width, height)
+    png[16:29], png[29:33] = header, struct.pack(">I", zlib.crc32(b"IHDR" + bytes(header)))
+    return bytes(png)
+
+
+async def test_what_a_decoder_prints_goes_to_the_logs_as_json_and_a_failure_says_why(caplog, capfd):
+    left, right = stereo_pair()
+    height, width = left.shape[:2]
+    too_much, narrow = png_claiming(left, width, height // 2), png_claiming(left, width // 2, height)
+    pool = DecoderPool(GENEROUS)
+    await pool.start()
+    try:
+        with caplog.at_level(logging.WARNING, logger="crestereo_pp.service.uploads.sandbox"):
+            images = await pool.decode_pair(too_much, encode(right[: height // 2]), read_header(too_much), never)
+            for _ in range(100):  # the line reaches the log from the process's stderr, soon after the answer
+                if any("Too much image data" in record.getMessage() for record in caplog.records):
+                    break
+                await asyncio.sleep(0.02)
+        with pytest.raises(UploadError) as refused:
+            await pool.decode_pair(narrow, encode(right[:, : width // 2]), read_header(narrow), never)
+    finally:
+        await pool.close()
+    assert np.array_equal(images[0], left[: height // 2])
+    assert [r.getMessage() for r in caplog.records if "decoder process wrote" in r.getMessage()] == [
+        "decoder process wrote: libpng warning: IDAT: Too much image data"
+    ]
+    assert "libpng" not in capfd.readouterr().err  # nothing raw beside the JSON logs
+    assert refused.value.code == "undecodable_image"
+    assert refused.value.message.startswith("left: the image cannot be decoded (libpng error: ")
 
 
 def waiting_decoders(parent: int) -> list[int]:
