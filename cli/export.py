@@ -49,15 +49,12 @@ def run_onnx(args: argparse.Namespace) -> int:
     from crestereo_pp.model.weights import read_weights
 
     if args.height is None or args.width is None:
-        raise SystemExit("crestereo-pp export: --onnx needs --height and --width (the model's fixed input size)")
+        raise ValueError("--onnx needs --height and --width (the model's fixed input size)")
     if args.fp16:
-        raise SystemExit("crestereo-pp export: --fp16 applies to weights files, not to --onnx")
+        raise ValueError("--fp16 applies to weights files, not to --onnx")
+    iters = parse_iterations(args.iters)
     name = str(read_weights(args.checkpoint).get("model_name") or "lite")
     predictor = load_model(name, args.checkpoint, "cpu")
-    try:
-        iters = parse_iterations(args.iters)
-    except ValueError as error:
-        raise SystemExit(f"crestereo-pp: {error}") from None
     export_onnx(predictor, args.output, args.height, args.width, args.batch, iters)
     size_mib = args.output.stat().st_size / 2**20
     print(f"wrote {args.output} ({size_mib:.2f} MiB, {name}, input {args.batch}x3x{args.height}x{args.width})")

@@ -104,22 +104,19 @@ def add_model_options(parser: argparse.ArgumentParser) -> None:
 def inference_options(args: argparse.Namespace) -> InferenceOptions:
     """--iters, --two-pass, --scale, --flip, --blend-sgbm, --refine-edges, --align-rows (and
     --raw-uncertainty where the command has it) as one value, read by `InferenceOptions` as the
-    service reads its query; a usage error where they are invalid."""
+    service reads its query; ValueError where they are invalid (a usage error: `main` exits 2)."""
     from crestereo_pp.inference import InferenceOptions
 
-    try:
-        return InferenceOptions(
-            args.iters,
-            args.two_pass,
-            args.scale,
-            getattr(args, "raw_uncertainty", False),
-            args.flip,
-            args.blend_sgbm,
-            args.refine_edges,
-            args.align_rows,
-        )
-    except ValueError as error:
-        raise SystemExit(f"crestereo-pp: {error}") from None
+    return InferenceOptions(
+        args.iters,
+        args.two_pass,
+        args.scale,
+        getattr(args, "raw_uncertainty", False),
+        args.flip,
+        args.blend_sgbm,
+        args.refine_edges,
+        args.align_rows,
+    )
 
 
 def graphs_needed(args: argparse.Namespace) -> list[tuple[Iterations, bool]]:

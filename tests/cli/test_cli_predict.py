@@ -209,6 +209,17 @@ def test_a_focal_length_and_baseline_that_give_no_usable_depth_are_refused(
     assert says in capsys.readouterr().err
 
 
+@pytest.mark.parametrize(
+    ("option", "says"),
+    [(["--scale", "0"], "scale must be in (0, 1]"), (["--iters", "0"], "each iteration count must be 1..99")],
+)
+def test_an_inference_option_out_of_range_is_a_usage_error_like_any_other(pairs_dir, tmp_path, capsys, option, says):
+    pair = pairs_dir / "shift4"
+    argv = ["predict", str(pair / "left.png"), str(pair / "right.png"), "-o", str(tmp_path / "d.pfm"), *option]
+    assert main(argv) == 2
+    assert f"crestereo-pp predict: error: {says}" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("folders", [False, True])
 def test_a_colour_scale_upside_down_is_refused_before_anything_is_computed(pairs_dir, tmp_path, capsys, folders):
     pair = pairs_dir / "shift4"

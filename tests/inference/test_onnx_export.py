@@ -55,6 +55,6 @@ def procedural_pair() -> tuple[np.ndarray, np.ndarray]:
     return batch.left[0].permute(1, 2, 0).numpy(), batch.right[0].permute(1, 2, 0).numpy()
 
 
-def test_onnx_export_without_a_size_is_a_clear_usage_error(tmp_path):
-    with pytest.raises(SystemExit, match="--height and --width"):
-        main(["export", str(tmp_path / "any.pt"), "-o", str(tmp_path / "m.onnx"), "--onnx"])
+def test_onnx_export_without_a_size_is_a_clear_usage_error(tmp_path, capsys):
+    assert main(["export", str(tmp_path / "any.pt"), "-o", str(tmp_path / "m.onnx"), "--onnx"]) == 2
+    assert "crestereo-pp export: error: --onnx needs --height and --width" in capsys.readouterr().err
