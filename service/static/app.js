@@ -22,8 +22,8 @@ const FORMATS = [
 const NOT_RECOMMENDED = {
   full: {
     instead: "lite",
-    why: "it has had only a short training of its own so far, and it is no more accurate than lite " +
-      "(bad-2 8.0 % against 7.6 % on the 16 dev pairs) and far slower on a CPU (30.5 s a pair against lite's 1.6 s, 2 cores)",
+    why: "it has had only a short training of its own so far: it is no more accurate than lite on real pairs " +
+      "(the README's table) and many times slower on a CPU",
   },
 };
 
