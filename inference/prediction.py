@@ -81,9 +81,9 @@ def same_colour(left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, np.nda
 
 def _to_grey(image: np.ndarray) -> np.ndarray:
     """An HxWx3|4 array as HxW grey (alpha dropped), in its dtype (integers rounded)."""
-    grey = image[..., :3].astype(np.float32) @ GREY_WEIGHTS
+    grey: np.ndarray = image[..., :3].astype(np.float32) @ GREY_WEIGHTS
     if np.issubdtype(image.dtype, np.integer):
-        return np.rint(grey).astype(image.dtype)
+        grey = np.rint(grey)
     return grey.astype(image.dtype)
 
 
