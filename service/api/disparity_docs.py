@@ -154,9 +154,10 @@ UPLOAD_BODY = {
                         "items": {"type": "string", "format": "binary"},
                         "description": "Only for a raw (unrectified) pair: its camera's calibration, one OpenCV "
                         "file (YAML or JSON as cv2.FileStorage writes it: K1, D1, K2, D2, R, T and image_size, "
-                        "or image_width and image_height; T in metres) or two ROS camera_info YAML files "
-                        "(left, then right), at most 256 KiB each. The service rectifies the pair, and depth "
-                        "and metric point clouds need no focal_px or baseline_m; see `frame`.",
+                        "or image_width and image_height; T in metres) or two ROS camera_info files "
+                        "(left, then right; any YAML style or JSON, as camera_calibration writes them or as "
+                        "`ros2 topic echo` prints a CameraInfo), at most 256 KiB each. The service rectifies "
+                        "the pair, and depth and metric point clouds need no focal_px or baseline_m; see `frame`.",
                     },
                 },
             }
