@@ -16,7 +16,7 @@ from typing import Any
 from tqdm import tqdm
 
 from crestereo_pp.service.batching.cpu import configure_torch_threads
-from crestereo_pp.service.ray.cluster import connect, cpu_share, require_ray
+from crestereo_pp.service.ray.cluster import connect, cpu_share, cpu_threads, node_cpus, require_ray, reserve_cpus
 
 from .options import load_predictor
 from .prediction import (
@@ -70,6 +70,7 @@ def run_on_ray(job: Job) -> int:
     """Run the job's pairs on a Ray cluster; exit status 1 where any pair failed."""
     require_ray()
     import ray
+    from ray.util.scheduling_strategies import PlacementGroupSchedulingStrategy
 
     args = job.args
     if args.sequence or is_video_pair(args.left, args.right):
@@ -85,16 +86,18 @@ def run_on_ray(job: Job) -> int:
         return 0
     connect(args.address)
     try:
-        workers, cpus = cpu_share(args.workers)
-        workers = min(workers, len(todo))
-        actor = ray.remote(num_cpus=cpus, max_restarts=1, max_task_retries=1)(PairWorker)
-        pool: list[Any] = [actor.remote(args, cpus) for _ in range(workers)]
+        nodes = node_cpus()
+        workers = min(args.workers if args.workers is not None else max(1, int(sum(nodes))), len(todo))
+        cpus = cpu_share(workers, nodes)
         started = time.perf_counter()
+        placement = PlacementGroupSchedulingStrategy(reserve_cpus(workers, cpus))
+        actor = ray.remote(num_cpus=cpus, max_restarts=1, max_task_retries=1, scheduling_strategy=placement)(PairWorker)
+        pool: list[Any] = [actor.remote(args, cpu_threads(cpus)) for _ in range(workers)]
         try:
             ray.get([worker.ready.remote() for worker in pool])
         except ray.exceptions.RayActorError as error:
             raise ValueError(f"the workers could not start: {error}") from None
-        print(f"{workers} worker(s) of {cpus} CPU(s) ready in {time.perf_counter() - started:.1f} s")
+        print(f"{workers} worker(s) of {cpus:g} CPU(s) ready in {time.perf_counter() - started:.1f} s")
         try:
             results = _run_pool(pool, todo, args.model)
         except KeyboardInterrupt:

@@ -21,7 +21,7 @@ from fastapi import FastAPI
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from crestereo_pp.service.api.app import create_app
-from crestereo_pp.service.ray.cluster import connect, cpu_share, require_ray
+from crestereo_pp.service.ray.cluster import connect, cpu_share, cpu_threads, node_cpus, require_ray
 from crestereo_pp.service.settings import ENV_PREFIX, Settings
 
 APP_NAME = "crestereo-pp"
@@ -37,8 +37,9 @@ class Scale:
     """How many replicas, and each one's CPU share (its torch threads).
 
     replicas: a fixed count (None: 1), or min_replicas..max_replicas for autoscaling on ongoing
-    requests. cpus: CPUs reserved per replica in the Ray cluster; None: the cluster's CPUs over
-    the most replicas, capped by the largest node's.
+    requests. cpus: CPUs reserved per replica in the Ray cluster; None: an equal share of the
+    cluster's CPUs for the most replicas, a fraction of a CPU where they outnumber the CPUs
+    (`cpu_share`).
     """
 
     replicas: int | None = None
@@ -68,9 +69,9 @@ class Scale:
     def most_replicas(self) -> int:
         return self.max_replicas if self.max_replicas is not None else self.replicas or 1
 
-    def cpus_per_replica(self) -> int:
+    def cpus_per_replica(self) -> float:
         """The CPU share of one replica on the connected cluster."""
-        return self.cpus if self.cpus is not None else cpu_share(self.most_replicas)[1]
+        return self.cpus if self.cpus is not None else cpu_share(self.most_replicas, node_cpus())
 
 
 class ReplicaHeaderMiddleware:
@@ -119,12 +120,13 @@ def _deployment() -> Any:
     return StereoReplica
 
 
-def build_application(settings: Settings, scale: Scale, cpus: int) -> Any:
+def build_application(settings: Settings, scale: Scale, cpus: float) -> Any:
     """The bound Ray Serve application: `scale` replicas of `cpus` CPUs each, whose threads are
-    those CPUs; the replicas get this process's `CRESTEREO_*` variables (logging, cache)."""
+    those whole CPUs (at least 1); the replicas get this process's `CRESTEREO_*` variables
+    (logging, cache)."""
     from ray import serve
 
-    settings = settings.model_copy(update={"threads": cpus})
+    settings = settings.model_copy(update={"threads": cpu_threads(cpus)})
     options: dict[str, Any] = {
         "ray_actor_options": {"num_cpus": cpus, "runtime_env": {"env_vars": service_environment()}},
         # Each replica admits up to its own limit and answers its own 503s beyond it; Ray's proxy
@@ -166,7 +168,8 @@ def service_environment() -> dict[str, str]:
 
 
 def serve_on_ray(host: str, port: int, scale: Scale, address: str | None = None) -> None:
-    """Run the service on Ray until SIGTERM or SIGINT, answering on host:port (Ray's proxy).
+    """Run the service on Ray until SIGTERM or SIGINT, answering on host:port (Ray's proxy); the
+    signals stop it also while its replicas start (slow to load, or waiting for CPUs).
 
     address: an existing cluster (`ray start --head` printed it; `auto` finds a local one), left
     running afterwards with this application removed; None: a local cluster of this machine's
@@ -192,19 +195,42 @@ def serve_on_ray(host: str, port: int, scale: Scale, address: str | None = None)
         cpus = scale.cpus_per_replica()
         serve.start(http_options={"host": host, "port": port})
         application = build_application(settings, scale, cpus)
-        serve.run(application, name=APP_NAME, route_prefix="/")
-        logger.info(
-            "serving on ray",
-            extra={"url": f"http://{host}:{port}", "replicas": scale.most_replicas, "cpus_per_replica": cpus},
+        # Not serve.run: it waits for the replicas in a loop that a signal cannot end.
+        serve.run_many(
+            [serve.RunTarget(application, name=APP_NAME, route_prefix="/")], wait_for_applications_running=False
         )
-        print(f"crestereo-pp: serving on http://{host}:{port} (Ray Serve, {cpus} CPU(s) per replica)", flush=True)
-        while not stop.wait(0.5):
-            pass
+        print(f"crestereo-pp: starting replicas of {cpus:g} CPU(s) each", flush=True)
+        started = wait_until_running(stop)
+        if started:
+            logger.info(
+                "serving on ray",
+                extra={"url": f"http://{host}:{port}", "replicas": scale.most_replicas, "cpus_per_replica": cpus},
+            )
+            print(f"crestereo-pp: serving on http://{host}:{port} (Ray Serve, {cpus:g} CPU(s) per replica)", flush=True)
+            while not stop.wait(0.5):
+                pass
         print("crestereo-pp: stopping", flush=True)
-        serve.delete(APP_NAME)
-        if address is None:
+        # Deleting the application gives each replica the drain timeout, even one Ray never placed:
+        # not waited for where a start is cut short on a local cluster, which ray.shutdown() stops.
+        if started or address is not None:
+            serve.delete(APP_NAME)
+        if started and address is None:
             serve.shutdown()  # type: ignore[no-untyped-call]
     finally:
         ray.shutdown()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
+
+
+def wait_until_running(stop: threading.Event) -> bool:
+    """Wait until the application runs (True: every replica has loaded its models) or `stop` is
+    set first (False); a RuntimeError where its deployment failed."""
+    from ray import serve
+
+    while not stop.wait(0.5):
+        application = serve.status().applications[APP_NAME]
+        if application.status == "RUNNING":
+            return True
+        if application.status == "DEPLOY_FAILED":
+            raise RuntimeError(f"deploying {APP_NAME} failed: {application.message}")
+    return False

@@ -23,7 +23,16 @@ from service_helpers import REPO, assert_same_maps
 pytest.importorskip("ray", reason="the `ray` extra is not installed")
 
 
-def ray_job(lefts: Path, rights: Path, out: Path, *extra: str) -> subprocess.Popen[str]:
+def ray_job(lefts: Path, rights: Path, out: Path, *extra: str, one_cpu: bool = False) -> subprocess.Popen[str]:
+    """The command on a local cluster of this machine's CPUs (of one of them: `one_cpu`), two workers
+    unless `extra` says otherwise."""
+
+    def child_setup() -> None:
+        # Ctrl-C acts as at a terminal whatever this process inherited or set (an ignored SIGINT is inherited)
+        signal.signal(signal.SIGINT, signal.SIG_DFL)
+        if one_cpu:  # the command, and the cluster it starts, see one CPU
+            os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
+
     command = [
         sys.executable,
         "-m",
@@ -43,8 +52,7 @@ def ray_job(lefts: Path, rights: Path, out: Path, *extra: str) -> subprocess.Pop
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
         text=True,
-        # Ctrl-C acts as at a terminal whatever this process inherited or set (an ignored SIGINT is inherited)
-        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+        preexec_fn=child_setup,
     )
 
 
@@ -74,6 +82,16 @@ def test_the_ray_job_writes_the_plain_commands_maps_and_reports_a_bad_pair_witho
         assert_same_maps(computed, read_pfm(plain / f"pair_{index:02d}.pfm"))
         assert (tmp_path / "ray" / "uncertainty" / f"pair_{index:02d}.pfm").is_file()
     assert not (tmp_path / "ray" / "disparity" / "pair_99.pfm").exists()
+
+
+def test_more_workers_than_cpus_all_start_with_an_equal_fraction_of_them(tmp_path: Path):
+    lefts, rights = write_pairs(tmp_path / "pairs", 2)
+
+    status, output = finished(ray_job(lefts, rights, tmp_path / "out", one_cpu=True))  # two workers
+
+    assert status == 0, output
+    assert "2 worker(s) of 0.5 CPU(s) ready" in output, output
+    assert "computed 2 pair(s)" in output
 
 
 def test_an_interrupted_job_run_again_computes_only_the_pairs_it_had_not_finished(tmp_path: Path):

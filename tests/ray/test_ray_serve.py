@@ -6,6 +6,8 @@ from __future__ import annotations
 import json
 import os
 import signal
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Iterator
@@ -18,7 +20,7 @@ import numpy as np
 import pytest
 from ray_helpers import CROP_HEIGHT, CROP_WIDTH, ray_processes, real_crops, replica_processes
 
-from crestereo_pp.service.local import LocalService, start_service
+from crestereo_pp.service.local import REPO, LocalService, free_port, start_service
 from service_helpers import assert_same_maps, decode_array, quiet_load_model
 
 pytest.importorskip("ray", reason="the `ray` extra is not installed")
@@ -56,6 +58,27 @@ def ray_service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Loca
         yield service, log_path
     finally:
         service.stop(timeout_s=90)
+
+
+def test_sigterm_while_the_replicas_wait_for_cpus_stops_at_once_and_leaves_nothing_running(tmp_path: Path):
+    before = set(ray_processes())
+    log_path = tmp_path / "serve.log"
+    command = ["-m", "crestereo_pp.cli.main", "serve", "--ray", "--replica-cpus", "100000", "--port", str(free_port())]
+    with log_path.open("wb") as log:
+        process = subprocess.Popen([sys.executable, *command], cwd=REPO, stdout=log, stderr=subprocess.STDOUT)
+    try:
+        deadline = time.monotonic() + READY_TIMEOUT_S
+        while "starting replicas of 100000 CPU(s) each" not in log_path.read_text(errors="replace"):
+            assert process.poll() is None and time.monotonic() < deadline, log_path.read_text(errors="replace")
+            time.sleep(0.5)
+        process.send_signal(signal.SIGTERM)
+        assert process.wait(timeout=30) == 0, log_path.read_text(errors="replace")
+    finally:
+        process.kill()
+    deadline = time.monotonic() + 30
+    while set(ray_processes()) - before:
+        assert time.monotonic() < deadline, f"still running: {set(ray_processes()) - before}"
+        time.sleep(0.5)
 
 
 def post_pair(base_url: str, left: np.ndarray, right: np.ndarray) -> httpx.Response:

@@ -13,6 +13,7 @@ from ray_helpers import write_pairs
 from starlette.types import Message, Receive, Scope, Send
 
 from crestereo_pp.cli.main import main
+from crestereo_pp.service.ray.cluster import cpu_share, cpu_threads
 from crestereo_pp.service.ray.proxy import ProxyAnswerMiddleware
 from crestereo_pp.service.ray.serve import Scale
 
@@ -23,6 +24,25 @@ def test_a_fixed_count_or_an_autoscaling_range_of_replicas_and_each_ones_cpus():
     autoscaled = Scale(min_replicas=1, max_replicas=4)
     assert autoscaled.autoscaled and autoscaled.most_replicas == 4
     assert Scale(replicas=2, cpus=3).cpus_per_replica() == 3
+
+
+def test_workers_or_replicas_share_the_cpus_equally_in_fractions_of_one_where_they_outnumber_them():
+    assert cpu_share(2, [8.0]) == 4.0
+    assert cpu_share(3, [4.0]) == 1.3333  # Ray's steps of 1/10000, rounded down: all three fit
+    assert cpu_share(4, [2.0]) == 0.5
+    assert cpu_share(3, [2.0]) == 0.6666
+    assert [cpu_threads(share) for share in (4.0, 1.3333, 0.5)] == [4, 1, 1]
+
+
+def test_a_share_is_never_split_between_nodes_so_all_of_them_fit():
+    assert cpu_share(3, [8.0, 8.0]) == 4.0  # not 16 / 3: one node holds only one share of 5.33
+    assert cpu_share(3, [1.0, 1.0]) == 0.5
+    assert cpu_share(2, [3.0, 1.0]) == 1.5  # both on the larger node
+
+
+def test_a_cluster_without_cpus_yet_is_asked_for_one_cpu_per_worker_for_its_autoscaler_to_add():
+    assert cpu_share(2, []) == 1.0
+    assert cpu_share(2, [0.0]) == 1.0
 
 
 @pytest.mark.parametrize(
