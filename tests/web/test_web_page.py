@@ -273,8 +273,9 @@ def test_the_summary_says_how_far_the_right_rows_lay_off_and_when_to_check_the_c
         assert advice == (right is down), page.inner_text("#summary")  # 1.5 px: a pixel or more
 
 
-def test_a_raw_pair_with_its_calibration_file_gives_depth_on_the_cameras_pixels(web: WebPage, tmp_path: Path) -> None:
-    page = web.page
+def choose_raw_pair(page) -> None:
+    """Put the raw pair of tests/raw_camera.py (its left and right views, as PNGs) in the page's
+    left and right file fields."""
     left, right = (
         np.clip(view, 0, 255).astype(np.uint8)
         for view in (raw_view(K1, D1, np.eye(3), np.zeros(3)), raw_view(K2, D2, R, T))
@@ -282,6 +283,11 @@ def test_a_raw_pair_with_its_calibration_file_gives_depth_on_the_cameras_pixels(
     for side, image in (("left", left), ("right", right)):
         png = cv2.imencode(".png", image)[1].tobytes()
         page.set_input_files(f"#{side}-file", files=[{"name": f"{side}.png", "mimeType": "image/png", "buffer": png}])
+
+
+def test_a_raw_pair_with_its_calibration_file_gives_depth_on_the_cameras_pixels(web: WebPage, tmp_path: Path) -> None:
+    page = web.page
+    choose_raw_pair(page)
     bad = opencv_file(tmp_path / "bad.yaml", T=np.zeros(3))
     page.set_input_files("#calibration-file", str(bad))
     page.click("#run")
@@ -309,6 +315,13 @@ def test_a_raw_pair_with_its_calibration_file_gives_depth_on_the_cameras_pixels(
     assert "no value: outside the rectified image" in readouts["corner"]
 
 
+def run_url(page: Any) -> str:
+    """Click Run; the URL of the `POST /disparity` the page then sends."""
+    with page.expect_response(lambda answer: "/disparity?" in answer.url) as answer:
+        page.click("#run")
+    return str(answer.value.url)
+
+
 def test_a_raw_pairs_maps_line_up_with_the_left_image_shown_unless_rectified_is_chosen(
     web: WebPage, tmp_path: Path
 ) -> None:
@@ -316,18 +329,10 @@ def test_a_raw_pairs_maps_line_up_with_the_left_image_shown_unless_rectified_is_
     the image it draws; where the user chooses frame=rectified the left panel says it does not line
     up, and hovering it reads no map value."""
     page = web.page
-    left, right = (
-        np.clip(view, 0, 255).astype(np.uint8)
-        for view in (raw_view(K1, D1, np.eye(3), np.zeros(3)), raw_view(K2, D2, R, T))
-    )
-    for side, image in (("left", left), ("right", right)):
-        png = cv2.imencode(".png", image)[1].tobytes()
-        page.set_input_files(f"#{side}-file", files=[{"name": f"{side}.png", "mimeType": "image/png", "buffer": png}])
+    choose_raw_pair(page)
     page.set_input_files("#calibration-file", str(opencv_file(tmp_path / "stereo.yaml")))
     page.fill("#iters", "1,1,1")
-    with page.expect_response(lambda answer: "/disparity?" in answer.url) as answer:
-        page.click("#run")
-    assert "frame=original" in answer.value.url
+    assert "frame=original" in run_url(page)
     expect(page.locator("#summary")).to_contain_text("maps in the original left image")
     assert page.inner_text("#left-caption") == "Left image"
     expect(page.locator("#left-note")).to_be_hidden()
@@ -337,9 +342,7 @@ def test_a_raw_pairs_maps_line_up_with_the_left_image_shown_unless_rectified_is_
     assert readout == hover_pixel(page, "disparity-canvas", 160, 120, RAW_WIDTH, RAW_HEIGHT)
 
     page.select_option("#frame", "rectified")
-    with page.expect_response(lambda answer: "/disparity?" in answer.url) as answer:
-        page.click("#run")
-    assert "frame=rectified" in answer.value.url
+    assert "frame=rectified" in run_url(page)
     expect(page.locator("#summary")).to_contain_text("maps in the rectified left image")
     assert page.inner_text("#left-caption") == "Left image (not rectified)"
     expect(page.locator("#left-note")).to_contain_text("they do not line up with it")
@@ -460,25 +463,18 @@ def test_missing_image_is_said_before_sending(web: WebPage) -> None:
 
 @pytest.mark.slow
 def test_choosing_an_untrained_model_shows_a_warning(browser: Any, tmp_path: Path) -> None:
-    untrained = write_untrained(tmp_path / "full.pt")
-    with run_uvicorn(tmp_path, models="lite,full", weights=f"full={untrained}") as server:
-        context = browser.new_context(viewport={"width": 1280, "height": 900})
-        try:
-            page = context.new_page()
-            page.set_default_timeout(30_000)
-            page.goto(server.base_url + "/")
-            page.wait_for_selector("#model option[value=full]", state="attached")
-            warning = page.locator("#model-warning")
-            expect(warning).to_be_hidden()  # lite, the default, is trained
-            page.select_option("#model", "full")
-            expect(warning).to_be_visible()
-            expect(warning).to_contain_text("full is untrained")
-            expect(warning).to_contain_text("Choose a trained model (lite) for real results.")
-            expect(page.locator("#model option[value=full]")).to_contain_text("untrained")
-            page.select_option("#model", "lite")
-            expect(warning).to_be_hidden()
-        finally:
-            context.close()
+    weights = f"full={write_untrained(tmp_path / 'full.pt')}"
+    with run_uvicorn(tmp_path, models="lite,full", weights=weights) as server, page_of(browser, server) as page:
+        page.wait_for_selector("#model option[value=full]", state="attached")
+        warning = page.locator("#model-warning")
+        expect(warning).to_be_hidden()  # lite, the default, is trained
+        page.select_option("#model", "full")
+        expect(warning).to_be_visible()
+        expect(warning).to_contain_text("full is untrained")
+        expect(warning).to_contain_text("Choose a trained model (lite) for real results.")
+        expect(page.locator("#model option[value=full]")).to_contain_text("untrained")
+        page.select_option("#model", "lite")
+        expect(warning).to_be_hidden()
 
 
 @pytest.mark.slow
