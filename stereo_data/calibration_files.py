@@ -334,15 +334,10 @@ def _check_nodes(root: yaml.MappingNode, source: str, prefix: str) -> None:
     """RigError naming the entry where a node is met twice (an alias: YAML's *name), a map gives a
     name twice, or values nest deeper than MAX_NESTING (PyYAML constructs them recursively). One
     visit a node: the walk is as long as the file."""
-    names: set[str] = set()
+    _unique_names(root, prefix=prefix)
     seen = {id(root)}
     for key, value in root.value:
-        field = source
-        if isinstance(key, yaml.ScalarNode):
-            field = prefix + key.value
-            if key.value in names:
-                raise RigError(field, f"`{key.value}` is given twice")
-            names.add(key.value)
+        field = prefix + key.value if isinstance(key, yaml.ScalarNode) else source
         stack: list[tuple[yaml.Node, int]] = [(key, 1), (value, 1)]
         while stack:
             node, depth = stack.pop()
@@ -362,12 +357,14 @@ def _check_nodes(root: yaml.MappingNode, source: str, prefix: str) -> None:
                 stack.extend((part, depth + 1) for pair in node.value for part in pair)
 
 
-def _unique_names(node: yaml.MappingNode, field: str) -> None:
+def _unique_names(node: yaml.MappingNode, field: str | None = None, prefix: str = "") -> None:
+    """RigError where the map `node` gives a name twice, naming `field` (None: the name itself,
+    after `prefix`: a top-level entry)."""
     names: set[str] = set()
     for key, _ in node.value:
         if isinstance(key, yaml.ScalarNode):
             if key.value in names:
-                raise RigError(field, f"`{key.value}` is given twice")
+                raise RigError(field or prefix + key.value, f"`{key.value}` is given twice")
             names.add(key.value)
 
 
