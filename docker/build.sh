@@ -51,14 +51,30 @@ args=(--network host
       --build-arg "TORCH_VERSION=$torch_version"
       --build-arg "TORCH_INDEX_URL=${torch_index:-$index}"
       --build-arg "PIP_INDEX_URL=$index"
-      -f "$root/docker/Dockerfile")
-docker build "${args[@]}" -t "$image" "$@" "$root"
+      -f docker/Dockerfile)
+
+# The build context as .dockerignore selects it (its `!path` lines, less its `**/name` lines), sent
+# as a tar in which every file has the same time: the legacy builder keys a COPY's layer cache on
+# its files' times as well as their contents, so a fresh clone of unchanged code (new times)
+# would build the graphs stage again (a minute and a half of export) for nothing.
+include=() exclude=()
+while read -r line; do
+    case $line in
+        '!'*) include+=("${line#!}") ;;
+        '**/'*) exclude+=("--exclude=${line#\*\*/}") ;;
+    esac
+done < "$root/.dockerignore"
+context() {
+    tar --create --file=- --directory="$root" --sort=name --mtime=@0 --owner=0 --group=0 --numeric-owner \
+        "${exclude[@]}" docker/Dockerfile "${include[@]}"
+}
+context | docker build "${args[@]}" -t "$image" "$@" -
 
 # The legacy builder keeps its layer cache in untagged images, and a rebuild leaves the previous
 # ones behind. Tag the slow stages (all cached here: the dependencies, torch and the rest; lite's
 # graph, minutes of export) so that they stay, then drop what is untagged and unused.
 for stage in deps graphs; do
-    docker build "${args[@]}" --quiet --target "$stage" -t "${image%:*}:$stage-cache" "$root" >/dev/null
+    context | docker build "${args[@]}" --quiet --target "$stage" -t "${image%:*}:$stage-cache" - >/dev/null
 done
 docker image prune --force >/dev/null
 docker image inspect --format "image $image: {{.Size}} bytes" "$image"
