@@ -319,7 +319,9 @@ def predict_and_write(job: Job, stream: Frames, images: PairImages) -> RowOffset
         stream.restart()  # every pair on its own
     rectifier = job.outputs.rectifier
     if rectifier is not None:
-        left, right = rectifier.rectify(left, right)
+        left, right = rectifier.rectify(left, right)  # refuses a pair of another size than the calibration's
+        if job.single:
+            print(describe_camera(rectifier.focal_baseline))
     offset = None
     if args.align_rows:
         right, offset = align_rows(left, right)
@@ -386,9 +388,10 @@ def describe_camera(camera: FocalBaseline) -> str:
 
 def prepare(args: argparse.Namespace) -> Job:
     """The job the arguments describe (`plan`); where its pairs are raw, the rectified camera
-    its depth comes from is printed first."""
+    its depth comes from is printed: first for a run over several pairs, and for a single pair
+    once it is rectified (`predict_and_write`: not before the refusal of a pair of another size)."""
     job = plan(args)
-    if job.outputs.rectifier is not None:
+    if job.outputs.rectifier is not None and not job.single:
         print(describe_camera(job.outputs.rectifier.focal_baseline))
     return job
 

@@ -61,3 +61,14 @@ def test_the_raw_example_through_predict_gives_its_true_depth_and_prints_the_rec
     without_camera = [*inputs[:2], "-o", str(tmp_path / "x.pfm"), "--depth-mm", str(tmp_path / "x.png")]
     assert main(["predict", *without_camera]) == 2
     assert "--depth-mm needs --calibration, or --focal-px and --baseline-m" in capsys.readouterr().err
+
+
+def test_a_pair_of_another_size_than_the_calibrations_is_refused_before_any_camera_is_printed(tmp_path, capsys):
+    for name in ("left.png", "right.png"):  # the example's pair, cropped to 300x240
+        cv2.imwrite(str(tmp_path / name), cv2.imread(str(EXAMPLE / name))[:, :300])
+    inputs = [str(tmp_path / "left.png"), str(tmp_path / "right.png"), "--calibration", str(EXAMPLE / "stereo.yaml")]
+    assert main(["predict", *inputs, "-o", str(tmp_path / "d.pfm"), "--device", "cpu"]) == 2
+    printed = capsys.readouterr()
+    assert printed.out == ""
+    assert "the calibration is for 320x240 images, the left image is 300x240" in printed.err
+    assert not (tmp_path / "d.pfm").exists()
