@@ -26,9 +26,9 @@ sys.path.insert(0, str(STATIC.parents[1]))  # the repository root, when run as a
 from crestereo_pp.stereo_data.synthetic import SceneConfig, SceneGenerator  # noqa: E402
 
 EXAMPLES = (  # name, title, height, width, seed; disparities up to a fifth of the width
-    ("shapes-192x128", "procedural shapes, 192x128", 128, 192, 11),
-    ("shapes-288x192", "procedural shapes, 288x192", 192, 288, 12),
-    ("shapes-384x256", "procedural shapes, 384x256", 256, 384, 13),
+    ("shapes-192x128", "procedural shapes, 192x128", 128, 192, 25),
+    ("shapes-288x192", "procedural shapes, 288x192", 192, 288, 23),
+    ("shapes-384x256", "procedural shapes, 384x256", 256, 384, 12),
 )
 
 RAW_EXAMPLE = {  # made by make_raw_example.py: a raw pair as a calibrated camera takes it, with its calibration
