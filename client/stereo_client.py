@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import asyncio
-import base64
 import io
 import json
 import os
@@ -245,44 +244,44 @@ def _error(status: int, body: bytes, retry_after: str | None) -> ServiceError:
     return ServiceError(status, code, message, float(retry_after) if retry_after else None)
 
 
-def _answered(response: httpx.Response) -> dict[str, Any]:
-    """The `Computation` facts of a 200 answer, from its headers (ServiceError for an error answer)."""
+def _answered(response: httpx.Response) -> bytes:
+    """The body of a 200 answer (ServiceError for an error answer)."""
     if response.status_code != 200:
         raise _error(response.status_code, response.content, response.headers.get("retry-after"))
-    headers = response.headers
-    camera = Camera(**_header_fields(headers["x-camera"])) if "x-camera" in headers else None
-    offset = headers.get("x-row-offset", "unmeasured")
-    row_offset = None if offset == "unmeasured" else RowOffset(**_header_fields(offset))
+    return response.content
+
+
+def _computation(facts: str) -> dict[str, Any]:
+    """The `Computation` fields of an answer's facts: the JSON every binary answer carries inside
+    its file (an npz's `facts` array, a PLY's `comment facts` line)."""
+    body = json.loads(facts)
+    timings = body["timings"]
     return dict(
-        model=headers["x-model"],
-        trained=headers["x-model-status"] == "trained",
-        weights=headers["x-weights"],
-        batch_size=int(headers["x-batch-size"]),
-        queue_ms=float(headers["x-queue-ms"]),
-        compute_ms=float(headers["x-compute-ms"]),
-        camera=camera,
-        row_offset=row_offset,
+        model=body["model"],
+        trained=body["model_status"] == "trained",
+        weights=body["weights"],
+        batch_size=int(body["batch_size"]),
+        queue_ms=float(timings["queue_ms"]),
+        compute_ms=float(timings["compute_ms"]),
+        camera=Camera(**body["camera"]) if body.get("camera") else None,
+        row_offset=RowOffset(**body["row_offset"]) if body.get("row_offset") else None,
     )
 
 
-def _header_fields(value: str) -> dict[str, Any]:
-    """The fields of a header of `name=value; ...` (each value spelled as in JSON)."""
-    return {name: json.loads(text) for name, text in (item.split("=", 1) for item in value.split("; "))}
-
-
-def _disparity_result(response: httpx.Response) -> DisparityResult:
-    """The result of a `format=npz` answer."""
-    facts = _answered(response)
-    maps = np.load(io.BytesIO(response.content))
+def _disparity_result(npz: bytes) -> DisparityResult:
+    """The result of a `format=npz` answer (a request's body, or a stream's binary message)."""
+    maps = np.load(io.BytesIO(npz))
     depth = maps["depth"] if "depth" in maps.files else None
-    return DisparityResult(**facts, disparity=maps["disparity"], uncertainty=maps["uncertainty"], depth=depth)
+    return DisparityResult(
+        **_computation(maps["facts"].item()), disparity=maps["disparity"], uncertainty=maps["uncertainty"], depth=depth
+    )
 
 
-def _point_cloud(response: httpx.Response) -> PointCloud:
+def _point_cloud(ply: bytes) -> PointCloud:
     """The result of a `format=ply` answer."""
-    facts = _answered(response)
-    points, colors, frame = decode_ply(response.content)
-    return PointCloud(**facts, points=points, colors=colors, metric=frame == METRIC_FRAME, ply=response.content)
+    points, colors, frame, comments = decode_ply(ply)
+    facts = next(comment.removeprefix("facts ") for comment in comments if comment.startswith("facts "))
+    return PointCloud(**_computation(facts), points=points, colors=colors, metric=frame == METRIC_FRAME, ply=ply)
 
 
 def _json(response: httpx.Response) -> Any:
@@ -373,7 +372,7 @@ class StereoClient:
     ) -> DisparityStream:
         """A WebSocket stream (`/disparity/stream`) for the rectified pairs of one camera, each
         frame warm-started from the previous one (`warm_iters` iterations; see `DisparityStream`)."""
-        url = _stream_url(self._http, _query("json", options, warm_iters=warm_iters))
+        url = _stream_url(self._http, _query("npz", options, warm_iters=warm_iters))
         return DisparityStream(url, self._http.headers.get("Authorization"), self._http.timeout.read)
 
     def health(self) -> dict[str, Any]:
@@ -393,11 +392,11 @@ class StereoClient:
     def __exit__(self, *_: object) -> None:
         self.close()
 
-    def _post(self, request: dict[str, Any], read: Callable[[httpx.Response], Result]) -> Result:
-        """`POST /disparity`, read by `read`, retried as `_Retries` says."""
+    def _post(self, request: dict[str, Any], read: Callable[[bytes], Result]) -> Result:
+        """`POST /disparity`, its answer's body read by `read`, retried as `_Retries` says."""
         for attempt in count():
             try:
-                return read(self._http.post("/disparity", **request))
+                return read(_answered(self._http.post("/disparity", **request)))
             except ServiceError as error:
                 wait = self._retries.wait_for(error, attempt)
                 if wait is None:
@@ -438,11 +437,12 @@ def _ended(closed: ConnectionClosed, last: str | bytes | None) -> ServiceError |
 
 
 def _frame_result(message: str | bytes) -> DisparityResult:
-    """A stream's answer to one pair: its maps, or ServiceError for a pair it could not compute."""
-    body = json.loads(message)
-    if "error" in body:
-        raise ServiceError(0, str(body["error"]["code"]), str(body["error"]["message"]))
-    return _json_result(body)
+    """A stream's answer to one pair: its maps (a binary npz message), or ServiceError for a pair
+    it could not compute (a text message, the service's JSON error)."""
+    if isinstance(message, bytes):
+        return _disparity_result(message)
+    error = json.loads(message)["error"]
+    raise ServiceError(0, str(error["code"]), str(error["message"]))
 
 
 class DisparityStream:
@@ -556,28 +556,6 @@ class AsyncDisparityStream:
         await self.close()
 
 
-def _json_result(body: dict[str, Any]) -> DisparityResult:
-    """The result of a `format=json` answer."""
-
-    def array(encoded: dict[str, Any]) -> np.ndarray:
-        return np.frombuffer(base64.b64decode(encoded["data"]), "<f4").reshape(encoded["shape"])
-
-    timings = body["timings"]
-    return DisparityResult(
-        model=body["model"],
-        trained=body["model_status"] == "trained",
-        weights=body["weights"],
-        batch_size=int(body["batch_size"]),
-        queue_ms=float(timings["queue_ms"]),
-        compute_ms=float(timings["compute_ms"]),
-        camera=Camera(**body["camera"]) if body.get("camera") else None,
-        row_offset=RowOffset(**body["row_offset"]) if body.get("row_offset") else None,
-        disparity=array(body["disparity"]),
-        uncertainty=array(body["uncertainty"]),
-        depth=array(body["depth"]) if body.get("depth") else None,
-    )
-
-
 class AsyncStereoClient:
     """`StereoClient` for asyncio: the same methods, awaited (`stream` with `async with`)."""
 
@@ -638,7 +616,7 @@ class AsyncStereoClient:
         self, *, warm_iters: int | tuple[int, int, int] | None = None, **options: Unpack[Options]
     ) -> AsyncDisparityStream:
         """`StereoClient.stream` for asyncio (`async with` it)."""
-        url = _stream_url(self._http, _query("json", options, warm_iters=warm_iters))
+        url = _stream_url(self._http, _query("npz", options, warm_iters=warm_iters))
         return AsyncDisparityStream(url, self._http.headers.get("Authorization"), self._http.timeout.read)
 
     async def health(self) -> dict[str, Any]:
@@ -656,11 +634,11 @@ class AsyncStereoClient:
     async def __aexit__(self, *_: object) -> None:
         await self.close()
 
-    async def _post(self, request: dict[str, Any], read: Callable[[httpx.Response], Result]) -> Result:
+    async def _post(self, request: dict[str, Any], read: Callable[[bytes], Result]) -> Result:
         """`StereoClient._post`, awaited."""
         for attempt in count():
             try:
-                return read(await self._http.post("/disparity", **request))
+                return read(_answered(await self._http.post("/disparity", **request)))
             except ServiceError as error:
                 wait = self._retries.wait_for(error, attempt)
                 if wait is None:

@@ -39,6 +39,7 @@ __all__ = [
     "encode_png",
     "encode_png16",
     "encode_depth_mm_png",
+    "png_with_text",
     "write_disparity",
     "write_uncertainty",
     "write_depth",
@@ -163,10 +164,10 @@ def encode_depth_mm_png(depth: np.ndarray) -> bytes:
     metres = np.asarray(depth, dtype=np.float64)
     within = np.rint(metres * DEPTH_MM_SCALE) <= 65535
     png = encode_png16(np.where(within, metres, np.inf), DEPTH_MM_SCALE)
-    return _with_text(png, "Description", DEPTH_MM_TEXT)
+    return png_with_text(png, "Description", DEPTH_MM_TEXT)
 
 
-def _with_text(png: bytes, keyword: str, text: str) -> bytes:
+def png_with_text(png: bytes, keyword: str, text: str) -> bytes:
     """`png` with a tEXt chunk (Latin-1 `keyword` and `text`) after its header chunk (IHDR)."""
     body = b"tEXt" + keyword.encode("latin-1") + b"\0" + text.encode("latin-1")
     chunk = struct.pack(">I", len(body) - 4) + body + struct.pack(">I", zlib.crc32(body))

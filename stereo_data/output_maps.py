@@ -4,6 +4,7 @@ pair's original left pixels, the coloured disparity of the pictures and the poin
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -65,15 +66,15 @@ class PredictionOutputs:
         shown = np.where(np.isfinite(self.maps.disparity), self.maps.disparity, 0.0)
         return shown, scale_range(shown, self.options.color_min, self.options.color_max)
 
-    def ply(self) -> bytes:
+    def ply(self, comments: Sequence[str] = ()) -> bytes:
         """The binary PLY point cloud of the pair the network saw, coloured by its left image:
         metric in the (rectified) left camera's frame where the camera is known, else image-space
-        points (`stereo_data.pointcloud`)."""
+        points (`stereo_data.pointcloud`); `comments` are added to its header."""
         options = self.options
         points, colors = point_cloud(
             self.disparity, self.left, self.uncertainty, options.focal_baseline, options.max_uncertainty, options.limits
         )
-        return encode_ply(points, colors, IMAGE_FRAME if options.focal_baseline is None else METRIC_FRAME)
+        return encode_ply(points, colors, IMAGE_FRAME if options.focal_baseline is None else METRIC_FRAME, comments)
 
 
 def _output_maps(disparity: np.ndarray, uncertainty: np.ndarray, options: OutputOptions) -> OutputMaps:

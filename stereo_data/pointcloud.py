@@ -10,7 +10,9 @@ depth, and pixels whose uncertainty is above a chosen threshold are left out.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -102,26 +104,40 @@ _VERTEX = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("g
 _END_HEADER = b"end_header\n"
 
 
-def encode_ply(points: np.ndarray, colors: np.ndarray, frame: str) -> bytes:
+def encode_ply(points: np.ndarray, colors: np.ndarray, frame: str, comments: Sequence[str] = ()) -> bytes:
     """Binary little-endian PLY of float32 x, y, z and uint8 red, green, blue per vertex; `frame`
-    (METRIC_FRAME or IMAGE_FRAME) is written as a header comment."""
+    (METRIC_FRAME or IMAGE_FRAME) is written as a header comment, then each of `comments` (one
+    line of ASCII each)."""
     if points.ndim != 2 or points.shape[1] != 3 or colors.shape != points.shape:
         raise ValueError(f"expected Nx3 points and Nx3 colours, got {points.shape} and {colors.shape}")
+    if any(not comment.isascii() or "\n" in comment or "\r" in comment for comment in comments):
+        raise ValueError("a PLY header comment is one line of ASCII")
     vertex = np.empty(len(points), dtype=_VERTEX)
     vertex["x"], vertex["y"], vertex["z"] = points[:, 0], points[:, 1], points[:, 2]
     vertex["red"], vertex["green"], vertex["blue"] = colors[:, 0], colors[:, 1], colors[:, 2]
     header = (
         f"ply\nformat binary_little_endian 1.0\ncomment crestereo-pp point cloud\ncomment {frame}\n"
-        f"element vertex {len(points)}\n"
+        + "".join(f"comment {comment}\n" for comment in comments)
+        + f"element vertex {len(points)}\n"
         "property float x\nproperty float y\nproperty float z\n"
         "property uchar red\nproperty uchar green\nproperty uchar blue\n"
     )
     return header.encode("ascii") + _END_HEADER + vertex.tobytes()
 
 
-def decode_ply(data: bytes) -> tuple[np.ndarray, np.ndarray, str]:
-    """(points float32 Nx3, colours uint8 Nx3 RGB, frame) of a PLY file `encode_ply` wrote; frame is
-    METRIC_FRAME or IMAGE_FRAME. ValueError for any other file."""
+class DecodedPly(NamedTuple):
+    """A PLY file `encode_ply` wrote: points float32 Nx3, colours uint8 Nx3 RGB, its frame
+    (METRIC_FRAME or IMAGE_FRAME) and its other header comments, in order."""
+
+    points: np.ndarray
+    colors: np.ndarray
+    frame: str
+    comments: list[str]
+
+
+def decode_ply(data: bytes) -> DecodedPly:
+    """The points, colours, frame and comments of a PLY file `encode_ply` wrote. ValueError for any
+    other file."""
     end = data.find(_END_HEADER)
     lines = data[: max(end, 0)].decode("ascii", errors="replace").splitlines()
     frames = [frame for frame in (METRIC_FRAME, IMAGE_FRAME) if f"comment {frame}" in lines]
@@ -135,4 +151,6 @@ def decode_ply(data: bytes) -> tuple[np.ndarray, np.ndarray, str]:
     vertex = np.frombuffer(body, dtype=_VERTEX)
     points = np.stack([vertex["x"], vertex["y"], vertex["z"]], axis=1)
     colors = np.stack([vertex["red"], vertex["green"], vertex["blue"]], axis=1)
-    return points, colors, frames[0]
+    own = {"comment crestereo-pp point cloud", f"comment {frames[0]}"}
+    comments = [line.removeprefix("comment ") for line in lines if line.startswith("comment ") and line not in own]
+    return DecodedPly(points, colors, frames[0], comments)

@@ -59,7 +59,11 @@ def _error_doc(description: str, examples: dict[str, str], headers: dict[str, An
 RESPONSES: dict[int | str, dict[str, Any]] = {
     200: {
         "description": "The maps, in the requested `format` (`application/json` for json, "
-        "`application/x-npz` for npz, `image/png` for the PNG formats, `application/x-ply` for ply).",
+        "`application/x-npz` for npz, `image/png` for the PNG formats, `application/x-ply` for ply). Every "
+        "format also carries the answer's facts (model, model_status, weights, image_size, batch_size, "
+        "timings, frame, camera, row_offset: the fields of the JSON body but its maps) as one line of JSON "
+        "inside its file: npz as the 0-d string array `facts`, PNG as the tEXt chunk `facts`, ply as the "
+        "header line `comment facts {...}`.",
         "headers": _RESULT_HEADERS,
         "content": {**_binary("application/x-npz"), **_binary("image/png"), **_binary("application/x-ply")},
     },

@@ -13,15 +13,12 @@ from starlette.concurrency import run_in_threadpool
 
 from crestereo_pp.inference import WarmStart
 from crestereo_pp.service.api.errors import bad_input
-from crestereo_pp.service.api.response_bodies import rectified_camera, response_body
-from crestereo_pp.service.api.schemas import DisparityOptions, RectifiedCamera
-from crestereo_pp.service.batching.batcher import JobResult
+from crestereo_pp.service.api.response_bodies import answer_facts, response_body
+from crestereo_pp.service.api.schemas import AnswerFacts, DisparityOptions
 from crestereo_pp.service.batching.runtime import ServiceRuntime, StereoBatcher, weights_identity
 from crestereo_pp.service.batching.stereo import (
     FALLBACK_COST,
-    Predictor,
     StereoKey,
-    StereoMaps,
     StereoPair,
     options_cost,
     stereo_key,
@@ -33,14 +30,10 @@ from crestereo_pp.service.uploads.sandbox import Stop
 
 @dataclass(frozen=True)
 class Answer:
-    """A computed pair: its result (maps, batch size, timings), the predictor that computed it and
-    its weights' identity, a raw pair's rectified left camera (None for a rectified pair), and the
-    answer's body and media type."""
+    """A computed pair: what its answer says of it (`AnswerFacts`), and the answer's body and media
+    type."""
 
-    result: JobResult[StereoMaps]
-    predictor: Predictor
-    weights: str
-    camera: RectifiedCamera | None
+    facts: AnswerFacts
     body: bytes
     media_type: str
 
@@ -102,12 +95,9 @@ async def answer_pair(
         if frames is not None:
             frames.record(result.output.disparity)
         predictor = runtime.predictors[options.model]
-        weights = weights_identity(predictor)
-        camera = None if rectifier is None else rectified_camera(rectifier)
-        body, media_type = await run_in_threadpool(
-            response_body, options, result, left, weights, predictor.trained, header, rectifier
-        )
-    return Answer(result, predictor, weights, camera, body, media_type)
+        facts = answer_facts(options, result, weights_identity(predictor), predictor.trained, header, rectifier)
+        body, media_type = await run_in_threadpool(response_body, options, result, left, facts, rectifier)
+    return Answer(facts, body, media_type)
 
 
 def cost_problem(runtime: ServiceRuntime, key: StereoKey, header: ImageHeader) -> str | None:

@@ -386,8 +386,36 @@ class RowOffsetReport(BaseModel):
     )
 
 
-class DisparityResponse(BaseModel):
-    """Body of a `format=json` answer; the same facts come as `X-*` headers in every format."""
+class AnswerFacts(BaseModel):
+    """What an answer says of its computation, in every format: the fields of a `format=json` body
+    but its maps; also as `X-*` headers, and inside the file of the other formats as one line of
+    this JSON (an npz's 0-d string array `facts`, a PNG's tEXt chunk `facts`, a PLY's header line
+    `comment facts {...}`)."""
+
+    model: ModelName
+    model_status: TrainingStatus = Field(
+        description="`untrained`: the model's maps are not usable (see `GET /models`); as `X-Model-Status`."
+    )
+    weights: str = Field(description="First 16 hex digits of the weights' sha256, or `random-init`.")
+    image_size: ImageSize
+    batch_size: int = Field(description="How many requests were computed together with this one.")
+    timings: Timings
+    frame: Frame = Field(Frame.rectified, description="The pixel grid of the maps (see the `frame` option).")
+    camera: RectifiedCamera | None = Field(
+        None,
+        description="With a calibration part: the rectified left camera that disparity and depth refer to "
+        "(as `X-Camera`).",
+    )
+    row_offset: RowOffsetReport | None = Field(
+        None,
+        description="With `align_rows` (the default): the right image's row offset as measured (as "
+        "`X-Row-Offset`); null where the pair has too little texture to measure it, or with `align_rows=false`.",
+    )
+
+
+class DisparityResponse(AnswerFacts):
+    """Body of a `format=json` answer: what it says of its computation (the facts every format
+    carries) and its maps."""
 
     model_config = ConfigDict(
         json_schema_extra={
@@ -399,6 +427,9 @@ class DisparityResponse(BaseModel):
                     "image_size": {"width": 2, "height": 1},
                     "batch_size": 3,
                     "timings": {"queue_ms": 12.5, "compute_ms": 481.3},
+                    "frame": "rectified",
+                    "camera": None,
+                    "row_offset": None,
                     "disparity": {"dtype": "float32", "byte_order": "little", "shape": [1, 2], "data": "AAAgQQAAJEE="},
                     "uncertainty": {
                         "dtype": "float32",
@@ -412,14 +443,6 @@ class DisparityResponse(BaseModel):
         }
     )
 
-    model: ModelName
-    model_status: TrainingStatus = Field(
-        description="`untrained`: the model's maps are not usable (see `GET /models`); as `X-Model-Status`."
-    )
-    weights: str = Field(description="First 16 hex digits of the weights' sha256, or `random-init`.")
-    image_size: ImageSize
-    batch_size: int = Field(description="How many requests were computed together with this one.")
-    timings: Timings
     disparity: EncodedArray = Field(description="Pixels of the left image, positive; x_right = x - d.")
     uncertainty: EncodedArray = Field(
         description="Per-pixel probability that the disparity is off "
@@ -432,17 +455,6 @@ class DisparityResponse(BaseModel):
         None,
         description="Metres, +inf where there is no depth (disparity <= min_disparity, or beyond max_depth_m); "
         "only with a calibration part, or focal_px and baseline_m.",
-    )
-    frame: Frame = Field(Frame.rectified, description="The pixel grid of the maps (see the `frame` option).")
-    camera: RectifiedCamera | None = Field(
-        None,
-        description="With a calibration part: the rectified left camera that disparity and depth refer to "
-        "(in every format as `X-Camera`).",
-    )
-    row_offset: RowOffsetReport | None = Field(
-        None,
-        description="With `align_rows` (the default): the right image's row offset as measured (in every format "
-        "as `X-Row-Offset`); null where the pair has too little texture to measure it, or with `align_rows=false`.",
     )
 
 

@@ -53,6 +53,16 @@ def stereo_pair(
     return np.ascontiguousarray(texture[:, shift:]), np.ascontiguousarray(texture[:, :width])
 
 
+def cornered_pair() -> tuple[np.ndarray, np.ndarray]:
+    """The web page's smallest example pair, RGB uint8 192x128: a procedural scene with corners
+    enough that the service measures its rows (`stereo_pair`'s smooth texture has too few)."""
+    folder = REPO / "service" / "static" / "examples" / "shapes-192x128"
+    left, right = (
+        cv2.cvtColor(cv2.imread(str(folder / f"{side}.png")), cv2.COLOR_BGR2RGB) for side in ("left", "right")
+    )
+    return left, right
+
+
 def decode_array(payload: dict[str, Any]) -> np.ndarray:
     """A map of a `format=json` answer: base64 of little-endian float32, with its shape."""
     assert payload["dtype"] == "float32" and payload["byte_order"] == "little"

@@ -9,6 +9,8 @@ import logging
 import cv2
 import numpy as np
 import pytest
+from PIL import Image
+from plyfile import PlyData
 from raw_camera import small_dev_sample
 
 from crestereo_pp.inference import load_model
@@ -19,6 +21,7 @@ from service_helpers import (
     HEIGHT,
     WIDTH,
     assert_same_maps,
+    cornered_pair,
     decode_array,
     encode,
     lite_settings,
@@ -83,7 +86,7 @@ async def test_every_format_encodes_the_same_maps_and_depth_is_focal_times_basel
     # no depth at or below the default min_disparity of 1 px
     expected_depth = np.where(disparity > 1.0, 700.0 * 0.5 / np.maximum(disparity, 1e-30), np.inf)
     np.testing.assert_allclose(depth, expected_depth, rtol=1e-5)
-    assert sorted(archive.files) == ["depth", "disparity", "uncertainty"]
+    assert sorted(archive.files) == ["depth", "disparity", "facts", "uncertainty"]
     np.testing.assert_allclose(archive["disparity"], disparity, atol=1e-4)
     np.testing.assert_allclose(archive["uncertainty"], uncertainty, atol=1e-4)
     assert preview.shape == (HEIGHT + BAR_HEIGHT, 2 * WIDTH + PREVIEW_GAP, 3) and preview.dtype == np.uint8
@@ -97,6 +100,39 @@ async def test_every_format_encodes_the_same_maps_and_depth_is_focal_times_basel
         valid = np.isfinite(values) & (values > 0) & (values * scale < 65535)
         np.testing.assert_allclose(image[valid] / scale, values[valid], atol=1.0 / scale + 1e-3)
     assert (png16["depth"][~np.isfinite(depth)] == 0).all()
+
+
+async def test_every_binary_format_carries_the_facts_of_the_json_answer_inside_its_file():
+    left, right = cornered_pair()
+    answers = {}
+    async with serve_asgi() as h:
+        for format in ("json", "npz", "png", "disparity_png16", "depth_png16", "uncertainty_png16", "ply"):
+            response = await h.client.post(
+                "/disparity",
+                params={"format": format, "focal_px": 700.0, "baseline_m": 0.5},
+                files=pair_files(left, right),
+            )
+            assert response.status_code == 200, response.text
+            answers[format] = response
+    maps = ("disparity", "uncertainty", "depth")
+    expected = {name: value for name, value in answers.pop("json").json().items() if name not in maps}
+    assert expected["row_offset"] is not None and expected["model_status"] == "trained"
+    # read back by other readers than the project's: numpy, Pillow (PNG tEXt chunks), plyfile
+    ply_comments = PlyData.read(io.BytesIO(answers["ply"].content)).comments
+    inside = {
+        "npz": str(np.load(io.BytesIO(answers["npz"].content))["facts"]),
+        **{name: Image.open(io.BytesIO(answers[name].content)).text["facts"] for name in answers if "png" in name},
+        "ply": next(comment.removeprefix("facts ") for comment in ply_comments if comment.startswith("facts ")),
+    }
+    assert inside.keys() == answers.keys()
+    for name, text in inside.items():
+        facts = json.loads(text)
+        assert "\n" not in text and facts.keys() == expected.keys(), name
+        # each request was computed on its own: its own timings, every other fact the same
+        assert {**facts, "timings": None} == {**expected, "timings": None}, name
+        headers = answers[name].headers
+        assert facts["timings"]["compute_ms"] == float(headers["x-compute-ms"]) > 0, name
+        assert facts["weights"] == headers["x-weights"] and facts["batch_size"] == int(headers["x-batch-size"]), name
 
 
 async def test_grayscale_16_bit_and_jpeg_uploads_are_accepted():

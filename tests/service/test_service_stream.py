@@ -6,6 +6,7 @@ refused with a clear message and close code; the client's `stream`."""
 from __future__ import annotations
 
 import asyncio
+import io
 import json
 
 import httpx
@@ -19,6 +20,8 @@ from crestereo_pp.inference import InferenceOptions
 from panned_frames import panned_frames
 from service_helpers import (
     assert_same_maps,
+    cornered_pair,
+    decode_array,
     encode,
     pair_files,
     quiet_load_model,
@@ -73,6 +76,25 @@ def test_a_bad_frame_gets_an_error_naming_it_and_the_stream_goes_on(default_serv
     }
     assert mismatch["frame"] == 1 and mismatch["error"]["code"] == "size_mismatch"
     assert isinstance(answer, bytes) and answer.startswith(b"PK")  # an npz archive
+
+
+def test_a_binary_frame_carries_inside_its_file_the_facts_a_json_frame_gives(default_server):
+    left, right = cornered_pair()
+    answers = {}
+    for format in ("json", "npz"):
+        with connect(ws_url(default_server.base_url, f"format={format}")) as socket:
+            socket.send(encode(left))
+            socket.send(encode(right))
+            answers[format] = socket.recv(timeout=60)
+    assert isinstance(answers["json"], str) and isinstance(answers["npz"], bytes)
+    body = json.loads(answers["json"])
+    archive = np.load(io.BytesIO(answers["npz"]))
+    facts = json.loads(str(archive["facts"]))
+    assert facts["row_offset"] is not None and facts["timings"]["compute_ms"] > 0
+    # the same facts but the timings (each stream computed the pair on its own)
+    said = {name: value for name, value in body.items() if name not in ("disparity", "uncertainty", "depth", "timings")}
+    assert {name: value for name, value in facts.items() if name != "timings"} == said
+    assert_same_maps(archive["disparity"], decode_array(body["disparity"]))
 
 
 def test_a_pair_asking_for_more_compute_than_one_request_may_is_refused_and_the_stream_goes_on(default_server):

@@ -48,18 +48,26 @@ def test_the_ply_is_binary_and_reads_back_with_plyfile():
     np.testing.assert_array_equal(np.stack([vertex["red"], vertex["green"], vertex["blue"]], axis=1), colors)
 
 
-def test_a_ply_written_here_reads_back_whole_and_any_other_file_is_refused():
+def test_a_ply_written_here_reads_back_whole_with_its_comments_and_any_other_file_is_refused():
     points = np.array([[0.5, -1.0, 2.0], [3.0, 4.0, 5.0], [7.0, 8.0, 9.5]], np.float32)
     colors = np.array([[255, 0, 10], [1, 2, 3], [9, 9, 9]], np.uint8)
     for frame in (METRIC_FRAME, IMAGE_FRAME):
-        read_points, read_colors, read_frame = decode_ply(encode_ply(points, colors, frame))
-        np.testing.assert_array_equal(read_points, points)
-        np.testing.assert_array_equal(read_colors, colors)
-        assert read_frame == frame
+        read = decode_ply(encode_ply(points, colors, frame, ['facts {"model":"lite"}', "second"]))
+        np.testing.assert_array_equal(read.points, points)
+        np.testing.assert_array_equal(read.colors, colors)
+        assert read.frame == frame
+        assert read.comments == ['facts {"model":"lite"}', "second"]  # in order, the file's own two left out
     data = encode_ply(points, colors, METRIC_FRAME)
     for other in (b"", b"hello", data[:-1], data.replace(b"comment units", b"comment other")):
         with pytest.raises(ValueError):
             decode_ply(other)
+
+
+def test_a_ply_comment_is_one_line_of_ascii():
+    points, colors = np.zeros((1, 3), np.float32), np.zeros((1, 3), np.uint8)
+    for comment in ("two\nlines", "carriage\rreturn", "caf\u00e9"):
+        with pytest.raises(ValueError, match="one line of ASCII"):
+            encode_ply(points, colors, METRIC_FRAME, [comment])
 
 
 def test_depth_is_focal_times_baseline_over_disparity_within_its_range():

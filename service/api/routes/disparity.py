@@ -24,13 +24,11 @@ from crestereo_pp.service.api.dependencies import API_KEY_SCHEME, RuntimeDep
 from crestereo_pp.service.api.disparity_docs import RESPONSES, UPLOAD_BODY
 from crestereo_pp.service.api.errors import ApiError, bad_input, client_gone
 from crestereo_pp.service.api.logs import request_id_var
-from crestereo_pp.service.api.pipeline import Answer, answer_pair
+from crestereo_pp.service.api.pipeline import answer_pair
 from crestereo_pp.service.api.query import repeated_option
-from crestereo_pp.service.api.response_bodies import row_offset_report
-from crestereo_pp.service.api.schemas import DisparityOptions, DisparityResponse
+from crestereo_pp.service.api.schemas import AnswerFacts, DisparityOptions, DisparityResponse
 from crestereo_pp.service.batching.batcher import ClientDisconnected, DeadlineExceeded, Draining
 from crestereo_pp.service.batching.runtime import ServiceRuntime
-from crestereo_pp.service.uploads.images import ImageHeader
 from crestereo_pp.service.uploads.multipart import ImageLimits, boundary_of
 
 router = APIRouter(tags=["disparity"])
@@ -117,8 +115,8 @@ async def estimate_disparity(
         deadline=deadline,
         request_id=request_id_var.get(),
     )
-    request.state.batch_size = answer.result.batch_size
-    headers = _result_headers(answer, upload.header, options.inference.align_rows)
+    request.state.batch_size = answer.facts.batch_size
+    headers = _result_headers(answer.facts, options.inference.align_rows)
     return Response(answer.body, media_type=answer.media_type, headers=headers)
 
 
@@ -172,23 +170,20 @@ def header_fields(facts: BaseModel) -> str:
     return "; ".join(f"{name}={json.dumps(value)}" for name, value in facts.model_dump().items())
 
 
-def _result_headers(answer: Answer, size: ImageHeader, rows_measured: bool) -> dict[str, str]:
-    """The result facts every answer carries as headers (`X-Camera` a raw pair's only,
-    `X-Row-Offset` where the rows were measured: `unmeasured` where the pair had too little
-    texture)."""
-    result = answer.result
+def _result_headers(facts: AnswerFacts, rows_measured: bool) -> dict[str, str]:
+    """The answer's facts as headers (`X-Camera` a raw pair's only, `X-Row-Offset` where the rows
+    were measured: `unmeasured` where the pair had too little texture)."""
     headers = {
-        "X-Model": answer.predictor.name,
-        "X-Model-Status": "trained" if answer.predictor.trained else "untrained",
-        "X-Weights": answer.weights,
-        "X-Image-Size": f"{size.width}x{size.height}",
-        "X-Batch-Size": str(result.batch_size),
-        "X-Queue-Ms": f"{result.queue_seconds * 1000:.2f}",
-        "X-Compute-Ms": f"{result.compute_seconds * 1000:.2f}",
+        "X-Model": facts.model,
+        "X-Model-Status": facts.model_status,
+        "X-Weights": facts.weights,
+        "X-Image-Size": f"{facts.image_size.width}x{facts.image_size.height}",
+        "X-Batch-Size": str(facts.batch_size),
+        "X-Queue-Ms": f"{facts.timings.queue_ms:.2f}",
+        "X-Compute-Ms": f"{facts.timings.compute_ms:.2f}",
     }
-    if answer.camera is not None:
-        headers["X-Camera"] = header_fields(answer.camera)
+    if facts.camera is not None:
+        headers["X-Camera"] = header_fields(facts.camera)
     if rows_measured:
-        offset = answer.result.output.row_offset
-        headers["X-Row-Offset"] = "unmeasured" if offset is None else header_fields(row_offset_report(offset))
+        headers["X-Row-Offset"] = "unmeasured" if facts.row_offset is None else header_fields(facts.row_offset)
     return headers
