@@ -80,7 +80,13 @@ def stereo_key(model: str, options: InferenceOptions, height: int, width: int, w
 # The cost model, fitted to lite on a 2-core CPU at 256x384 (measured / modelled time relative to
 # the default 2,4,6: iterations 1,1,1 0.43 / 0.44; 8,8,16 1.88 / 2.13; 2,4,20 2.07 / 2.17;
 # scale 0.5 0.22 / 0.25; two-pass 0.91 / 1.0). Coarse iterations cost more than their pixels
-# suggest: per-operation overheads dominate at small sizes.
+# suggest: per-operation overheads dominate at small sizes. Checked on the default backend
+# (OpenVINO bf16, iterations without a graph on torch) with every classical step on, at 256x384 to
+# 2048x2048 on a 2-core AVX512 CPU (bench/request_cost.py): measured / modelled 0.80-1.05 for
+# iterations computed by torch (16,16,32: 8.1-9.7 plain requests measured, 9.9 modelled), 0.90-0.97
+# for flip, 1.08-1.18 for two passes, 0.90-1.12 for auto (counted as its largest enlargement, a
+# bound); but a scale of 0.5 costs 0.40-0.51 of a plain request, not 0.25: the classical steps and
+# the maps' resampling run at the pair's own size (a cheap request counted cheaper still).
 FIXED_COST = 3.5
 """What a forward costs besides its ARM iterations (feature extraction, upsampling), in ARM
 iterations at 1/4 resolution."""
