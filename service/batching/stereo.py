@@ -83,15 +83,20 @@ def stereo_key(model: str, options: InferenceOptions, height: int, width: int, w
 # suggest: per-operation overheads dominate at small sizes. Checked on the default backend
 # (OpenVINO bf16, iterations without a graph on torch) with every classical step on, at 256x384 to
 # 2048x2048 on a 2-core AVX512 CPU (bench/request_cost.py): measured / modelled 0.80-1.05 for
-# iterations computed by torch (16,16,32: 8.1-9.7 plain requests measured, 9.9 modelled), 0.90-0.97
-# for flip, 1.08-1.18 for two passes, 0.90-1.12 for auto (counted as its largest enlargement, a
-# bound); but a scale of 0.5 costs 0.40-0.51 of a plain request, not 0.25: the classical steps and
-# the maps' resampling run at the pair's own size (a cheap request counted cheaper still).
+# iterations computed by torch (16,16,32: 8.1-9.7 plain requests measured, 9.9 modelled),
+# 0.90-1.21 for flip (two runs), 1.08-1.18 for two passes, 0.90-1.12 for auto (counted as its
+# largest enlargement, a bound); a scale of 0.5 cost 0.37-0.62 of a plain request over two runs
+# (the most at 256x384, where the calls are short and this VM's timings noisy), counted 0.475
+# (FULL_SIZE_SHARE; with the network's pixels alone it was counted 0.25).
 FIXED_COST = 3.5
 """What a forward costs besides its ARM iterations (feature extraction, upsampling), in ARM
 iterations at 1/4 resolution."""
 STAGE_WEIGHTS = (0.25, 0.5, 1.0)
 """The cost of one ARM iteration at 1/16, 1/8 and 1/4 resolution, relative to one at 1/4."""
+FULL_SIZE_SHARE = 0.3
+"""The share of a request's time that stays at the pair's own size whatever its `scale`: the
+classical steps and resampling the maps back (a scale of 0.5 measured 0.37-0.62 of a plain
+request, bench/request_cost.py)."""
 TWO_PASS_COST = 1.0
 """Two-pass inference adds a pass at half resolution, and its warm start saves about as much;
 "auto" adds a pass at quarter resolution to one or the other (about 1/16 of the pixels)."""
@@ -102,13 +107,13 @@ def relative_cost(
 ) -> float:
     """Compute of a request relative to a plain one of the same size (the model's own iteration
     counts `default_counts`, scale 1, one pass, no flip): its iterations `counts` (at 1/16, 1/8,
-    1/4), `scale` (the network sees scale^2 of the pixels), `two_pass` and `flip` (all of it
-    twice, the second time upside down)."""
+    1/4), `scale` (the network sees scale^2 of the pixels; FULL_SIZE_SHARE of the time does not
+    shrink), `two_pass` and `flip` (all of it twice, the second time upside down)."""
 
     def forward(iterations: tuple[int, int, int]) -> float:
         return FIXED_COST + sum(weight * n for weight, n in zip(STAGE_WEIGHTS, iterations, strict=True))
 
-    cost = forward(counts) / forward(default_counts) * scale**2
+    cost = forward(counts) / forward(default_counts) * (FULL_SIZE_SHARE + (1 - FULL_SIZE_SHARE) * scale**2)
     cost = cost * TWO_PASS_COST if two_pass is not False else cost
     return 2.0 * cost if flip else cost
 

@@ -269,7 +269,8 @@ async def test_models_describe_each_loaded_model_in_open_inference_protocol_shap
 
 async def test_a_request_may_cost_up_to_the_limit_in_plain_requests_of_the_largest_image_and_no_more():
     # lite's largest image here is the pair's size, and a request may cost two plain ones of it:
-    # flip computes everything twice, one more iteration at 1/4 costs 1/12 more, half the scale 1/4.
+    # flip computes everything twice, one more iteration at 1/4 costs 1/12 more, half the scale 0.475
+    # (the network's quarter of the pixels; the classical steps stay at the pair's size).
     settings = lite_settings(model_max_pixels={"lite": HEIGHT * WIDTH}, max_request_cost=2.0)
     files = pair_files(*stereo_pair())
     async with serve_asgi(settings) as h:
