@@ -4,9 +4,9 @@
                                  [--data DIR] [--runs 3] [--requests plain,flip,...] [--backend auto]
 
 The service counts each request's compute in units of a plain request of the same size (one
-pass, the model's iterations, every classical step on): `service.batching.stereo.options_cost`,
-and for `two_pass="auto"` that times the square of the largest enlargement auto may take, as the
-batcher counts it (an upper bound). Its queue estimates, `Retry-After` and the per-request cap
+pass, the model's iterations, every classical step on): `service.batching.stereo.StereoBatches.work`
+(`options_cost`, and for `two_pass="auto"` that times the square of the largest enlargement auto
+may take: an upper bound). Its queue estimates, `Retry-After` and the per-request cap
 (`CRESTEREO_MAX_REQUEST_COST`) rest on it. Here lite computes each request as the service does (a
 batch of one through `StereoPredictor.predict_pairs`, iterations without an OpenVINO graph on torch,
 as the service would run them), on a dev pair resized to each --size (its disparities scale with
@@ -29,8 +29,7 @@ from gpu_check.pairs import dev_pairs  # bench/'s sibling package
 from timing import timed_calls  # bench/'s sibling script
 
 from crestereo_pp.inference import InferenceOptions, StereoPredictor, load_model
-from crestereo_pp.inference.two_pass import largest_enlargement
-from crestereo_pp.service.batching.stereo import options_cost
+from crestereo_pp.service.batching.stereo import StereoBatches, stereo_key
 from crestereo_pp.stereo_data.formats import read_image
 
 REQUESTS: dict[str, InferenceOptions] = {
@@ -49,11 +48,9 @@ REQUESTS: dict[str, InferenceOptions] = {
 
 def modelled_cost(predictor: StereoPredictor, options: InferenceOptions, height: int, width: int) -> float:
     """The service's cost of one request of `options` on a `height` x `width` pair, in plain requests
-    of that size (as the batcher counts it, before any batch has run)."""
-    cost = options_cost(predictor, options)
-    if options.two_pass == "auto" and options.scale == 1.0:
-        cost *= largest_enlargement(height, width) ** 2
-    return cost
+    of that size: the batcher's own units of work (`StereoBatches.work`) over the request's pixels."""
+    key = stereo_key("lite", options, height, width)
+    return StereoBatches({"lite": predictor}).work(key) / key.pixels
 
 
 def compute(predictor: StereoPredictor, left: np.ndarray, right: np.ndarray, options: InferenceOptions) -> None:
