@@ -22,6 +22,7 @@ from crestereo_pp.service.batching.daemon_thread import any_busy
 from crestereo_pp.service.settings import Settings
 from crestereo_pp.service.uploads.budgets import largest_stream_image
 from crestereo_pp.service.uploads.memory import limit_malloc_arenas
+from crestereo_pp.service.uploads.protocols import BoundedH11Protocol, BoundedWebSocketProtocol
 
 
 class ServerLimits(TypedDict):
@@ -92,11 +93,13 @@ def serve(host: str, port: int) -> None:
         timeout_graceful_shutdown=shutdown_s,
         # h11 and asyncio, named: uvicorn picks httptools and uvloop wherever they are installed
         # (Ray Serve installs both), and the head-size limit above is h11's (httptools answers a
-        # long request line with its own text 400 before the app can answer its JSON 414).
-        http="h11",
+        # long request line with its own text 400 before the app can answer its JSON 414). Both
+        # protocols are uvicorn's, bounding the pieces a body or message may come in
+        # (`uploads.protocols`).
+        http=BoundedH11Protocol,
         loop="asyncio",
-        # Named too: this one reads no further than one whole message ahead of the app.
-        ws="websockets-sansio",
+        # websockets-sansio, named too: it reads no further than one whole message ahead of the app.
+        ws=BoundedWebSocketProtocol,
         # Bytes of one WebSocket message (`/disparity/stream`, the one WebSocket route: one image
         # file) before uvicorn closes the connection (1009), unread: CRESTEREO_MAX_STREAM_IMAGE_BYTES,
         # or the largest file an image within the pixel limit makes where smaller. uvicorn reads a

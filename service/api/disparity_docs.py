@@ -7,6 +7,7 @@ from typing import Any
 
 from crestereo_pp.service.api.schemas import ErrorResponse
 from crestereo_pp.service.uploads.multipart import CALIBRATION_FIELD, IMAGE_FIELDS
+from crestereo_pp.service.uploads.protocols import MALFORMED, pieces_refusal
 
 
 def _binary(media_type: str) -> dict[str, Any]:
@@ -67,6 +68,13 @@ RESPONSES: dict[int | str, dict[str, Any]] = {
         "headers": _RESULT_HEADERS,
         "content": {**_binary("application/x-npz"), **_binary("image/png"), **_binary("application/x-ply")},
     },
+    400: _error_doc(
+        "The request is not valid HTTP/1.1, or its body came in too many pieces; the connection is closed.",
+        {
+            "too_many_pieces": pieces_refusal(1029, 1029),
+            "malformed_request": MALFORMED,
+        },
+    ),
     401: _error_doc(
         "`CRESTEREO_API_KEY` is set and the bearer token is missing or wrong.",
         {"unauthorized": "missing or wrong bearer token"},

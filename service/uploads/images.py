@@ -135,7 +135,16 @@ def _bmp_header(data: bytes) -> ImageHeader:
 
 _TIFF_WIDTH, _TIFF_HEIGHT, _TIFF_BITS = 256, 257, 258
 _TIFF_TILE_WIDTH, _TIFF_TILE_LENGTH, _TIFF_SAMPLE_FORMAT = 322, 323, 339
-_TIFF_READ = {_TIFF_WIDTH, _TIFF_HEIGHT, _TIFF_BITS, _TIFF_TILE_WIDTH, _TIFF_TILE_LENGTH, _TIFF_SAMPLE_FORMAT}
+_TIFF_ORIENTATION = 274
+_TIFF_READ = {
+    _TIFF_WIDTH,
+    _TIFF_HEIGHT,
+    _TIFF_BITS,
+    _TIFF_TILE_WIDTH,
+    _TIFF_TILE_LENGTH,
+    _TIFF_SAMPLE_FORMAT,
+    _TIFF_ORIENTATION,
+}
 _TIFF_SHORT, _TIFF_LONG = 3, 4
 _TIFF_MAX_VALUES = 16  # values read per tag (BitsPerSample has one per sample)
 TIFF_MIN_TILE_LIMIT = 1024
@@ -145,7 +154,8 @@ pixels: the decoder allocates whole tiles, so a small image of one huge tile is 
 
 def _tiff_header(data: bytes) -> ImageHeader:
     """Size, and the layout facts that decide what decoding costs: unsigned 8- or 16-bit samples
-    only (415 otherwise), and tiles no larger than the image needs (TIFF_MIN_TILE_LIMIT)."""
+    only (415 otherwise), and tiles no larger than the image needs (TIFF_MIN_TILE_LIMIT); and the
+    orientation: pixels as stored only (415 otherwise)."""
     order = "<" if data[:2] == b"II" else ">"
     (ifd,) = struct.unpack(order + "I", data[4:8])
     (count,) = struct.unpack(order + "H", data[ifd : ifd + 2])
@@ -169,6 +179,13 @@ def _tiff_header(data: bytes) -> ImageHeader:
         raise ImageError(f"TIFF with {tags[_TIFF_BITS][0]}-bit samples; send 8- or 16-bit", unsupported=True)
     if any(kind != 1 for kind in tags.get(_TIFF_SAMPLE_FORMAT, [1])):
         raise ImageError("TIFF with floating-point or signed samples; send unsigned 8- or 16-bit", unsupported=True)
+    orientation = tags.get(_TIFF_ORIENTATION, [1])[0]
+    if orientation != 1:  # OpenCV's TIFF decoder turns such pixels round, whatever it is asked
+        raise ImageError(
+            f"TIFF with orientation {orientation} (its pixels stored turned or mirrored): the service reads "
+            "pixels as stored, as a calibration has them; send it with orientation 1, or as PNG",
+            unsupported=True,
+        )
     for tag, side in ((_TIFF_TILE_WIDTH, width), (_TIFF_TILE_LENGTH, height)):
         tile = tags.get(tag, [0])[0]
         if tile > max(side + 15, TIFF_MIN_TILE_LIMIT):

@@ -222,13 +222,17 @@ def read_answer(sock: socket.socket) -> str:
     sock.settimeout(10)
     data = b""
     while b"\r\n\r\n" not in data:
-        data += sock.recv(65536)
+        received = sock.recv(65536)
+        assert received, f"the connection was closed after {data!r}"
+        data += received
     head, _, body = data.partition(b"\r\n\r\n")
     length = next(
         int(line.split(b":")[1]) for line in head.split(b"\r\n") if line.lower().startswith(b"content-length")
     )
     while len(body) < length:
-        body += sock.recv(65536)
+        received = sock.recv(65536)
+        assert received, f"the connection was closed after {len(body)} of {length} bytes of the body"
+        body += received
     return (head + b"\r\n\r\n" + body).decode("latin-1")
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import base64
 import hashlib
+import json
 import os
 import re
 import socket
@@ -237,10 +238,11 @@ def test_oversized_request_headers_get_a_json_431_and_the_server_stays_up(defaul
     assert httpx.get(default_server.base_url + "/health/live").status_code == 200
 
 
-def test_a_request_head_past_uvicorns_limit_gets_its_400_and_the_server_stays_up(default_server):
+def test_a_request_head_past_uvicorns_limit_gets_a_json_400_and_the_server_stays_up(default_server):
     # An unfinished head one byte past h11_max_incomplete_event_size (512 KiB, so that 2048
-    # connections' heads hold at most 1 GiB): uvicorn answers it itself, in text, before the app sees
-    # the request. One byte past, so that it is all read first: the server closes with nothing unread.
+    # connections' heads hold at most 1 GiB): the server's protocol answers it (400
+    # `malformed_request`) before the app sees the request. One byte past, so that it is all read
+    # first: the server closes with nothing unread.
     limit = SERVER_LIMITS["h11_max_incomplete_event_size"]
     head = b"POST /disparity HTTP/1.1\r\nHost: x\r\nX-Big: "
     host, port = default_server.base_url.removeprefix("http://").split(":")
@@ -250,7 +252,9 @@ def test_a_request_head_past_uvicorns_limit_gets_its_400_and_the_server_stays_up
         answer = b""
         while chunk := sock.recv(65536):
             answer += chunk
-    assert limit == 512 * 1024 and answer.startswith(b"HTTP/1.1 400") and b"text/plain" in answer
+    head_part, _, body = answer.partition(b"\r\n\r\n")
+    assert limit == 512 * 1024 and head_part.startswith(b"HTTP/1.1 400") and b"application/json" in head_part
+    assert json.loads(body)["error"]["code"] == "malformed_request"
     assert httpx.get(default_server.base_url + "/health/live").status_code == 200
 
 

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import io
+
 import cv2
 import numpy as np
 import pytest
+from PIL import Image
 
 from crestereo_pp.service.uploads.images import ImageError, decode_rgb, read_header
 from service_helpers import encode, stereo_pair
@@ -46,3 +49,26 @@ def test_unknown_and_truncated_files_are_told_apart():
     with pytest.raises(ImageError) as truncated:
         read_header(b"\x89PNG\r\n\x1a\n\x00\x00")
     assert unknown.value.unsupported and not truncated.value.unsupported
+
+
+def tiff_with_orientation(image: np.ndarray, orientation: int) -> bytes:
+    out = io.BytesIO()
+    Image.fromarray(image).save(out, "TIFF", exif={TIFF_ORIENTATION: orientation})
+    return out.getvalue()
+
+
+TIFF_ORIENTATION = 274
+
+
+@pytest.mark.parametrize("orientation", [2, 3, 6, 8])
+def test_a_tiff_whose_orientation_turns_or_mirrors_its_pixels_is_refused_from_its_header(orientation):
+    left, _ = stereo_pair(40, 72)
+    with pytest.raises(ImageError) as refused:
+        read_header(tiff_with_orientation(left, orientation))
+    assert refused.value.unsupported and f"orientation {orientation}" in str(refused.value)
+
+
+def test_a_tiff_oriented_as_stored_is_read_pixel_for_pixel():
+    left, _ = stereo_pair(40, 72)
+    data = tiff_with_orientation(left, 1)
+    assert np.array_equal(decode_rgb(data, read_header(data)), left)

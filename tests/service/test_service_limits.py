@@ -9,10 +9,12 @@ import json
 import re
 import resource
 import socket
+import struct
 import subprocess
 import sys
 import time
-from contextlib import ExitStack
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import ExitStack, suppress
 from pathlib import Path
 from typing import Any
 
@@ -25,6 +27,7 @@ from websockets.sync.client import ClientConnection
 from crestereo_pp.client import ServiceError, StereoClient
 from crestereo_pp.service.api.query import repeated_option
 from crestereo_pp.service.settings import Settings
+from crestereo_pp.service.uploads.protocols import MEAN_PIECE_BYTES, MIN_PIECES_ALLOWED
 from service_helpers import (
     encode,
     lite_settings,
@@ -282,6 +285,108 @@ async def test_a_chunked_body_is_refused_at_the_chunk_that_passes_the_upload_bud
         assert budget.held == 0  # what the refused body held is given back
     assert refused.status_code == 503 and refused.json()["error"]["code"] == "overloaded"
     assert refused.headers["Retry-After"] == "1"
+
+
+def flood_of_chunks(base_url: str, chunks: int) -> str:
+    """The answer to a POST /disparity whose body is sent as `chunks` one-byte chunks."""
+    host, port = base_url.removeprefix("http://").split(":")
+    with socket.create_connection((host, int(port))) as sock:
+        sock.sendall(
+            b"POST /disparity HTTP/1.1\r\nHost: x\r\nTransfer-Encoding: chunked\r\n"
+            b"Content-Type: multipart/form-data; boundary=b\r\n\r\n"
+        )
+        with suppress(OSError):  # the server closes the connection once it has answered
+            sock.sendall(b"1\r\na\r\n" * chunks)
+        return read_answer(sock)
+
+
+def test_a_body_in_a_flood_of_tiny_chunks_is_refused_past_a_thousand_while_the_probes_keep_answering(default_server):
+    with ThreadPoolExecutor(4) as pool:
+        floods = [pool.submit(flood_of_chunks, default_server.base_url, 300_000) for _ in range(4)]
+        probes = [live_seconds(default_server.base_url) for _ in range(5)]
+        answers = [flood.result(timeout=30) for flood in floods]
+    for answer in answers:
+        head, _, body = answer.partition("\r\n\r\n")
+        assert head.startswith("HTTP/1.1 400") and "content-type: application/json" in head.lower()
+        error = json.loads(body)["error"]
+        assert error["code"] == "too_many_pieces" and "larger chunks" in error["message"]
+    assert max(probes) < 1.0, probes
+
+
+def test_a_pair_uploaded_in_thousands_of_small_chunks_is_answered(default_server):
+    boundary = "b0undary"
+    body = (
+        b"".join(
+            f'--{boundary}\r\nContent-Disposition: form-data; name="{name}"; filename="{filename}"\r\n'
+            "Content-Type: image/png\r\n\r\n".encode()
+            + data
+            + b"\r\n"
+            for name, (filename, data) in pair_files(*stereo_pair(288, 384)).items()
+        )
+        + f"--{boundary}--\r\n".encode()
+    )
+    chunks = [body[start : start + MEAN_PIECE_BYTES] for start in range(0, len(body), MEAN_PIECE_BYTES)]
+    answer = httpx.post(  # no Content-Length: sent chunked, a chunk per item
+        default_server.base_url + "/disparity",
+        content=iter(chunks),
+        headers={"Content-Type": f"multipart/form-data; boundary={boundary}"},
+        timeout=60,
+    )
+    assert len(chunks) > 2 * MIN_PIECES_ALLOWED
+    assert answer.status_code == 200, answer.text
+    assert answer.json()["image_size"] == {"width": 384, "height": 288}
+
+
+def fragmented_message(base_url: str, fragments: int) -> list[tuple[int, bytes]]:
+    """The frames (opcode, payload) a stream sends back to one binary message of `fragments`
+    one-byte fragments, read off a raw socket until the server closes it."""
+    host, port = base_url.removeprefix("http://").split(":")
+    with socket.create_connection((host, int(port))) as sock:
+        sock.sendall(
+            b"GET /disparity/stream HTTP/1.1\r\nHost: x\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+            b"Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n\r\n"
+        )
+        sock.settimeout(10)
+        received = b""
+        while b"\r\n\r\n" not in received:
+            received += sock.recv(4096)
+        assert received.startswith(b"HTTP/1.1 101")
+        received = received.partition(b"\r\n\r\n")[2]
+
+        def fragment(first_byte: int) -> bytes:  # masked (with a zero mask), one byte of payload
+            return bytes([first_byte, 0x81]) + b"\0\0\0\0" + b"\x89"
+
+        with suppress(OSError):  # the server may stop reading once it has refused the message
+            sock.sendall(fragment(0x02) + fragment(0x00) * (fragments - 2) + fragment(0x80))
+        while chunk := sock.recv(65536):
+            received += chunk
+    frames = []
+    while received:
+        opcode, length, start = received[0] & 0x0F, received[1] & 0x7F, 2
+        if length == 126:
+            length, start = struct.unpack(">H", received[2:4])[0], 4
+        frames.append((opcode, received[start : start + length]))
+        received = received[start + length :]
+    return frames
+
+
+def test_a_stream_message_in_too_many_fragments_is_refused_and_the_stream_closed(default_server):
+    (text, said), (close, reason) = fragmented_message(default_server.base_url, MIN_PIECES_ALLOWED + 100)
+    assert (text, close) == (1, 8)  # a text message, then the close frame
+    error = json.loads(said)["error"]
+    assert error["code"] == "too_many_pieces" and "larger chunks or fragments" in error["message"]
+    assert struct.unpack(">H", reason[:2])[0] == 1008
+    assert live_seconds(default_server.base_url) < 1.0
+
+
+def test_a_malformed_request_is_answered_400_in_json(default_server):
+    host, port = default_server.base_url.removeprefix("http://").split(":")
+    with socket.create_connection((host, int(port))) as sock:
+        sock.sendall(b"POST /disparity HTTP/1.1\r\nHost: x\r\nContent-Length: -5\r\n\r\n")
+        answer = read_answer(sock)
+    head, _, body = answer.partition("\r\n\r\n")
+    assert head.startswith("HTTP/1.1 400") and "content-type: application/json" in head.lower()
+    assert json.loads(body)["error"]["code"] == "malformed_request"
 
 
 def test_a_stream_query_over_the_limit_is_refused_before_the_connection_opens(default_server):

@@ -21,7 +21,7 @@ def test_openapi_yaml_equals_the_generated_schema():
 def test_every_disparity_answer_is_documented_with_examples_of_its_error_codes():
     operation = openapi_schema()["paths"]["/disparity"]["post"]
     responses = operation["responses"]
-    assert set(responses) == {"200", "401", "408", "413", "414", "415", "422", "500", "503"}
+    assert set(responses) == {"200", "400", "401", "408", "413", "414", "415", "422", "500", "503"}
     assert set(responses["200"]["content"]) == {
         "application/json",
         "application/x-npz",
