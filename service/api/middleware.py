@@ -264,9 +264,10 @@ def declared_length(scope: Scope) -> int | None:
 
 class UploadBudgetMiddleware:
     """Holds each request's body against the upload budget (stream images have their own) until the
-    request ends: a body declared by `Content-Length` is counted whole before it is read, and
-    refused unread where it does not fit; one without (chunked) is counted as it arrives, and
-    refused at the chunk that does not fit. Refused: 503 `overloaded` with `Retry-After`."""
+    request ends, counted as it arrives and refused at the chunk that does not fit; a body whose
+    `Content-Length` does not fit in what is free when it begins is refused unread. Refused: 503
+    `overloaded` with `Retry-After`. A declared length is not reserved: a client that declares
+    large bodies and sends none of them (a few idle sockets) holds none of the budget."""
 
     def __init__(self, app: ASGIApp, budget: ByteBudget, metrics: Metrics) -> None:
         self.app = app
@@ -278,15 +279,13 @@ class UploadBudgetMiddleware:
             await self.app(scope, receive, send)
             return
         declared = declared_length(scope)
+        if declared is not None and not self.budget.fits(declared):
+            self.metrics.reject("overloaded")
+            refused = self._overloaded(declared)
+            response = error_response(refused.status, refused.code, refused.message, refused.headers)
+            await response(scope, receive, send)
+            return
         held = 0
-        if declared is not None:
-            if not self.budget.take(declared):
-                self.metrics.reject("overloaded")
-                refused = self._overloaded(declared)
-                response = error_response(refused.status, refused.code, refused.message, refused.headers)
-                await response(scope, receive, send)
-                return
-            held = declared
 
         async def counted_receive() -> Message:
             nonlocal held
@@ -298,7 +297,7 @@ class UploadBudgetMiddleware:
             return message
 
         try:
-            await self.app(scope, receive if declared is not None else counted_receive, send)
+            await self.app(scope, counted_receive, send)
         finally:
             self.budget.give_back(held)
 

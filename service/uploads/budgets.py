@@ -36,9 +36,13 @@ class ByteBudget:
         self.what = what
         self.held = 0
 
+    def fits(self, size: int) -> bool:
+        """Whether `size` more bytes fit now."""
+        return self.held + size <= self.limit
+
     def take(self, size: int) -> bool:
         """Reserve `size` bytes; False, with nothing reserved, when they do not fit."""
-        if self.held + size > self.limit:
+        if not self.fits(size):
             return False
         self.held += size
         return True

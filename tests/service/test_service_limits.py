@@ -61,13 +61,13 @@ def live_seconds(base_url: str) -> float:
     return time.perf_counter() - started
 
 
-def stalled_upload(base_url: str, declared: int) -> socket.socket:
-    """A connection that declares a body of `declared` bytes, sends a little of it and stalls."""
+def stalled_upload(base_url: str, declared: int, sent: int) -> socket.socket:
+    """A connection that declares a body of `declared` bytes, sends `sent` of them and stalls."""
     host, port = base_url.removeprefix("http://").split(":")
     sock = socket.create_connection((host, int(port)))
     sock.sendall(
         b"POST /disparity HTTP/1.1\r\nHost: x\r\nContent-Length: %d\r\n"
-        b"Content-Type: multipart/form-data; boundary=b\r\n\r\n" % declared + b"\0" * 1000
+        b"Content-Type: multipart/form-data; boundary=b\r\n\r\n" % declared + b"\0" * sent
     )
     return sock
 
@@ -150,7 +150,7 @@ def test_stream_images_are_uncompressed_bounded_in_size_and_held_under_a_budget_
             over_the_cap.send(b"\0" * 1_300_000)
             with pytest.raises(ConnectionClosed):
                 over_the_cap.recv(timeout=10)
-        stalled = stalled_upload(server.base_url, 1_400_000)  # a request body holds 1.4 MB of its 1.5
+        stalled = stalled_upload(server.base_url, 1_450_000, 1_400_000)  # a request body holds the 1.4 MB it sent
         try:
             time.sleep(0.3)
             holding = [streams.enter_context(open_stream(server.base_url, source=f"127.0.0.{n}")) for n in (1, 2)]
@@ -244,9 +244,16 @@ def test_the_open_files_limit_is_raised_as_far_as_the_hard_limit_allows():
 
 
 @pytest.mark.slow
-def test_a_body_past_the_upload_budget_is_refused_unread_while_the_probes_keep_answering(tmp_path):
+def test_the_upload_budget_holds_the_bytes_that_arrived_and_refuses_unread_a_body_that_cannot_fit(tmp_path):
     with run_uvicorn(tmp_path, max_body_bytes="1500000", max_upload_bytes="2500000") as server:
-        stalled = stalled_upload(server.base_url, 1_400_000)
+        # Declared, never sent: 2.49 MB of the 2.5 if declared lengths were held, so that a pair
+        # would not fit; they hold nothing.
+        idle = [stalled_upload(server.base_url, declared, 0) for declared in (1_450_000, 1_040_000)]
+        time.sleep(0.3)
+        served_beside_idle = httpx.post(server.base_url + "/disparity", files=pair_files(*stereo_pair()), timeout=60)
+        for sock in idle:
+            sock.close()
+        stalled = stalled_upload(server.base_url, 1_450_000, 1_400_000)  # holds the 1.4 MB it sent
         try:
             time.sleep(0.3)
             host, port = server.base_url.removeprefix("http://").split(":")
@@ -263,6 +270,7 @@ def test_a_body_past_the_upload_budget_is_refused_unread_while_the_probes_keep_a
             stalled.close()
         time.sleep(0.3)
         served = httpx.post(server.base_url + "/disparity", files=pair_files(*stereo_pair()), timeout=60)
+    assert served_beside_idle.status_code == 200, served_beside_idle.text
     assert refused.startswith("HTTP/1.1 503") and '"overloaded"' in refused and "retry-after: 1" in refused.lower()
     assert refused_seconds < 1.0 and probe < 1.0
     assert served.status_code == 200  # the budget comes back once the stalled body goes
