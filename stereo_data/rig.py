@@ -20,7 +20,8 @@ bounds of a query's focal_px x baseline_m. Calibrations that OpenCV would rectif
 camera has are refused too, as the mistakes they usually are: a focal length outside
 MIN_FOCAL_SIDES-MAX_FOCAL_SIDES times the image's longer side, a rectification that magnifies or
 shrinks an image more than MAX_RECTIFIED_ZOOM times (distortion coefficients far off), and a
-baseline over MAX_BASELINE_M (a calibration in millimetres read as metres).
+baseline over MAX_BASELINE_M (a calibration in millimetres read as metres) or under MIN_BASELINE_M
+(two cameras in one place).
 """
 
 from __future__ import annotations
@@ -46,6 +47,7 @@ __all__ = [
     "MIN_FOCAL_SIDES",
     "MAX_RECTIFIED_ZOOM",
     "MAX_BASELINE_M",
+    "MIN_BASELINE_M",
     "RigError",
     "StereoRig",
     "Rectifier",
@@ -78,6 +80,9 @@ the rectified view to a sliver (D1 = [50, -80, 0, 0, 0] on a 300 px camera: 9x).
 MAX_BASELINE_M = 10.0
 """Longest baseline (m) a rig may have: a calibration made with its chessboard measured in
 millimetres has T in millimetres, and read as metres every depth would be 1000 times too large."""
+MIN_BASELINE_M = 1e-4
+"""Shortest baseline (m) a rig may have: a tenth of a millimetre, far below any stereo camera's
+(phones' a centimetre or so); shorter ones are cameras that coincide, or T in another unit."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -330,11 +335,17 @@ def _rotation(field: str, matrix: np.ndarray, turned: str) -> None:
 def _checked(rig: StereoRig, field: str) -> StereoRig:
     """`rig`, once its rectified cameras give depth as a query's focal_px and baseline_m do (both
     positive, their product within MIN_FOCAL_BASELINE-MAX_FOCAL_BASELINE: ``focal_baseline_problem``),
-    its baseline is at most MAX_BASELINE_M and its rectification magnifies neither camera's image
+    its baseline is within MIN_BASELINE_M-MAX_BASELINE_M and its rectification magnifies neither camera's image
     more than MAX_RECTIFIED_ZOOM times nor shrinks it so. `field` names the baseline's entry."""
     problem = focal_baseline_problem(rig.focal_px, rig.baseline, "focal length x baseline")
     if problem is not None:
         raise RigError(field, problem)
+    if rig.baseline < MIN_BASELINE_M:
+        raise RigError(
+            field,
+            f"a baseline of {rig.baseline:.6g} m; at least {MIN_BASELINE_M:g} m: the two cameras are as good as "
+            "one (T is in metres)",
+        )
     if rig.baseline > MAX_BASELINE_M:
         raise RigError(
             field,

@@ -142,6 +142,7 @@ def test_a_pair_of_ros_camera_info_files_is_used_with_its_own_rectification(tmp_
         ({"K2": np.array([[5.0, 0, 163], [0, 5.0, 118], [0, 0, 1]])}, "K2"),  # wider than a pinhole model reaches
         ({"D1": np.array([50.0, -80.0, 0.0, 0.0, 0.0])}, "calibration"),  # rectified into a 9x enlarged sliver
         ({"T": 1000 * T}, "T"),  # millimetres: every depth 1000 times too far
+        ({"T": np.array([-1e-12, 0.0, 0.0])}, "T"),  # two cameras in one place: depths of picometres
     ],
 )
 def test_an_unusable_calibration_is_refused_naming_the_field(tmp_path, entries, field):
@@ -164,6 +165,7 @@ def test_an_unusable_calibration_is_refused_naming_the_field(tmp_path, entries, 
         ("right", "-46.8,", "-3.9e-298,", "projection_matrix"),  # a baseline of 1e-300 m
         ("right", "data: [390, 0, 160, -46.8, 0, 390,", "data: [0, 0, 160, -46.8, 0, 390,", "projection_matrix"),
         ("right", "-46.8,", "-46800,", "projection_matrix"),  # a baseline in millimetres: 120 "m"
+        ("right", "-46.8,", "-3.9e-10,", "projection_matrix"),  # a baseline of 1e-12 m
         ("left", "data: [400, 0, 160, 0, 400, 120,", "data: [4e7, 0, 160, 0, 4e7, 120,", "camera_matrix"),
     ],
 )
