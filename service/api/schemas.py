@@ -324,7 +324,7 @@ def _option_problem(error: ErrorDetails, options: Mapping[str, FieldInfo]) -> st
         case "greater_than" | "greater_than_equal" | "less_than" | "less_than_equal":
             return f"must be {_bounds(options[str(error['loc'][0])])}, {given}"
         case "bool_parsing":
-            return f"must be true or false, {given}"
+            return f"must be true or false (or 1 or 0, yes or no, on or off), {given}"
     return error["msg"]
 
 

@@ -289,7 +289,7 @@ OPTION_MESSAGES: list[tuple[dict[str, str], str]] = [
     ({"min_disparity": "-1"}, "query.min_disparity: must be at least 0, got '-1'"),
     ({"max_uncertainty": "2"}, "query.max_uncertainty: must be at least 0 and at most 1, got '2'"),
     ({"color_min": "1e9"}, "query.color_min: must be at least -32766 and at most 32766, got '1e9'"),
-    ({"flip": "x"}, "query.flip: must be true or false, got 'x'"),
+    ({"flip": "x"}, "query.flip: must be true or false (or 1 or 0, yes or no, on or off), got 'x'"),
     ({"focal_px": "700"}, "query: give both focal_px and baseline_m, or neither"),
     (
         {"scale": "2", "wat": "1"},
