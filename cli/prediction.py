@@ -148,7 +148,7 @@ def find_pairs(left: str, right: str) -> list[PairPaths]:
         if set(lefts) != set(rights):
             unmatched = sorted(set(lefts) ^ set(rights))
             raise ValueError(f"{len(unmatched)} image(s) have no partner in the other folder: {unmatched[:5]}")
-        return [PairPaths(lefts[name], rights[name], Path(lefts[name].stem)) for name in sorted(lefts)]
+        return _unique_stems([PairPaths(lefts[name], rights[name], Path(lefts[name].stem)) for name in sorted(lefts)])
     left_paths = [Path(p) for p in sorted(glob.glob(left)) if Path(p).is_file()]
     right_paths = [Path(p) for p in sorted(glob.glob(right)) if Path(p).is_file()]
     if not left_paths:
@@ -158,10 +158,26 @@ def find_pairs(left: str, right: str) -> list[PairPaths]:
             f"{len(left_paths)} left images match {left!r} but {len(right_paths)} right images match {right!r}"
         )
     root = Path(os.path.commonpath([p.parent.resolve() for p in left_paths]))
-    return [
-        PairPaths(left_path, right_path, left_path.resolve().relative_to(root).with_suffix(""))
-        for left_path, right_path in zip(left_paths, right_paths, strict=True)
-    ]
+    return _unique_stems(
+        [
+            PairPaths(left_path, right_path, left_path.resolve().relative_to(root).with_suffix(""))
+            for left_path, right_path in zip(left_paths, right_paths, strict=True)
+        ]
+    )
+
+
+def _unique_stems(pairs: list[PairPaths]) -> list[PairPaths]:
+    """`pairs`, once no two share a stem (x.png and x.jpg would write one x.pfm, the second pair's
+    over the first's): ValueError naming two that do."""
+    seen: dict[Path, Path] = {}
+    for pair in pairs:
+        if pair.stem in seen:
+            raise ValueError(
+                f"{seen[pair.stem]} and {pair.left} would write their outputs to one name ({pair.stem}): "
+                "rename one, or compute them apart"
+            )
+        seen[pair.stem] = pair.left
+    return pairs
 
 
 @dataclass(frozen=True)
@@ -195,10 +211,17 @@ def outputs(args: argparse.Namespace) -> list[Output]:
 
 def check_outputs(targets: list[Output], single: bool, mkdir: bool) -> None:
     """Refuse, before anything is computed, an output that could not be written: a file name
-    without a suffix of its kind, a folder that is a file, or a missing folder (unless `mkdir`)."""
+    without a suffix of its kind or that names a folder, a folder that is a file, a missing folder
+    (unless `mkdir`), or a path that another output names too."""
+    named: dict[Path, str] = {}
     for output in targets:
+        other = named.setdefault(output.path.resolve(), output.flag)
+        if other != output.flag:
+            raise ValueError(f"{output.flag} {output.path}: {other} names it too; each output needs a path of its own")
         if single and output.path.suffix.lower() not in output.suffixes:
             raise ValueError(f"{output.flag} {output.path}: the file name must end in {', '.join(output.suffixes)}")
+        if single and output.path.is_dir():
+            raise ValueError(f"{output.flag} {output.path}: is a folder; with one pair it names a file")
         if not single and output.path.exists() and not output.path.is_dir():
             raise ValueError(f"{output.flag} {output.path}: is a file; with several pairs it names a folder")
         folder = output.path.parent if single else output.path
@@ -264,6 +287,8 @@ def plan(args: argparse.Namespace) -> Job:
     single = is_single_pair(args.left, args.right)
     targets = outputs(args)
     check_outputs(targets, single, args.mkdir)
+    if not is_video_pair(args.left, args.right):
+        check_inputs_kept(targets, find_pairs(args.left, args.right), single)
     focal_baseline = (
         rectifier.focal_baseline
         if rectifier is not None
@@ -281,6 +306,17 @@ def plan(args: argparse.Namespace) -> Job:
         max_uncertainty=args.max_uncertainty,
     )
     return Job(args, targets, single, options)
+
+
+def check_inputs_kept(targets: list[Output], pairs: list[PairPaths], single: bool) -> None:
+    """Refuse, before anything is computed, an output file that would replace one of the input
+    images (`-o left.png`, or a folder of outputs written over its images)."""
+    inputs = {path.resolve() for pair in pairs for path in (pair.left, pair.right)}
+    for pair in pairs:
+        for output in targets:
+            path = output.file(pair, single)
+            if path.resolve() in inputs:
+                raise ValueError(f"{output.flag} {output.path}: would write over the input image {path}")
 
 
 def is_complete(job: Job, pair: PairPaths) -> bool:

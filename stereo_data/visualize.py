@@ -6,6 +6,8 @@ a map looks the same wherever it is drawn. Images are uint8 HxWx3 RGB.
 
 from __future__ import annotations
 
+import math
+
 import cv2
 import numpy as np
 
@@ -44,7 +46,11 @@ def color_scale_problem(
     low: float | None, high: float | None, names: tuple[str, str] = ("color_min", "color_max")
 ) -> str | None:
     """Why a colour scale from `low` to `high` (either None: the map's own) cannot be drawn, the
-    two called `names` in the message: the top is not above the bottom; None where it can."""
+    two called `names` in the message: an end that is not a finite number, or the top not above
+    the bottom; None where it can."""
+    for name, end in zip(names, (low, high), strict=True):
+        if end is not None and not math.isfinite(end):
+            return f"{name} must be a finite number, got {end:g}"
     if low is not None and high is not None and high <= low:
         return f"{names[1]} ({high:g}) must be above {names[0]} ({low:g})"
     return None

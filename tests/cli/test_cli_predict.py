@@ -343,6 +343,58 @@ def test_every_output_is_checked_before_computing_and_every_written_file_is_name
     assert np.isinf(depth[~metric]).all()
 
 
+def image_folders(tmp_path: Path, pairs_dir: Path, names: tuple[str, ...]) -> tuple[Path, Path]:
+    """Two folders of left and right images holding the pair shift4 under each of `names`."""
+    folders = tmp_path / "left", tmp_path / "right"
+    for folder, side in zip(folders, ("left.png", "right.png"), strict=True):
+        folder.mkdir()
+        for name in names:
+            (folder / name).write_bytes((pairs_dir / "shift4" / side).read_bytes())
+    return folders
+
+
+def test_an_output_that_would_write_over_an_input_image_is_refused_before_computing(pairs_dir, tmp_path, capsys):
+    pair = pairs_dir / "shift4"
+    left_bytes = (pair / "left.png").read_bytes()
+    one = ["predict", str(pair / "left.png"), str(pair / "right.png"), "--device", "cpu"]
+    assert main([*one, "-o", str(pair / "left.png")]) == 2
+    assert f"would write over the input image {pair / 'left.png'}" in capsys.readouterr().err
+    assert main([*one, "-o", str(tmp_path / "d.pfm"), "--color", str(pair / "right.png")]) == 2
+    assert "--color" in capsys.readouterr().err
+    left, right = image_folders(tmp_path, pairs_dir, ("a.png",))
+    assert main(["predict", str(left), str(right), "-o", str(left), "--format", "png", "--device", "cpu"]) == 2
+    assert f"would write over the input image {left / 'a.png'}" in capsys.readouterr().err
+    assert (pair / "left.png").read_bytes() == left_bytes == (left / "a.png").read_bytes()
+    assert not (tmp_path / "d.pfm").exists()
+
+
+def test_two_outputs_on_one_path_or_a_folder_as_a_file_are_refused_before_computing(pairs_dir, tmp_path, capsys):
+    pair = pairs_dir / "shift4"
+    one = ["predict", str(pair / "left.png"), str(pair / "right.png"), "--device", "cpu"]
+    assert main([*one, "-o", str(tmp_path / "same.pfm"), "--uncertainty", str(tmp_path / "same.pfm")]) == 2
+    assert "--uncertainty" in (said := capsys.readouterr().err) and "--output names it too" in said
+    (tmp_path / "taken.pfm").mkdir()
+    assert main([*one, "-o", str(tmp_path / "taken.pfm")]) == 2
+    assert "is a folder; with one pair it names a file" in capsys.readouterr().err
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["pairs", "taken.pfm"]  # nothing left behind
+
+
+def test_two_images_of_one_name_but_their_suffix_are_refused_as_they_would_share_their_outputs(
+    pairs_dir, tmp_path, capsys
+):
+    left, right = image_folders(tmp_path, pairs_dir, ("x.png", "x.bmp"))
+    assert main(["predict", str(left), str(right), "-o", str(tmp_path / "out"), "--mkdir", "--device", "cpu"]) == 2
+    assert "would write their outputs to one name (x)" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_colour_scale_end_that_is_not_a_number_is_refused(pairs_dir, tmp_path, capsys):
+    pair = pairs_dir / "shift4"
+    argv = ["predict", str(pair / "left.png"), str(pair / "right.png"), "-o", str(tmp_path / "d.pfm")]
+    assert main([*argv, "--color", str(tmp_path / "c.png"), "--color-min", "nan"]) == 2
+    assert "--color-min must be a finite number, got nan" in capsys.readouterr().err
+
+
 def test_a_pair_of_two_sizes_is_named_in_image_terms(pairs_dir, tmp_path, capsys):
     right = cv2.imread(str(pairs_dir / "shift4" / "right.png"))
     cv2.imwrite(str(tmp_path / "narrow.png"), right[:, :80])
