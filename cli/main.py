@@ -60,7 +60,7 @@ def print_warning(
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run one command; returns the process exit status (2 with a one-line message on bad input:
-    unreadable or missing files, invalid values)."""
+    unreadable or missing files, invalid values; 130 on Ctrl-C)."""
     argv = sys.argv[1:] if argv is None else argv
     parser = build_parser(argv)
     args = parser.parse_args(argv)
@@ -72,6 +72,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         except (ValueError, OSError) as error:
             print(f"{parser.prog} {args.command}: error: {error}", file=sys.stderr)
             return 2
+        except KeyboardInterrupt:  # Ctrl-C: one line, not a traceback; 130 as a shell reports it
+            print(f"{parser.prog} {args.command}: interrupted", file=sys.stderr)
+            return 130
 
 
 if __name__ == "__main__":

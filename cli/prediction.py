@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import glob
 import os
+import sys
 from collections.abc import Callable, Iterator
 from contextlib import ExitStack, closing
 from dataclasses import dataclass, replace
@@ -370,18 +371,22 @@ def predict_and_write(job: Job, stream: Frames, images: PairImages) -> RowOffset
         path = output.file(pair, job.single)
         path.parent.mkdir(parents=True, exist_ok=True)
         partial = path.with_name(f".{path.stem}.partial{path.suffix}")
-        if output.flag == "--output":
-            write_disparity(partial, disparity)
-        elif output.flag == "--uncertainty":
-            write_uncertainty(partial, uncertainty)
-        elif output.flag in ("--depth", "--depth-mm"):
-            assert depth is not None  # checked in plan()
-            (write_depth if output.flag == "--depth" else write_depth_mm)(partial, depth)
-        elif output.flag == "--color":
-            partial.write_bytes(encode_png(disparity_picture(*outputs.colored_disparity())))
-        else:  # points in the (rectified) left camera's frame, coloured by the image the network saw
-            partial.write_bytes(outputs.ply())
-        os.replace(partial, path)
+        try:
+            if output.flag == "--output":
+                write_disparity(partial, disparity)
+            elif output.flag == "--uncertainty":
+                write_uncertainty(partial, uncertainty)
+            elif output.flag in ("--depth", "--depth-mm"):
+                assert depth is not None  # checked in plan()
+                (write_depth if output.flag == "--depth" else write_depth_mm)(partial, depth)
+            elif output.flag == "--color":
+                partial.write_bytes(encode_png(disparity_picture(*outputs.colored_disparity())))
+            else:  # points in the (rectified) left camera's frame, coloured by the image the network saw
+                partial.write_bytes(outputs.ply())
+            os.replace(partial, path)
+        except BaseException:  # a failed write or Ctrl-C: no partial file stays behind
+            partial.unlink(missing_ok=True)
+            raise
         if job.single:
             print(f"wrote {output.what} {path}")
     return offset
@@ -442,11 +447,15 @@ def run(job: Job) -> int:
     written, off_rows = 0, []
     with ExitStack() as resources:
         stream = frames_of(job, resources)
-        for images in tqdm(frames, total=count, desc=f"predict {args.model}", unit="pair", disable=job.single):
-            offset = predict_and_write(job, stream, images)
-            if offset is not None and offset.largest_px >= OFF_ROWS_PX:
-                off_rows.append(offset.largest_px)
-            written += 1
+        try:
+            for images in tqdm(frames, total=count, desc=f"predict {args.model}", unit="pair", disable=job.single):
+                offset = predict_and_write(job, stream, images)
+                if offset is not None and offset.largest_px >= OFF_ROWS_PX:
+                    off_rows.append(offset.largest_px)
+                written += 1
+        except KeyboardInterrupt:
+            print(f"{written} of {count} pair(s) written before the interrupt, each whole", file=sys.stderr)
+            raise
     if not job.single:  # every output was written once per pair (any failure stops the command)
         for output in job.targets:
             print(f"wrote {written} {output.what} files to {output.path}")

@@ -1,7 +1,9 @@
 """`crestereo-pp predict`: output formats by extension, uncertainty and colour files, batches."""
 
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import cv2
@@ -393,6 +395,39 @@ def test_a_colour_scale_end_that_is_not_a_number_is_refused(pairs_dir, tmp_path,
     argv = ["predict", str(pair / "left.png"), str(pair / "right.png"), "-o", str(tmp_path / "d.pfm")]
     assert main([*argv, "--color", str(tmp_path / "c.png"), "--color-min", "nan"]) == 2
     assert "--color-min must be a finite number, got nan" in capsys.readouterr().err
+
+
+def test_ctrl_c_in_a_run_of_many_pairs_says_how_many_were_written_and_leaves_only_whole_files(pairs_dir, tmp_path):
+    names = tuple(f"{index:02d}.png" for index in range(40))
+    left, right = image_folders(tmp_path, pairs_dir, names)
+    out = tmp_path / "out"
+    command = [sys.executable, "-m", "crestereo_pp.cli.main", "predict", str(left), str(right), "-o", str(out)]
+    run = subprocess.Popen(
+        [*command, "--uncertainty", str(tmp_path / "u"), "--mkdir", "--backend", "torch", "--device", "cpu"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        # Ctrl-C acts as at a terminal whatever this process inherited (an ignored SIGINT is inherited)
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
+    try:
+        deadline = time.monotonic() + 120
+        while not (out.is_dir() and any(out.glob("*.pfm"))) and run.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+        run.send_signal(signal.SIGINT)
+        _, said = run.communicate(timeout=60)
+    finally:
+        run.kill()
+    disparities, uncertainties = (sorted(folder.iterdir()) for folder in (out, tmp_path / "u"))
+    lines = said.strip().splitlines()
+    assert run.returncode == 130 and "Traceback" not in said, said
+    assert lines[-2:] == [  # a pair is written once its last output (the uncertainty) is
+        f"{len(uncertainties)} of 40 pair(s) written before the interrupt, each whole",
+        "crestereo-pp predict: interrupted",
+    ]
+    assert 1 <= len(uncertainties) <= len(disparities) <= len(uncertainties) + 1 < 41
+    for path in disparities + uncertainties:  # no partial file, each one whole
+        assert not path.name.startswith(".") and read_pfm(path).shape == (64, 96)
 
 
 def test_a_pair_of_two_sizes_is_named_in_image_terms(pairs_dir, tmp_path, capsys):
