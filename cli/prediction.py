@@ -146,6 +146,8 @@ def find_pairs(left: str, right: str) -> list[PairPaths]:
     if Path(left).is_dir() and Path(right).is_dir():
         lefts = {p.name: p for p in Path(left).iterdir() if p.suffix.lower() in IMAGE_SUFFIXES}
         rights = {p.name: p for p in Path(right).iterdir() if p.suffix.lower() in IMAGE_SUFFIXES}
+        if not lefts:
+            raise ValueError(f"{left}: no images in the folder (files ending in {', '.join(sorted(IMAGE_SUFFIXES))})")
         if set(lefts) != set(rights):
             unmatched = sorted(set(lefts) ^ set(rights))
             raise ValueError(f"{len(unmatched)} image(s) have no partner in the other folder: {unmatched[:5]}")

@@ -244,10 +244,27 @@ def _error(status: int, body: bytes, retry_after: str | None) -> ServiceError:
     return ServiceError(status, code, message, float(retry_after) if retry_after else None)
 
 
+ANSWER_MEDIA_TYPES = ("application/x-npz", "application/x-ply")
+"""The media types of the answers the client asks `POST /disparity` for."""
+
+
+def _not_a_service(response: httpx.Response, wanted: str) -> ServiceError:
+    """The error for an answer that no crestereo-pp service gives (another server at the address)."""
+    media_type = response.headers.get("content-type") or "no content type"
+    return ServiceError(
+        response.status_code,
+        "not_a_service",
+        f"{response.request.url} answered {media_type} where the service answers {wanted}: "
+        "is this the address of a crestereo-pp service?",
+    )
+
+
 def _answered(response: httpx.Response) -> bytes:
-    """The body of a 200 answer (ServiceError for an error answer)."""
+    """The body of a 200 answer (ServiceError for an error answer, or one no service gives)."""
     if response.status_code != 200:
         raise _error(response.status_code, response.content, response.headers.get("retry-after"))
+    if response.headers.get("content-type", "").split(";")[0].strip() not in ANSWER_MEDIA_TYPES:
+        raise _not_a_service(response, " or ".join(ANSWER_MEDIA_TYPES))
     return response.content
 
 
@@ -287,7 +304,10 @@ def _point_cloud(ply: bytes) -> PointCloud:
 def _json(response: httpx.Response) -> Any:
     if response.status_code >= 400 and response.status_code != 503:
         raise _error(response.status_code, response.content, response.headers.get("retry-after"))
-    return response.json()
+    try:
+        return response.json()
+    except ValueError:
+        raise _not_a_service(response, "JSON") from None
 
 
 Result = TypeVar("Result")

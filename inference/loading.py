@@ -51,6 +51,7 @@ def load_model(
     paths, for cold and warm starts, are made ready in the background at once (``prepare`` with
     ``wait=False``: OpenVINO reads their graphs from the cache or exports them).
     """
+    config = ModelConfig.preset(name)  # an unknown name: ValueError before anything else is said
     device = torch.device(device)
     chosen = resolve_backend(backend, device)
     options: dict[str, Any] = {
@@ -69,7 +70,7 @@ def load_model(
         )
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(0)
-            network = CREStereoPP(ModelConfig.preset(name))
+            network = CREStereoPP(config)
         predictor = StereoPredictor(network, name, None, device, **options)
     else:
         payload = read_weights(path, name)

@@ -390,6 +390,18 @@ def test_two_images_of_one_name_but_their_suffix_are_refused_as_they_would_share
     assert not (tmp_path / "out").exists()
 
 
+def test_empty_input_folders_and_a_device_that_is_none_are_one_line_errors(pairs_dir, tmp_path, capsys):
+    (tmp_path / "el").mkdir(), (tmp_path / "er").mkdir()
+    assert main(["predict", str(tmp_path / "el"), str(tmp_path / "er"), "-o", str(tmp_path / "o"), "--mkdir"]) == 2
+    assert f"{tmp_path / 'el'}: no images in the folder" in capsys.readouterr().err
+    pair = pairs_dir / "shift4"
+    argv = ["predict", str(pair / "left.png"), str(pair / "right.png"), "-o", str(tmp_path / "d.pfm")]
+    assert main([*argv, "--device", "banana"]) == 2
+    assert capsys.readouterr().err.strip() == (
+        "crestereo-pp predict: error: device 'banana' is not a torch device: use 'auto', 'cpu', 'cuda' or 'cuda:N'"
+    )
+
+
 def test_a_colour_scale_end_that_is_not_a_number_is_refused(pairs_dir, tmp_path, capsys):
     pair = pairs_dir / "shift4"
     argv = ["predict", str(pair / "left.png"), str(pair / "right.png"), "-o", str(tmp_path / "d.pfm")]

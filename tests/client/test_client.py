@@ -6,6 +6,7 @@ import asyncio
 import io
 import threading
 import time
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
 import cv2
 import numpy as np
@@ -143,6 +144,41 @@ def test_an_address_without_http_or_https_is_refused_at_once_naming_the_form():
             client("localhost:8000")
         with pytest.raises(ValueError, match="ftp://host: the service's address starts with http:// or https://$"):
             client("ftp://host")
+
+
+class WebPage(BaseHTTPRequestHandler):
+    """Another server at the address: a web page for every GET and POST."""
+
+    def answer(self) -> None:
+        self.rfile.read(int(self.headers.get("Content-Length") or 0))
+        page = b"<html><body>a web page</body></html>"
+        self.send_response(200)
+        self.send_header("Content-Type", "text/html")
+        self.send_header("Content-Length", str(len(page)))
+        self.end_headers()
+        self.wfile.write(page)
+
+    do_GET = do_POST = answer
+
+    def log_message(self, *_: object) -> None:
+        pass
+
+
+def test_another_server_at_the_address_is_named_as_not_the_service():
+    server = ThreadingHTTPServer(("127.0.0.1", 0), WebPage)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        with StereoClient(f"http://127.0.0.1:{server.server_port}", max_retries=0) as client:
+            errors = []
+            for call in (lambda: client.disparity(*stereo_pair()), client.health):
+                with pytest.raises(ServiceError) as refused:
+                    call()
+                errors.append(refused.value)
+    finally:
+        server.shutdown()
+    for error in errors:
+        assert error.code == "not_a_service" and "answered text/html" in error.message
+        assert "is this the address of a crestereo-pp service?" in error.message
 
 
 def test_a_result_carries_the_row_offset_the_service_measured_from_headers_and_from_a_stream(default_server):

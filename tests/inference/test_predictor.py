@@ -1,5 +1,6 @@
 """The inference API users and the service build on: load_model(...).predict(left, right)."""
 
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -8,6 +9,7 @@ import torch
 
 from crestereo_pp.inference import NETWORK_ONLY, InferenceOptions, load_model
 from crestereo_pp.inference import two_pass as two_pass_module
+from crestereo_pp.inference.device import resolve_device
 from crestereo_pp.inference.scaling import maps_at, resize_images
 from crestereo_pp.model import ModelConfig
 from crestereo_pp.model.network import finest_stage_only
@@ -326,6 +328,15 @@ def test_missing_weights_warn_and_give_the_same_random_network_in_every_process(
         second = load_model("lite")
     for a, b in zip(first.network.state_dict().values(), second.network.state_dict().values(), strict=True):
         assert torch.equal(a, b)
+
+
+def test_an_unknown_model_name_or_device_is_a_value_error_saying_so_and_nothing_else():
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no warning about weights of a model that does not exist
+        with pytest.raises(ValueError, match="unknown model preset 'nope'"):
+            load_model("nope")
+        with pytest.raises(ValueError, match="'banana' is not a torch device"):
+            resolve_device("banana", 0)
 
 
 def test_weights_file_round_trip_keeps_predictions_config_and_reports_its_sha256(lite, tmp_path):
