@@ -234,6 +234,24 @@ def check_outputs(targets: list[Output], single: bool, mkdir: bool) -> None:
             )
 
 
+OUTPUT_OPTIONS: tuple[
+    tuple[str, Callable[[argparse.Namespace], bool], str, Callable[[argparse.Namespace], bool]], ...
+] = (
+    ("--color-min", lambda args: args.color_min is not None, "--color", lambda args: args.color is not None),
+    ("--color-max", lambda args: args.color_max is not None, "--color", lambda args: args.color is not None),
+    ("--cx", lambda args: args.cx is not None, "--ply", lambda args: args.ply is not None),
+    ("--cy", lambda args: args.cy is not None, "--ply", lambda args: args.ply is not None),
+    ("--max-uncertainty", lambda args: args.max_uncertainty is not None, "--ply", lambda args: args.ply is not None),
+    (
+        "--max-depth-m",
+        lambda args: args.max_depth_m is not None,
+        "--depth, --depth-mm or --ply",
+        lambda args: any(path is not None for path in (args.depth, args.depth_mm, args.ply)),
+    ),
+)
+"""(option, whether it was given, the outputs it shapes, whether one of them is asked for): an
+option given without its output is refused, as a mistake, rather than ignored."""
+
 LOCAL_MODEL_FLAGS: dict[str, Callable[[argparse.Namespace], bool]] = {
     "--weights": lambda args: args.weights is not None,
     "--device": lambda args: args.device != "auto",
@@ -272,6 +290,9 @@ def plan(args: argparse.Namespace) -> Job:
             raise ValueError(f"{flag} needs --calibration, or --focal-px and --baseline-m")
     if args.warm_iters is not None and not args.sequence:
         raise ValueError("--warm-iters needs --sequence (only a sequence's frames start warm)")
+    for flag, given, needs, needed in OUTPUT_OPTIONS:
+        if given(args) and not needed(args):
+            raise ValueError(f"{flag} applies only with {needs}: without it, it would change nothing")
     problem = color_scale_problem(args.color_min, args.color_max, ("--color-min", "--color-max"))
     if problem is not None:
         raise ValueError(problem)

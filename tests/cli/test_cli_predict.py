@@ -402,6 +402,26 @@ def test_empty_input_folders_and_a_device_that_is_none_are_one_line_errors(pairs
     )
 
 
+@pytest.mark.parametrize(
+    ("option", "needs"),
+    [
+        (["--color-min", "5"], "--color"),
+        (["--color-max", "50"], "--color"),
+        (["--cx", "40"], "--ply"),
+        (["--max-uncertainty", "0.3"], "--ply"),
+        (["--max-depth-m", "8", "--focal-px", "500", "--baseline-m", "0.1"], "--depth, --depth-mm or --ply"),
+    ],
+)
+def test_an_option_given_without_the_output_it_shapes_is_refused_as_a_mistake(
+    pairs_dir, tmp_path, capsys, option, needs
+):
+    pair = pairs_dir / "shift4"
+    argv = ["predict", str(pair / "left.png"), str(pair / "right.png"), "-o", str(tmp_path / "d.pfm")]
+    assert main([*argv, *option]) == 2
+    assert f"{option[0]} applies only with {needs}" in capsys.readouterr().err
+    assert not (tmp_path / "d.pfm").exists()
+
+
 def test_a_colour_scale_end_that_is_not_a_number_is_refused(pairs_dir, tmp_path, capsys):
     pair = pairs_dir / "shift4"
     argv = ["predict", str(pair / "left.png"), str(pair / "right.png"), "-o", str(tmp_path / "d.pfm")]
