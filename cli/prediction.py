@@ -10,7 +10,7 @@ from collections.abc import Callable, Iterator
 from contextlib import ExitStack, closing
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Protocol
+from typing import NamedTuple, Protocol
 
 import cv2
 import numpy as np
@@ -234,23 +234,31 @@ def check_outputs(targets: list[Output], single: bool, mkdir: bool) -> None:
             )
 
 
-OUTPUT_OPTIONS: tuple[
-    tuple[str, Callable[[argparse.Namespace], bool], str, Callable[[argparse.Namespace], bool]], ...
-] = (
-    ("--color-min", lambda args: args.color_min is not None, "--color", lambda args: args.color is not None),
-    ("--color-max", lambda args: args.color_max is not None, "--color", lambda args: args.color is not None),
-    ("--cx", lambda args: args.cx is not None, "--ply", lambda args: args.ply is not None),
-    ("--cy", lambda args: args.cy is not None, "--ply", lambda args: args.ply is not None),
-    ("--max-uncertainty", lambda args: args.max_uncertainty is not None, "--ply", lambda args: args.ply is not None),
-    (
-        "--max-depth-m",
-        lambda args: args.max_depth_m is not None,
-        "--depth, --depth-mm or --ply",
-        lambda args: any(path is not None for path in (args.depth, args.depth_mm, args.ply)),
+class OutputOption(NamedTuple):
+    """An option that shapes some outputs only: given without one of them it is refused, as a
+    mistake, rather than ignored."""
+
+    flag: str
+    given: Callable[[argparse.Namespace], bool]
+    needs: str  # the outputs it shapes, as the message names them
+    needed: Callable[[argparse.Namespace], bool]  # whether one of them is asked for
+
+
+def _asked(*names: str) -> Callable[[argparse.Namespace], bool]:
+    """Whether any of the arguments `names` was given."""
+    return lambda args: any(getattr(args, name) is not None for name in names)
+
+
+OUTPUT_OPTIONS = (
+    OutputOption("--color-min", _asked("color_min"), "--color", _asked("color")),
+    OutputOption("--color-max", _asked("color_max"), "--color", _asked("color")),
+    OutputOption("--cx", _asked("cx"), "--ply", _asked("ply")),
+    OutputOption("--cy", _asked("cy"), "--ply", _asked("ply")),
+    OutputOption("--max-uncertainty", _asked("max_uncertainty"), "--ply", _asked("ply")),
+    OutputOption(
+        "--max-depth-m", _asked("max_depth_m"), "--depth, --depth-mm or --ply", _asked("depth", "depth_mm", "ply")
     ),
 )
-"""(option, whether it was given, the outputs it shapes, whether one of them is asked for): an
-option given without its output is refused, as a mistake, rather than ignored."""
 
 LOCAL_MODEL_FLAGS: dict[str, Callable[[argparse.Namespace], bool]] = {
     "--weights": lambda args: args.weights is not None,
@@ -290,9 +298,9 @@ def plan(args: argparse.Namespace) -> Job:
             raise ValueError(f"{flag} needs --calibration, or --focal-px and --baseline-m")
     if args.warm_iters is not None and not args.sequence:
         raise ValueError("--warm-iters needs --sequence (only a sequence's frames start warm)")
-    for flag, given, needs, needed in OUTPUT_OPTIONS:
-        if given(args) and not needed(args):
-            raise ValueError(f"{flag} applies only with {needs}: without it, it would change nothing")
+    for option in OUTPUT_OPTIONS:
+        if option.given(args) and not option.needed(args):
+            raise ValueError(f"{option.flag} applies only with {option.needs}: without it, it would change nothing")
     problem = color_scale_problem(args.color_min, args.color_max, ("--color-min", "--color-max"))
     if problem is not None:
         raise ValueError(problem)
