@@ -65,13 +65,12 @@ class PairImages:
     right: np.ndarray
 
 
-def read_frames(left: str, right: str) -> tuple[int, Iterator[PairImages]]:
-    """How many pairs LEFT and RIGHT hold (a video's count is its container's estimate) and
-    the pairs themselves, read one at a time."""
-    if is_video_pair(left, right):
-        return video_frames(Path(left), Path(right))
-    pairs = find_pairs(left, right)
-    return len(pairs), (PairImages(pair, *read_pair(pair)) for pair in pairs)
+def read_frames(job: Job) -> tuple[int, Iterator[PairImages]]:
+    """How many pairs the job computes (a video's count is its container's estimate) and the
+    pairs themselves, read one at a time."""
+    if job.pairs is None:
+        return video_frames(Path(job.args.left), Path(job.args.right))
+    return len(job.pairs), (PairImages(pair, *read_pair(pair)) for pair in job.pairs)
 
 
 def read_pair(pair: PairPaths) -> tuple[np.ndarray, np.ndarray]:
@@ -277,6 +276,7 @@ class Job:
     targets: list[Output]
     single: bool
     outputs: OutputOptions  # its rectifier, where the pairs are raw, rectifies them first
+    pairs: list[PairPaths] | None  # the image pairs LEFT and RIGHT name (None: two videos)
 
 
 def plan(args: argparse.Namespace) -> Job:
@@ -319,8 +319,9 @@ def plan(args: argparse.Namespace) -> Job:
     single = is_single_pair(args.left, args.right)
     targets = outputs(args)
     check_outputs(targets, single, args.mkdir)
-    if not is_video_pair(args.left, args.right):
-        check_inputs_kept(targets, find_pairs(args.left, args.right), single)
+    pairs = None if is_video_pair(args.left, args.right) else find_pairs(args.left, args.right)
+    if pairs is not None:
+        check_inputs_kept(targets, pairs, single)
     focal_baseline = (
         rectifier.focal_baseline
         if rectifier is not None
@@ -337,7 +338,7 @@ def plan(args: argparse.Namespace) -> Job:
         color_max=args.color_max,
         max_uncertainty=args.max_uncertainty,
     )
-    return Job(args, targets, single, options)
+    return Job(args, targets, single, options, pairs)
 
 
 def check_inputs_kept(targets: list[Output], pairs: list[PairPaths], single: bool) -> None:
@@ -474,7 +475,7 @@ def run(job: Job) -> int:
     args = job.args
     if args.address is not None or args.workers is not None:
         raise ValueError("--address and --workers only apply with --ray")
-    count, frames = read_frames(args.left, args.right)
+    count, frames = read_frames(job)
     written, off_rows = 0, []
     with ExitStack() as resources:
         stream = frames_of(job, resources)

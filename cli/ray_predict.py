@@ -25,10 +25,8 @@ from .prediction import (
     PairImages,
     PairPaths,
     describe_off_rows,
-    find_pairs,
     frame_options,
     is_complete,
-    is_video_pair,
     plan,
     predict_and_write,
     read_pair,
@@ -73,11 +71,11 @@ def run_on_ray(job: Job) -> int:
     from ray.util.scheduling_strategies import PlacementGroupSchedulingStrategy
 
     args = job.args
-    if args.sequence or is_video_pair(args.left, args.right):
+    pairs = job.pairs
+    if args.sequence or pairs is None:
         raise ValueError("--ray takes folders or globs of pairs; a sequence or a video is one camera's ordered frames")
     if args.workers is not None and args.workers < 1:
         raise ValueError("--workers must be at least 1")
-    pairs = find_pairs(args.left, args.right)
     todo = [pair for pair in pairs if not is_complete(job, pair)]
     if len(todo) < len(pairs):
         print(f"skipping {len(pairs) - len(todo)} pair(s) whose outputs all exist (delete them to compute again)")

@@ -107,6 +107,8 @@ class BoundedH11Protocol(LingeringClose, H11Protocol):
     """uvicorn's h11 protocol with `PieceCountingConnection`, answering its 400s in JSON, with a
     lingering close."""
 
+    conn: PieceCountingConnection
+
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         self.conn = PieceCountingConnection(self.config.h11_max_incomplete_event_size)
@@ -115,7 +117,7 @@ class BoundedH11Protocol(LingeringClose, H11Protocol):
         if self.conn.our_state not in (h11.IDLE, h11.SEND_RESPONSE):  # answered already: the rest goes unread
             self.transport.close()
             return
-        refusal = self.conn.refusal if isinstance(self.conn, PieceCountingConnection) else None
+        refusal = self.conn.refusal
         code, message = ("too_many_pieces", refusal) if refusal else ("malformed_request", MALFORMED)
         body = json.dumps({"error": {"code": code, "message": message}}).encode()
         headers = [
